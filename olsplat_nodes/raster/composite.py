@@ -1,0 +1,127 @@
+"""Front-to-back alpha compositing per tile, with the per-pixel adaptive Top-K.
+
+One tile is one unit of parallel work. Inside a tile the loop runs Gaussian by Gaussian
+(front to back) and, for each, only over the pixels of the box where its alpha can reach
+alpha_min (``extents``): pixels outside that box would be skipped by the alpha test anyway,
+so the result is the same as testing every pixel of the tile, at a fraction of the work.
+
+Per pixel, a contribution of Gaussian g is w = alpha_g * T with T the transmittance before g;
+the pixel's running Top-``topk_max`` list (sorted by w, earlier Gaussian first on ties) is
+updated by insertion. At the end the adaptive K is the smallest k whose cumulative weight
+reaches ``topk_coverage`` of the pixel's total weight (1 - T_final), clamped to
+[topk_min, topk_max] and to the number of contributors.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(parallel=True, cache=True)
+def composite_tiles(
+    offsets, ids, tile_order, means2d, conics, opacities, colors, depths, extents, sigma_cuts,
+    features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
+    topk_min, topk_max, topk_coverage, feature_eps, background,
+    out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals,
+):  # fmt: skip
+    tiles_x = (width + tile_size - 1) // tile_size
+    n_feat = features.shape[1]
+    n_pix = tile_size * tile_size
+    k_cap = topk_max if want_topk else 0
+    for work in prange(tile_order.shape[0]):
+        tile = tile_order[work]
+        x_start = (tile % tiles_x) * tile_size
+        y_start = (tile // tiles_x) * tile_size
+        x_end = min(x_start + tile_size, width)
+        y_end = min(y_start + tile_size, height)
+        tw = x_end - x_start
+        n_live = tw * (y_end - y_start)
+        trans = np.ones(n_pix, np.float32)
+        done = np.zeros(n_pix, np.bool_)
+        acc_rgb = np.zeros((n_pix, 3), np.float32)
+        acc_depth = np.zeros(n_pix, np.float32)
+        acc_feat = np.zeros((n_pix, n_feat), np.float32)
+        top_w = np.zeros((n_pix, k_cap), np.float32)
+        top_id = np.full((n_pix, k_cap), -1, np.int32)
+        top_n = np.zeros(n_pix, np.int32)
+        evals = 0
+        for j in range(offsets[tile], offsets[tile + 1]):
+            if n_live == 0:
+                break
+            g = ids[j]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+            opac, cut = opacities[g], sigma_cuts[g] + np.float32(1e-3)
+            # pixel box (tile-local) where alpha >= alpha_min is possible; +1 px for rounding
+            px0 = max(int(math.floor(mx - extents[g, 0] - 1.5)), x_start) - x_start
+            px1 = min(int(math.ceil(mx + extents[g, 0] + 0.5)), x_end) - x_start
+            py0 = max(int(math.floor(my - extents[g, 1] - 1.5)), y_start) - y_start
+            py1 = min(int(math.ceil(my + extents[g, 1] + 0.5)), y_end) - y_start
+            for ly in range(py0, py1):
+                dy = my - (np.float32(y_start + ly) + np.float32(0.5))
+                for lx in range(px0, px1):
+                    p = ly * tile_size + lx
+                    if done[p]:
+                        continue
+                    evals += 1
+                    dx = mx - (np.float32(x_start + lx) + np.float32(0.5))
+                    sigma = np.float32(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    if sigma < 0 or sigma > cut:  # beyond cut: alpha < alpha_min for sure
+                        continue
+                    alpha = min(alpha_max, opac * math.exp(-sigma))
+                    if alpha < alpha_min:
+                        continue
+                    t = trans[p]
+                    next_t = t * (np.float32(1.0) - alpha)
+                    if next_t <= t_min:
+                        done[p] = True
+                        n_live -= 1
+                        continue
+                    w = alpha * t
+                    acc_rgb[p, 0] += w * colors[g, 0]
+                    acc_rgb[p, 1] += w * colors[g, 1]
+                    acc_rgb[p, 2] += w * colors[g, 2]
+                    acc_depth[p] += w * depths[g]
+                    for f in range(n_feat):
+                        acc_feat[p, f] += w * features[g, f]
+                    if k_cap > 0:
+                        n = top_n[p]
+                        if n < k_cap or w > top_w[p, k_cap - 1]:
+                            slot = n if n < k_cap else k_cap - 1
+                            while slot > 0 and top_w[p, slot - 1] < w:
+                                top_w[p, slot] = top_w[p, slot - 1]
+                                top_id[p, slot] = top_id[p, slot - 1]
+                                slot -= 1
+                            top_w[p, slot] = w
+                            top_id[p, slot] = g
+                            if n < k_cap:
+                                top_n[p] = n + 1
+                    trans[p] = next_t
+        out_evals[tile] = evals
+        for ly in range(y_end - y_start):
+            for lx in range(tw):
+                p = ly * tile_size + lx
+                y, x = y_start + ly, x_start + lx
+                total = np.float32(1.0) - trans[p]
+                out_alpha[y, x] = total
+                for c in range(3):
+                    out_rgb[y, x, c] = acc_rgb[p, c] + trans[p] * background[c]
+                out_depth[y, x] = acc_depth[p] / total if total > 1e-10 else np.float32(0.0)
+                for f in range(n_feat):
+                    out_features[y, x, f] = acc_feat[p, f] / (total + feature_eps)
+                if k_cap > 0:
+                    n = top_n[p]
+                    keep = n
+                    cumulative = np.float32(0.0)
+                    for k in range(n):
+                        cumulative += top_w[p, k]
+                        if cumulative >= topk_coverage * total:
+                            keep = k + 1
+                            break
+                    keep = min(max(keep, topk_min), n)
+                    for k in range(keep):
+                        out_topk_ids[y, x, k] = top_id[p, k]
+                        out_topk_weights[y, x, k] = top_w[p, k]

@@ -1,0 +1,165 @@
+"""Per-Gaussian projection to the image: EWA splatting with gsplat's "classic" conventions.
+
+For each Gaussian: camera-space mean, 3D covariance R S S^T R^T, 2D covariance J W Σ W^T J^T
+(J the perspective Jacobian at the mean, with the mean's x/z and y/z clamped to 1.3x the
+field of view as gsplat does), plus ``eps2d`` on the diagonal; its inverse (the conic); a
+screen radius of 3 sigma of the largest eigenvalue; the covered tile rectangle; opacity and
+the SH colour for the viewing direction. Degenerate Gaussians (non-finite parameters, zero
+scale, behind the near plane, off-screen, too transparent to ever reach alpha_min) get
+radius 0 and are never rasterized.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from ..scene import Camera, Gaussians
+from .config import RasterConfig
+from .sh import eval_sh
+
+
+@dataclass
+class Projected:
+    """Screen-space Gaussians; arrays are [N, ...] aligned with the input map."""
+
+    means2d: np.ndarray  # [N, 2] float32 pixel coordinates (u, v), pixel centres at +0.5
+    conics: np.ndarray  # [N, 3] float32 inverse 2D covariance (a, b, c): sigma = a dx^2/2 + b dx dy + c dy^2/2
+    depths: np.ndarray  # [N] float32 camera z
+    radii: np.ndarray  # [N] int32 screen radius in pixels; 0 = culled
+    opacities: np.ndarray  # [N] float32
+    colors: np.ndarray  # [N, 3] float32 RGB
+    extents: np.ndarray  # [N, 2] float32 half-size of the box where alpha >= alpha_min is possible
+    sigma_cuts: np.ndarray  # [N] float32 log(opacity / alpha_min): sigma beyond it gives alpha < alpha_min
+    tile_rects: np.ndarray  # [N, 4] int32 (tx0, ty0, tx1, ty1), tiles tx0 <= tx < tx1, ty0 <= ty < ty1
+
+
+@njit(parallel=True, cache=True)
+def _project_kernel(
+    means, quats, log_scales, opacity_logits, sh, viewmat, fx, fy, cx, cy, campos,
+    width, height, tile_size, eps2d, near, far, radius_sigmas, alpha_min,
+    means2d, conics, depths, radii, opacities, colors, extents, sigma_cuts, tile_rects,
+):  # fmt: skip
+    n = means.shape[0]
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    lim_x_pos = (width - cx) / fx + 0.3 * (0.5 * width / fx)
+    lim_x_neg = cx / fx + 0.3 * (0.5 * width / fx)
+    lim_y_pos = (height - cy) / fy + 0.3 * (0.5 * height / fy)
+    lim_y_neg = cy / fy + 0.3 * (0.5 * height / fy)
+    for i in prange(n):
+        radii[i] = 0
+        finite = True
+        for k in range(3):
+            finite &= np.isfinite(means[i, k]) and np.isfinite(log_scales[i, k])
+        for k in range(4):
+            finite &= np.isfinite(quats[i, k])
+        finite &= np.isfinite(opacity_logits[i])
+        if not finite:
+            continue
+        # camera-space mean
+        px = viewmat[0, 0] * means[i, 0] + viewmat[0, 1] * means[i, 1] + viewmat[0, 2] * means[i, 2] + viewmat[0, 3]
+        py = viewmat[1, 0] * means[i, 0] + viewmat[1, 1] * means[i, 1] + viewmat[1, 2] * means[i, 2] + viewmat[1, 3]
+        pz = viewmat[2, 0] * means[i, 0] + viewmat[2, 1] * means[i, 1] + viewmat[2, 2] * means[i, 2] + viewmat[2, 3]
+        if not (pz > near and pz < far):
+            continue
+        opacity = 1.0 / (1.0 + math.exp(-float(opacity_logits[i])))
+        if opacity < alpha_min:  # can never reach alpha_min anywhere
+            continue
+        # world covariance M M^T with M = R(q) diag(s)
+        qw, qx, qy, qz = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
+        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if qn == 0.0:
+            continue
+        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+        # camera-space M = W R(q) diag(s), kept in scalars: no allocation in this hot loop
+        r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+        r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+        r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+        s0, s1, s2 = math.exp(float(log_scales[i, 0])), math.exp(float(log_scales[i, 1])), math.exp(float(log_scales[i, 2]))
+        m00 = (viewmat[0, 0] * r00 + viewmat[0, 1] * r10 + viewmat[0, 2] * r20) * s0
+        m01 = (viewmat[0, 0] * r01 + viewmat[0, 1] * r11 + viewmat[0, 2] * r21) * s1
+        m02 = (viewmat[0, 0] * r02 + viewmat[0, 1] * r12 + viewmat[0, 2] * r22) * s2
+        m10 = (viewmat[1, 0] * r00 + viewmat[1, 1] * r10 + viewmat[1, 2] * r20) * s0
+        m11 = (viewmat[1, 0] * r01 + viewmat[1, 1] * r11 + viewmat[1, 2] * r21) * s1
+        m12 = (viewmat[1, 0] * r02 + viewmat[1, 1] * r12 + viewmat[1, 2] * r22) * s2
+        m20 = (viewmat[2, 0] * r00 + viewmat[2, 1] * r10 + viewmat[2, 2] * r20) * s0
+        m21 = (viewmat[2, 0] * r01 + viewmat[2, 1] * r11 + viewmat[2, 2] * r21) * s1
+        m22 = (viewmat[2, 0] * r02 + viewmat[2, 1] * r12 + viewmat[2, 2] * r22) * s2
+        # Jacobian rows at the clamped mean
+        tx = pz * min(lim_x_pos, max(-lim_x_neg, px / pz))
+        ty = pz * min(lim_y_pos, max(-lim_y_neg, py / pz))
+        j00, j02 = fx / pz, -fx * tx / (pz * pz)
+        j11, j12 = fy / pz, -fy * ty / (pz * pz)
+        # T = J M (2x3); cov2d = T T^T
+        t00, t01, t02 = j00 * m00 + j02 * m20, j00 * m01 + j02 * m21, j00 * m02 + j02 * m22
+        t10, t11, t12 = j11 * m10 + j12 * m20, j11 * m11 + j12 * m21, j11 * m12 + j12 * m22
+        cov_a = t00 * t00 + t01 * t01 + t02 * t02 + eps2d
+        cov_b = t00 * t10 + t01 * t11 + t02 * t12
+        cov_c = t10 * t10 + t11 * t11 + t12 * t12 + eps2d
+        det = cov_a * cov_c - cov_b * cov_b
+        if not det > 0.0:
+            continue
+        half = 0.5 * (cov_a + cov_c)
+        lambda_max = half + math.sqrt(max(0.01, half * half - det))
+        radius = math.ceil(radius_sigmas * math.sqrt(lambda_max))
+        u = fx * px / pz + cx
+        v = fy * py / pz + cy
+        if not (u + radius > 0 and u - radius < width and v + radius > 0 and v - radius < height):
+            continue
+        tx0 = min(max(int(math.floor((u - radius) / tile_size)), 0), tiles_x)
+        tx1 = min(max(int(math.ceil((u + radius) / tile_size)), 0), tiles_x)
+        ty0 = min(max(int(math.floor((v - radius) / tile_size)), 0), tiles_y)
+        ty1 = min(max(int(math.ceil((v + radius) / tile_size)), 0), tiles_y)
+        if tx0 >= tx1 or ty0 >= ty1:
+            continue
+        # SH colour
+        dx, dy, dz = means[i, 0] - campos[0], means[i, 1] - campos[1], means[i, 2] - campos[2]
+        dn = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dn = dn if dn > 0.0 else 1.0
+        color_ok = True
+        for ch in range(3):
+            acc = eval_sh(sh[i, :, ch], dx / dn, dy / dn, dz / dn)
+            colors[i, ch] = max(acc + 0.5, 0.0)
+            color_ok &= np.isfinite(acc)
+        if not color_ok:
+            continue
+        sigma_cut = math.log(opacity / alpha_min)
+        means2d[i, 0], means2d[i, 1] = u, v
+        conics[i, 0], conics[i, 1], conics[i, 2] = cov_c / det, -cov_b / det, cov_a / det
+        depths[i] = pz
+        opacities[i] = opacity
+        # alpha >= alpha_min  <=>  d^T cov^-1 d <= 2 sigma_cut: an ellipse with this bounding box
+        extents[i, 0] = math.sqrt(2.0 * sigma_cut * cov_a)
+        extents[i, 1] = math.sqrt(2.0 * sigma_cut * cov_c)
+        sigma_cuts[i] = sigma_cut
+        tile_rects[i, 0], tile_rects[i, 1], tile_rects[i, 2], tile_rects[i, 3] = tx0, ty0, tx1, ty1
+        radii[i] = radius
+
+
+def project(gaussians: Gaussians, camera: Camera, config: RasterConfig) -> Projected:
+    """Project every Gaussian of the map into ``camera`` (see the module docstring)."""
+    n = len(gaussians)
+    out = Projected(
+        means2d=np.zeros((n, 2), np.float32),
+        conics=np.zeros((n, 3), np.float32),
+        depths=np.zeros(n, np.float32),
+        radii=np.zeros(n, np.int32),
+        opacities=np.zeros(n, np.float32),
+        colors=np.zeros((n, 3), np.float32),
+        extents=np.zeros((n, 2), np.float32),
+        sigma_cuts=np.zeros(n, np.float32),
+        tile_rects=np.zeros((n, 4), np.int32),
+    )
+    _project_kernel(
+        gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits, gaussians.sh,
+        camera.camera_from_world, camera.fx, camera.fy, camera.cx, camera.cy, camera.center,
+        camera.width, camera.height, config.tile_size, config.eps2d, config.near_plane, config.far_plane,
+        config.radius_sigmas, config.alpha_min,
+        out.means2d, out.conics, out.depths, out.radii, out.opacities, out.colors, out.extents,
+        out.sigma_cuts, out.tile_rects,
+    )  # fmt: skip
+    return out

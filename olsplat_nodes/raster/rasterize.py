@@ -1,0 +1,83 @@
+"""The public rasterizer: one camera, one map, every output the method needs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..scene import Camera, Gaussians
+from .binning import bin_tiles
+from .composite import composite_tiles
+from .config import RasterConfig
+from .project import Projected, project
+
+
+@dataclass
+class RenderResult:
+    rgb: np.ndarray  # [H, W, 3] float32, 0..1 (+ background * final transmittance)
+    alpha: np.ndarray  # [H, W] float32 accumulated opacity = sum of weights = 1 - T_final
+    depth: np.ndarray  # [H, W] float32 expected camera z = sum(w z) / alpha; 0 where alpha = 0
+    features: np.ndarray | None  # [H, W, D] float32 sum(w f) / (alpha + eps), when features were given
+    topk_ids: np.ndarray | None  # [H, W, topk_max] int32 Gaussian indices by weight, -1 padded
+    topk_weights: np.ndarray | None  # [H, W, topk_max] float32 alpha*T weights, 0 padded
+    n_evaluations: int  # Gaussian-pixel pairs evaluated (the sigma computed)
+    n_intersections: int  # Gaussian-tile pairs after binning
+    n_visible: int  # Gaussians that survived projection
+
+
+def rasterize(
+    gaussians: Gaussians,
+    camera: Camera,
+    config: RasterConfig | None = None,
+    features: np.ndarray | None = None,  # [N, D] per-Gaussian features to render
+    want_topk: bool = True,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> RenderResult:
+    """Render ``gaussians`` into ``camera``'s ideal pinhole image (distortion not applied).
+
+    See ``project`` for the projection conventions and ``composite`` for the compositing and
+    Top-K rules; ``_reference.rasterize_reference`` is the slow oracle with the same contract.
+    """
+    config = config or RasterConfig()
+    n = len(gaussians)
+    if features is None:
+        feats = np.zeros((n, 0), np.float32)
+    else:
+        feats = np.ascontiguousarray(features, dtype=np.float32)
+        if feats.ndim != 2 or feats.shape[0] != n:
+            raise ValueError(f"features must be [N={n}, D], got shape {feats.shape}")
+    width, height, tile = camera.width, camera.height, config.tile_size
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    projected: Projected = project(gaussians, camera, config)
+    offsets, ids = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
+
+    k = config.topk_max if want_topk else 0
+    rgb = np.empty((height, width, 3), np.float32)
+    alpha = np.empty((height, width), np.float32)
+    depth = np.empty((height, width), np.float32)
+    out_features = np.empty((height, width, feats.shape[1]), np.float32)
+    topk_ids = np.full((height, width, k), -1, np.int32)
+    topk_weights = np.zeros((height, width, k), np.float32)
+    evals = np.zeros(tiles_x * tiles_y, np.int64)
+    # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
+    tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
+    composite_tiles(
+        offsets, ids, tile_order, projected.means2d, projected.conics, projected.opacities,
+        projected.colors, projected.depths, projected.extents, projected.sigma_cuts, feats,
+        width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
+        want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
+        np.asarray(background, np.float32),
+        rgb, alpha, depth, out_features, topk_ids, topk_weights, evals,
+    )  # fmt: skip
+    return RenderResult(
+        rgb=rgb,
+        alpha=alpha,
+        depth=depth,
+        features=out_features if features is not None else None,
+        topk_ids=topk_ids if want_topk else None,
+        topk_weights=topk_weights if want_topk else None,
+        n_evaluations=int(evals.sum()),
+        n_intersections=int(len(ids)),
+        n_visible=int((projected.radii > 0).sum()),
+    )
