@@ -1,32 +1,69 @@
 """Tile binning: for every 16x16 tile, the Gaussians that touch it, nearest first.
 
-Gaussians are sorted by camera depth once; a counting sort by tile then keeps that order
-inside each tile's list (stable), so no per-tile sort is needed. Ties in depth keep map order.
+Gaussians are sorted by camera depth once (a stable radix sort on the float bits); a
+counting sort by tile then keeps that order inside each tile's list, so no per-tile sort is
+needed. Ties in depth keep map order. Both passes run in parallel over chunks of the sorted
+list; chunk c writes after chunks < c inside every tile, which keeps the depth order.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True)
-def _bin_sorted(order, tile_rects, tiles_x, n_tiles):
-    counts = np.zeros(n_tiles + 1, np.int64)
-    for g in order:
-        for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
-            for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
-                counts[ty * tiles_x + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    cursor = offsets[:-1].copy()
-    ids = np.empty(offsets[-1], np.int32)
-    for g in order:
-        for ty in range(tile_rects[g, 1], tile_rects[g, 3]):
-            for tx in range(tile_rects[g, 0], tile_rects[g, 2]):
-                tile = ty * tiles_x + tx
-                ids[cursor[tile]] = g
-                cursor[tile] += 1
-    return offsets, ids
+def radix_argsort(keys):
+    """Stable argsort of non-negative float32 ``keys`` [M] (LSD radix, 3 passes of 11 bits).
+
+    Non-negative IEEE floats order like their bit patterns read as unsigned integers.
+    """
+    bits = keys.view(np.uint32)
+    n = bits.shape[0]
+    order = np.arange(n).astype(np.int32)
+    scratch = np.empty(n, np.int32)
+    for shift in (0, 11, 22):
+        counts = np.zeros(2049, np.int64)
+        for i in range(n):
+            counts[((bits[order[i]] >> shift) & 2047) + 1] += 1
+        for b in range(2048):
+            counts[b + 1] += counts[b]
+        for i in range(n):
+            digit = (bits[order[i]] >> shift) & 2047
+            scratch[counts[digit]] = order[i]
+            counts[digit] += 1
+        order, scratch = scratch, order
+    return order
+
+
+@njit(parallel=True, cache=True)
+def _bin_sorted(rects, n_chunks, tiles_x, n_tiles):
+    """rects [M, 4] tile rectangles in depth order -> (offsets [n_tiles + 1], positions into rects)."""
+    m = rects.shape[0]
+    bounds = np.linspace(0, m, n_chunks + 1).astype(np.int64)
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    for c in prange(n_chunks):
+        for i in range(bounds[c], bounds[c + 1]):
+            for ty in range(rects[i, 1], rects[i, 3]):
+                for tx in range(rects[i, 0], rects[i, 2]):
+                    counts[c, ty * tiles_x + tx] += 1
+    offsets = np.zeros(n_tiles + 1, np.int64)
+    cursors = np.empty((n_chunks, n_tiles), np.int64)
+    for t in range(n_tiles):
+        position = offsets[t]
+        for c in range(n_chunks):
+            cursors[c, t] = position
+            position += counts[c, t]
+        offsets[t + 1] = position
+    slots = np.empty(offsets[n_tiles], np.int32)
+    for c in prange(n_chunks):
+        for i in range(bounds[c], bounds[c + 1]):
+            for ty in range(rects[i, 1], rects[i, 3]):
+                for tx in range(rects[i, 0], rects[i, 2]):
+                    tile = ty * tiles_x + tx
+                    slots[cursors[c, tile]] = i
+                    cursors[c, tile] += 1
+    return offsets, slots
 
 
 def bin_tiles(
@@ -35,6 +72,7 @@ def bin_tiles(
     tile_rects: np.ndarray,  # [N, 4] int32 (tx0, ty0, tx1, ty1)
     tiles_x: int,
     tiles_y: int,
+    n_chunks: int = 8,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns (offsets [tiles_x * tiles_y + 1] int64, ids [n_intersections] int32).
 
@@ -42,5 +80,6 @@ def bin_tiles(
     front to back.
     """
     visible = np.flatnonzero(radii > 0).astype(np.int32)
-    order = visible[np.argsort(depths[visible], kind="stable")]
-    return _bin_sorted(order, tile_rects, tiles_x, tiles_x * tiles_y)
+    order = visible[radix_argsort(np.ascontiguousarray(depths[visible]))]
+    offsets, slots = _bin_sorted(tile_rects[order], n_chunks, tiles_x, tiles_x * tiles_y)
+    return offsets, order[slots]

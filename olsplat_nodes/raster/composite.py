@@ -20,7 +20,48 @@ import numpy as np
 from numba import njit, prange
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True, inline="always")
+def _ranks_before(w_a, j_a, w_b, j_b) -> bool:
+    """Entry a ranks before b: larger weight first, nearer (smaller j) first on ties."""
+    return w_a > w_b or (w_a == w_b and j_a < j_b)
+
+
+@njit(cache=True, inline="always")
+def _offer(weights, slots, top_n, top_last, p, w, j, k_cap):
+    """Offer contribution (w, j) to pixel p's unsorted Top-k_cap list."""
+    n = top_n[p]
+    if n < k_cap:
+        weights[n], slots[n] = w, j
+        top_n[p] = n + 1
+        if n + 1 == k_cap:
+            _find_last(weights, slots, top_last, p, k_cap)
+    elif w > weights[top_last[p]]:  # ties lose: the earlier contribution ranks first
+        weights[top_last[p]], slots[top_last[p]] = w, j
+        _find_last(weights, slots, top_last, p, k_cap)
+
+
+@njit(cache=True, inline="always")
+def _find_last(weights, slots, top_last, p, k_cap):
+    last = 0
+    for k in range(1, k_cap):
+        if _ranks_before(weights[last], slots[last], weights[k], slots[k]):
+            last = k
+    top_last[p] = last
+
+
+@njit(cache=True)
+def _sort_ranked(weights, slots, n):
+    """Insertion sort of the first n entries into rank order (input is nearly sorted)."""
+    for i in range(1, n):
+        w, s = weights[i], slots[i]
+        k = i
+        while k > 0 and _ranks_before(w, s, weights[k - 1], slots[k - 1]):
+            weights[k], slots[k] = weights[k - 1], slots[k - 1]
+            k -= 1
+        weights[k], slots[k] = w, s
+
+
+@njit(parallel=True, cache=True, fastmath=True)
 def composite_tiles(
     offsets, ids, tile_order, means2d, conics, opacities, colors, depths, extents, sigma_cuts,
     features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
@@ -31,6 +72,9 @@ def composite_tiles(
     n_feat = features.shape[1]
     n_pix = tile_size * tile_size
     k_cap = topk_max if want_topk else 0
+    # float32 throughout the hot loop: mixing in float64 constants would promote it
+    alpha_min, alpha_max, t_min = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
+    one, half = np.float32(1.0), np.float32(0.5)
     for work in prange(tile_order.shape[0]):
         tile = tile_order[work]
         x_start = (tile % tiles_x) * tile_size
@@ -44,14 +88,15 @@ def composite_tiles(
         acc_rgb = np.zeros((n_pix, 3), np.float32)
         acc_depth = np.zeros(n_pix, np.float32)
         acc_feat = np.zeros((n_pix, n_feat), np.float32)
-        top_w = np.zeros((n_pix, k_cap), np.float32)
-        top_id = np.full((n_pix, k_cap), -1, np.int32)
+        # Per pixel, an unsorted list of up to k_cap (weight, tile-list position j) lives in the
+        # output arrays themselves; top_last is the slot of the entry that ranks last.
         top_n = np.zeros(n_pix, np.int32)
+        top_last = np.zeros(n_pix, np.int32)
         evals = 0
-        for j in range(offsets[tile], offsets[tile + 1]):
+        for j in range(offsets[tile + 1] - offsets[tile]):  # j: position in the tile's list
             if n_live == 0:
                 break
-            g = ids[j]
+            g = ids[offsets[tile] + j]
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
             opac, cut = opacities[g], sigma_cuts[g] + np.float32(1e-3)
@@ -61,21 +106,21 @@ def composite_tiles(
             py0 = max(int(math.floor(my - extents[g, 1] - 1.5)), y_start) - y_start
             py1 = min(int(math.ceil(my + extents[g, 1] + 0.5)), y_end) - y_start
             for ly in range(py0, py1):
-                dy = my - (np.float32(y_start + ly) + np.float32(0.5))
+                dy = my - (np.float32(y_start + ly) + half)
                 for lx in range(px0, px1):
                     p = ly * tile_size + lx
                     if done[p]:
                         continue
                     evals += 1
-                    dx = mx - (np.float32(x_start + lx) + np.float32(0.5))
-                    sigma = np.float32(0.5) * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    dx = mx - (np.float32(x_start + lx) + half)
+                    sigma = half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
                     if sigma < 0 or sigma > cut:  # beyond cut: alpha < alpha_min for sure
                         continue
                     alpha = min(alpha_max, opac * math.exp(-sigma))
                     if alpha < alpha_min:
                         continue
                     t = trans[p]
-                    next_t = t * (np.float32(1.0) - alpha)
+                    next_t = t * (one - alpha)
                     if next_t <= t_min:
                         done[p] = True
                         n_live -= 1
@@ -88,17 +133,7 @@ def composite_tiles(
                     for f in range(n_feat):
                         acc_feat[p, f] += w * features[g, f]
                     if k_cap > 0:
-                        n = top_n[p]
-                        if n < k_cap or w > top_w[p, k_cap - 1]:
-                            slot = n if n < k_cap else k_cap - 1
-                            while slot > 0 and top_w[p, slot - 1] < w:
-                                top_w[p, slot] = top_w[p, slot - 1]
-                                top_id[p, slot] = top_id[p, slot - 1]
-                                slot -= 1
-                            top_w[p, slot] = w
-                            top_id[p, slot] = g
-                            if n < k_cap:
-                                top_n[p] = n + 1
+                        _offer(out_topk_weights[y_start + ly, x_start + lx], out_topk_ids[y_start + ly, x_start + lx], top_n, top_last, p, w, j, k_cap)
                     trans[p] = next_t
         out_evals[tile] = evals
         for ly in range(y_end - y_start):
@@ -114,14 +149,18 @@ def composite_tiles(
                     out_features[y, x, f] = acc_feat[p, f] / (total + feature_eps)
                 if k_cap > 0:
                     n = top_n[p]
+                    weights, slots = out_topk_weights[y, x], out_topk_ids[y, x]
+                    _sort_ranked(weights, slots, n)
                     keep = n
                     cumulative = np.float32(0.0)
                     for k in range(n):
-                        cumulative += top_w[p, k]
+                        cumulative += weights[k]
                         if cumulative >= topk_coverage * total:
                             keep = k + 1
                             break
                     keep = min(max(keep, topk_min), n)
                     for k in range(keep):
-                        out_topk_ids[y, x, k] = top_id[p, k]
-                        out_topk_weights[y, x, k] = top_w[p, k]
+                        slots[k] = ids[offsets[tile] + slots[k]]
+                    for k in range(keep, k_cap):  # pad; the outputs arrive uninitialised
+                        slots[k] = -1
+                        out_topk_weights[y, x, k] = np.float32(0.0)

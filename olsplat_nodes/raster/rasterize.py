@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,7 @@ class RenderResult:
     n_evaluations: int  # Gaussian-pixel pairs evaluated (the sigma computed)
     n_intersections: int  # Gaussian-tile pairs after binning
     n_visible: int  # Gaussians that survived projection
+    seconds: dict[str, float]  # wall time per stage: project, bin, composite
 
 
 def rasterize(
@@ -49,16 +51,19 @@ def rasterize(
             raise ValueError(f"features must be [N={n}, D], got shape {feats.shape}")
     width, height, tile = camera.width, camera.height, config.tile_size
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    clock = [time.perf_counter()]
     projected: Projected = project(gaussians, camera, config)
+    clock.append(time.perf_counter())
     offsets, ids = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
+    clock.append(time.perf_counter())
 
     k = config.topk_max if want_topk else 0
     rgb = np.empty((height, width, 3), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
     out_features = np.empty((height, width, feats.shape[1]), np.float32)
-    topk_ids = np.full((height, width, k), -1, np.int32)
-    topk_weights = np.zeros((height, width, k), np.float32)
+    topk_ids = np.empty((height, width, k), np.int32)  # every slot written by the kernel
+    topk_weights = np.empty((height, width, k), np.float32)
     evals = np.zeros(tiles_x * tiles_y, np.int64)
     # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
     tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
@@ -70,6 +75,7 @@ def rasterize(
         np.asarray(background, np.float32),
         rgb, alpha, depth, out_features, topk_ids, topk_weights, evals,
     )  # fmt: skip
+    clock.append(time.perf_counter())
     return RenderResult(
         rgb=rgb,
         alpha=alpha,
@@ -80,4 +86,5 @@ def rasterize(
         n_evaluations=int(evals.sum()),
         n_intersections=int(len(ids)),
         n_visible=int((projected.radii > 0).sum()),
+        seconds=dict(zip(("project", "bin", "composite"), np.diff(clock).tolist())),
     )

@@ -92,7 +92,7 @@ def read_ply(path: str | Path, on_nonfinite: NonFinitePolicy = "error") -> Gauss
         raise SceneFormatError(
             path,
             f"{int(bad.sum())} of {n} Gaussians have NaN/inf parameters (first at index {first}); "
-            "pass on_nonfinite='drop' (CLI: --drop-nonfinite) to skip them",
+            "pass on_nonfinite='keep' (CLI: --allow-nonfinite) to render without them",
         )
     if bad.any() and on_nonfinite == "drop":
         gaussians = gaussians.subset(~bad)

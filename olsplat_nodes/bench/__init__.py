@@ -1,0 +1,1 @@
+"""Benchmark scripts (``olsplat bench ...``): they print figures; no test times anything."""

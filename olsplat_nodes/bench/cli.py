@@ -1,0 +1,11 @@
+"""``olsplat bench TARGET``: one subcommand per benchmark."""
+
+from __future__ import annotations
+
+from . import raster
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("bench", help="run a benchmark and print its figures")
+    targets = parser.add_subparsers(dest="target", required=True, metavar="TARGET")
+    raster.add_parser(targets)

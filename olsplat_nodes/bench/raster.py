@@ -1,0 +1,91 @@
+"""``olsplat bench raster``: seconds per view, throughput, and the speed-up over the reference.
+
+Scenes are generated towns (``olsplat_sim.make_town``) of 150 m x 150 m seen by an oblique
+(45 degree) camera 90 m up and 90 m out, 70 degree horizontal field of view, so that nearly
+the whole map is in view: the hardest case for one view. Each figure is the median of
+``--repeat`` renders after one warm-up render (numba compilation excluded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import numpy as np
+
+from ..raster import rasterize
+from ..raster._reference import rasterize_reference
+from ..scene import Camera, Gaussians, intrinsics, look_at
+
+
+def bench_camera(width: int, height: int) -> Camera:
+    focal = 0.5 * width / np.tan(np.radians(35.0))
+    pose = look_at([0.0, -90.0, 90.0], [0.0, 0.0, 0.0], (0.0, 0.0, 1.0))
+    return Camera(f"bench_{width}x{height}", width, height, intrinsics(focal, focal, width / 2, height / 2), pose)
+
+
+def _median_render(gaussians: Gaussians, camera: Camera, want_topk: bool, repeat: int):
+    rasterize(gaussians, camera, want_topk=want_topk)
+    runs = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        result = rasterize(gaussians, camera, want_topk=want_topk)
+        runs.append((time.perf_counter() - start, result))
+    seconds = statistics.median(s for s, _ in runs)
+    return seconds, min(runs, key=lambda r: abs(r[0] - seconds))[1]
+
+
+def reference_speedup(threads: int) -> tuple[float, float]:
+    """(reference seconds, fast seconds) on a scene small enough for the reference."""
+    from olsplat_sim import make_town
+
+    gaussians = make_town(3_000, size_m=150.0, seed=1).gaussians
+    camera = bench_camera(64, 48)
+    start = time.perf_counter()
+    rasterize_reference(gaussians, camera)
+    reference = time.perf_counter() - start
+    fast, _ = _median_render(gaussians, camera, True, 20)
+    return reference, fast
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("raster", help="rasterizer speed per view and throughput")
+    parser.add_argument("--gaussians", type=int, nargs="+", default=[100_000, 1_000_000])
+    parser.add_argument("--sizes", nargs="+", default=["640x480", "960x720", "1280x960"])
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--skip-reference", action="store_true", help="skip the slow reference comparison")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import numba
+    from olsplat_sim import make_town
+
+    threads = numba.get_num_threads()
+    print(f"machine: {platform.processor() or platform.machine()}, {threads} numba threads, python {platform.python_version()}")
+    print(
+        f"{'gaussians':>10} {'image':>9} {'in view':>9} {'tile pairs':>11} {'s/view':>7} {'s/view':>7} "
+        f"{'evals':>7} {'Mevals/s':>9} {'project':>8} {'bin':>6} {'compos.':>8}"
+    )
+    print(f"{'':>10} {'':>9} {'':>9} {'':>11} {'top-K':>7} {'no top-K':>7} {'(M)':>7} {'per core':>9} {'(s)':>8} {'(s)':>6} {'(s)':>8}")
+    for n in args.gaussians:
+        gaussians = make_town(n, size_m=150.0, seed=0).gaussians
+        for size in args.sizes:
+            width, height = (int(v) for v in size.split("x"))
+            camera = bench_camera(width, height)
+            with_topk, result = _median_render(gaussians, camera, True, args.repeat)
+            without_topk, _ = _median_render(gaussians, camera, False, args.repeat)
+            rate = result.n_evaluations / with_topk / threads / 1e6
+            stages = result.seconds
+            print(
+                f"{len(gaussians):>10,} {size:>9} {result.n_visible:>9,} {result.n_intersections:>11,} "
+                f"{with_topk:>7.3f} {without_topk:>7.3f} {result.n_evaluations / 1e6:>7.1f} {rate:>9.1f} "
+                f"{stages['project']:>8.3f} {stages['bin']:>6.3f} {stages['composite']:>8.3f}"
+            )
+    if not args.skip_reference:
+        reference, fast = reference_speedup(threads)
+        print(f"reference (numpy, 64x48, 3,000 Gaussians): {reference:.2f} s; fast: {fast * 1e3:.2f} ms; speed-up {reference / fast:,.0f}x")
+    print("Mevals/s per core = Gaussian-pixel evaluations (sigma computed) / s/view with top-K / threads")
+    return 0

@@ -1,0 +1,1 @@
+"""The ``olsplat`` subcommands: each module has ``add_parser(subparsers)`` and ``run(args)``."""

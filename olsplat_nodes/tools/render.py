@@ -1,0 +1,51 @@
+"""``olsplat render``: one view of a map to an npz (and optionally a picture)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from ..raster import rasterize
+from ..scene import read_cameras, read_ply, select_view
+from ..viz import rgb_to_bgr8, write_png
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "render",
+        help="render one view of a Gaussian map",
+        description="Render one view; the npz holds rgb [H,W,3] float32 0..1, alpha [H,W], depth [H,W] "
+        "(camera z, metres), topk_ids [H,W,32] int32 (-1 padded) and topk_weights [H,W,32] float32.",
+    )
+    parser.add_argument("--ply", required=True, type=Path, help="INRIA-layout Gaussian PLY")
+    parser.add_argument("--cameras", required=True, type=Path, help="COLMAP model folder or transforms.json")
+    parser.add_argument("--view", required=True, help="image name (or file name / stem) or index")
+    parser.add_argument("--out", required=True, type=Path, help="output .npz")
+    parser.add_argument("--png", type=Path, help="also write the RGB picture here")
+    parser.add_argument(
+        "--allow-nonfinite",
+        action="store_true",
+        help="render although some Gaussians hold NaN/inf (they are skipped; Top-K ids still index the file)",
+    )
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    gaussians = read_ply(args.ply, on_nonfinite="keep" if args.allow_nonfinite else "error")
+    camera = select_view(read_cameras(args.cameras), args.view)
+    result = rasterize(gaussians, camera)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        args.out,
+        rgb=result.rgb,
+        alpha=result.alpha,
+        depth=result.depth,
+        topk_ids=result.topk_ids,
+        topk_weights=result.topk_weights,
+    )
+    if args.png:
+        write_png(args.png, rgb_to_bgr8(result.rgb))
+    print(f"rendered {camera.name} ({camera.width}x{camera.height}, {result.n_visible} Gaussians in view) -> {args.out}")
+    return 0

@@ -1,0 +1,64 @@
+"""Turn rasterizer outputs into pictures a person can read (8-bit BGR arrays for cv2.imwrite)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _cv2():
+    import cv2
+
+    return cv2
+
+
+def rgb_to_bgr8(rgb: np.ndarray) -> np.ndarray:
+    """[H, W, 3] float RGB 0..1 -> [H, W, 3] uint8 BGR."""
+    return (np.clip(rgb[..., ::-1], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def colorize(values: np.ndarray, valid: np.ndarray | None = None, lo=None, hi=None) -> np.ndarray:
+    """[H, W] scalars -> [H, W, 3] uint8 BGR (turbo colour map); invalid pixels black."""
+    cv2 = _cv2()
+    valid = np.isfinite(values) if valid is None else valid & np.isfinite(values)
+    if not valid.any():
+        return np.zeros((*values.shape, 3), np.uint8)
+    lo = np.percentile(values[valid], 1) if lo is None else lo
+    hi = np.percentile(values[valid], 99) if hi is None else hi
+    scaled = np.clip((values - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    image = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    image[~valid] = 0
+    return image
+
+
+def id_colors(ids: np.ndarray) -> np.ndarray:
+    """[...] int Gaussian ids -> [..., 3] uint8 colours, a fixed pseudo-random colour per id; -1 black."""
+    hashed = (ids.astype(np.uint64) * np.uint64(2654435761)) & np.uint64(0xFFFFFF)
+    out = np.stack([(hashed >> np.uint64(s)) & np.uint64(0xFF) for s in (0, 8, 16)], -1).astype(np.uint8)
+    out[ids < 0] = 0
+    return out
+
+
+def topk_panel(topk_ids: np.ndarray, topk_weights: np.ndarray) -> np.ndarray:
+    """Side by side: top-1 Gaussian id, adaptive K per pixel, effective number E (inverse Simpson).
+
+    topk_ids, topk_weights: [H, W, K]. Returns [H, 3 W, 3] uint8 BGR.
+    """
+    cv2 = _cv2()
+    count = (topk_ids >= 0).sum(-1)
+    kmax = topk_ids.shape[-1]
+    pi = topk_weights / (topk_weights.sum(-1, keepdims=True) + 1e-12)
+    effective = 1.0 / ((pi**2).sum(-1) + 1e-12)
+    panels = [
+        id_colors(topk_ids[..., 0]),
+        colorize(count.astype(np.float32), count > 0, 0, kmax),
+        colorize(effective, count > 0, 1, kmax),
+    ]
+    for panel, text in zip(panels, ("top-1 Gaussian", f"adaptive K (0..{kmax})", f"E inverse Simpson (1..{kmax})")):
+        cv2.putText(panel, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
+    return np.concatenate(panels, axis=1)
+
+
+def write_png(path, image: np.ndarray) -> None:
+    """Write an 8-bit image; raises OSError naming the path when it cannot."""
+    if not _cv2().imwrite(str(path), image):
+        raise OSError(f"{path}: cannot write the image (bad folder or extension?)")

@@ -1,0 +1,49 @@
+"""Shared fixtures: small deterministic scenes and cameras, and where the real data lives."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.scene import Camera, Gaussians, intrinsics, look_at
+
+SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def random_gaussians(n: int, sh_degree: int = 3, seed: int = 0, spread: float = 1.0) -> Gaussians:
+    """n Gaussians in a slab around the origin (|x|, |y| <= spread, |z| <= 0.3 spread)."""
+    rng = np.random.default_rng(seed)
+    means = rng.uniform(-spread, spread, (n, 3))
+    means[:, 2] *= 0.3
+    return Gaussians(
+        means=means,
+        quats=rng.normal(size=(n, 4)),
+        log_scales=np.log(rng.uniform(0.02, 0.25, (n, 3)) * spread),
+        opacity_logits=rng.normal(0.5, 2.0, n),
+        sh=rng.normal(0.0, 0.4, (n, (sh_degree + 1) ** 2, 3)),
+    )
+
+
+def camera_for(kind: str, width: int, height: int) -> Camera:
+    """Cameras of several intrinsics models looking at the origin from about 4 units away."""
+    pose = look_at([0.4, -0.3, 4.0], [0.0, 0.0, 0.0], (0.0, 1.0, 0.0))
+    if kind == "PINHOLE_CENTRED":
+        return Camera(kind, width, height, intrinsics(0.9 * width, 0.9 * width, width / 2, height / 2), pose)
+    if kind == "PINHOLE_SKEWED":  # fx != fy, principal point off centre
+        return Camera(kind, width, height, intrinsics(0.8 * width, 1.1 * width, 0.4 * width, 0.6 * height), pose)
+    if kind == "SIMPLE_RADIAL":
+        K = intrinsics(0.7 * width, 0.7 * width, width / 2 + 1.3, height / 2 - 0.7)
+        return Camera(kind, width, height, K, pose, dist=[0.05, 0, 0, 0], model="SIMPLE_RADIAL")
+    if kind == "OPENCV_WIDE":  # wide field of view: Jacobian clamping matters at the border
+        K = intrinsics(0.3 * width, 0.32 * width, width / 2, height / 2)
+        return Camera(kind, width, height, K, pose, dist=[-0.1, 0.01, 0.001, -0.002], model="OPENCV")
+    raise ValueError(kind)
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"the shared real data folder is absent ({SHARED_DATA})")
+    return SHARED_DATA

@@ -1,0 +1,172 @@
+"""The fast rasterizer against the slow numpy reference, and its Top-K contract."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.raster import RasterConfig, rasterize
+from olsplat_nodes.raster._reference import rasterize_reference
+from olsplat_nodes.raster.binning import radix_argsort
+
+from ..conftest import camera_for, random_gaussians
+
+
+def assert_topk_matches(fast, ref, tie_tol=1e-6):
+    """Same weights everywhere; same ids wherever a weight is not tied with a neighbour rank."""
+    np.testing.assert_allclose(fast.topk_weights, ref["topk_weights"], atol=2e-6)
+    w = ref["topk_weights"]
+    gap = np.full(w.shape, np.inf)
+    step = w[..., :-1] - w[..., 1:]  # >= 0: ranks are sorted
+    gap[..., 1:] = step
+    gap[..., :-1] = np.minimum(gap[..., :-1], step)
+    valid = ref["topk_ids"] >= 0
+    untied = valid & (gap > tie_tol)
+    assert untied.sum() >= 0.9 * valid.sum()
+    np.testing.assert_array_equal(fast.topk_ids[untied], ref["topk_ids"][untied])
+    np.testing.assert_array_equal((fast.topk_ids >= 0).sum(-1), valid.sum(-1))
+
+
+CASES = [
+    # (width, height, n, camera kind, sh degree, feature dim)
+    (32, 24, 40, "PINHOLE_CENTRED", 0, 0),
+    (47, 33, 120, "PINHOLE_SKEWED", 1, 3),
+    (64, 48, 200, "SIMPLE_RADIAL", 2, 0),
+    (50, 70, 150, "OPENCV_WIDE", 3, 17),
+    (80, 60, 400, "PINHOLE_CENTRED", 3, 8),
+]
+
+
+@pytest.mark.parametrize("width,height,n,kind,sh_degree,dim", CASES)
+def test_fast_matches_reference(width, height, n, kind, sh_degree, dim):
+    gaussians = random_gaussians(n, sh_degree, seed=n + width)
+    camera = camera_for(kind, width, height)
+    features = np.random.default_rng(1).normal(size=(n, dim)).astype(np.float32) if dim else None
+    fast = rasterize(gaussians, camera, features=features)
+    ref = rasterize_reference(gaussians, camera, features=features)
+
+    assert fast.alpha.max() > 0.5, "the scene must actually cover pixels"
+    assert np.abs(fast.rgb - ref["rgb"]).mean() < 1e-4
+    assert np.abs(fast.alpha - ref["alpha"]).mean() < 1e-4
+    np.testing.assert_allclose(fast.rgb, ref["rgb"], atol=1e-4)
+    np.testing.assert_allclose(fast.depth, ref["depth"], rtol=1e-4, atol=1e-4)
+    if dim:
+        np.testing.assert_allclose(fast.features, ref["features"], rtol=1e-3, atol=1e-4)
+    assert_topk_matches(fast, ref)
+
+
+def test_many_contributors_exercise_the_topk_cap():
+    """A dense, translucent stack: pixels with more than 32 contributors and K between the bounds."""
+    gaussians = random_gaussians(600, 0, seed=7, spread=0.5)
+    gaussians.opacity_logits[:] = -2.0  # opacity ~0.12: many layers before saturation
+    camera = camera_for("PINHOLE_CENTRED", 24, 20)
+    fast = rasterize(gaussians, camera)
+    ref = rasterize_reference(gaussians, camera)
+    counts = (fast.topk_ids >= 0).sum(-1)
+    assert (counts == 32).any() and ((counts > 16) & (counts < 32)).any()
+    assert np.abs(fast.rgb - ref["rgb"]).mean() < 1e-4
+    assert_topk_matches(fast, ref)
+
+
+def test_background_and_config_variants():
+    gaussians = random_gaussians(100, 1, seed=3)
+    camera = camera_for("PINHOLE_SKEWED", 40, 30)
+    config = RasterConfig(tile_size=8, topk_min=4, topk_max=12, topk_coverage=0.75, eps2d=0.1)
+    fast = rasterize(gaussians, camera, config, background=(0.2, 0.5, 1.0))
+    ref = rasterize_reference(gaussians, camera, config, background=(0.2, 0.5, 1.0))
+    assert fast.topk_ids.shape == (30, 40, 12)
+    np.testing.assert_allclose(fast.rgb, ref["rgb"], atol=1e-4)
+    assert_topk_matches(fast, ref)
+
+
+def test_topk_contract():
+    gaussians = random_gaussians(300, 0, seed=11)
+    config = RasterConfig()
+    out = rasterize(gaussians, camera_for("PINHOLE_CENTRED", 64, 48), config)
+    w, ids = out.topk_weights, out.topk_ids
+    valid = ids >= 0
+    count = valid.sum(-1)
+    assert np.all(np.diff(w, axis=-1) <= 0), "weights are sorted, largest first"
+    assert np.all(w[~valid] == 0) and np.all(w[valid] > 0)
+    assert np.all(valid[..., :-1] | ~valid[..., 1:]), "ids are packed at the front"
+    assert np.all(w.sum(-1) <= out.alpha + 1e-5)
+    # below the cap and above the floor, K is the first rank reaching 90 % coverage
+    mid = (count > config.topk_min) & (count < config.topk_max)
+    assert mid.any()
+    covered = w.sum(-1)[mid]
+    without_last = covered - np.take_along_axis(w, (count - 1)[..., None], -1)[..., 0][mid]
+    assert np.all(covered >= config.topk_coverage * out.alpha[mid] - 1e-6)
+    assert np.all(without_last < config.topk_coverage * out.alpha[mid] + 1e-6)
+    # each id appears at most once per pixel
+    sorted_ids = np.sort(np.where(valid, ids, -np.arange(1, 33)), axis=-1)
+    assert np.all(np.diff(sorted_ids, axis=-1) != 0)
+
+
+def test_degenerate_gaussians_are_skipped():
+    clean = random_gaussians(80, 2, seed=5)
+    camera = camera_for("PINHOLE_CENTRED", 40, 30)
+    expected = rasterize(clean, camera)
+    bad = random_gaussians(86, 2, seed=5)
+    bad.means[:80], bad.quats[:80], bad.log_scales[:80] = clean.means, clean.quats, clean.log_scales
+    bad.opacity_logits[:80], bad.sh[:80] = clean.opacity_logits, clean.sh
+    bad.means[80] = np.nan  # NaN position
+    bad.log_scales[81] = -np.inf  # zero scale
+    bad.means[82] = camera.center - 2.0 * camera.world_from_camera[:3, 2]  # behind the camera
+    bad.quats[83] = 0.0  # no rotation at all
+    bad.sh[84, 0, 1] = np.inf  # infinite colour
+    bad.opacity_logits[85] = np.nan
+    got = rasterize(bad, camera)
+    assert got.n_visible == expected.n_visible
+    np.testing.assert_array_equal(got.rgb, expected.rgb)
+    np.testing.assert_array_equal(got.topk_ids, expected.topk_ids)
+    ref = rasterize_reference(bad, camera)
+    np.testing.assert_allclose(got.rgb, ref["rgb"], atol=1e-4)
+
+
+def test_empty_view_and_no_topk():
+    gaussians = random_gaussians(50, 0, seed=2)
+    camera = camera_for("PINHOLE_CENTRED", 40, 30)
+    camera.world_from_camera[:3, 3] = [0.0, 0.0, -10.0]  # looking at nothing
+    out = rasterize(gaussians, camera)
+    assert out.n_visible == 0 and out.alpha.max() == 0 and (out.topk_ids == -1).all()
+    plain = rasterize(random_gaussians(50, 0, seed=2), camera_for("PINHOLE_CENTRED", 40, 30), want_topk=False)
+    assert plain.topk_ids is None and plain.alpha.max() > 0
+
+
+def test_features_shape_is_checked():
+    gaussians = random_gaussians(10, 0)
+    with pytest.raises(ValueError, match="features must be"):
+        rasterize(gaussians, camera_for("PINHOLE_CENTRED", 8, 8), features=np.zeros((9, 4)))
+
+
+def test_radix_argsort_matches_stable_argsort():
+    rng = np.random.default_rng(0)
+    keys = rng.uniform(0.01, 1000.0, 50_000).astype(np.float32)
+    keys[::5] = keys[7]  # many ties: the order among them must stay the input order
+    np.testing.assert_array_equal(radix_argsort(keys), np.argsort(keys, kind="stable"))
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="topk_min"):
+        RasterConfig(topk_min=40, topk_max=32)
+    with pytest.raises(ValueError, match="topk_coverage"):
+        RasterConfig(topk_coverage=1.5)
+
+
+def test_topk_list_keeps_the_stable_ranking_on_ties():
+    """The per-pixel list helpers against a stable sort, with many exactly tied weights."""
+    from olsplat_nodes.raster.composite import _offer, _sort_ranked
+
+    rng = np.random.default_rng(4)
+    for trial in range(50):
+        k_cap = 8
+        weights_in = rng.choice(np.float32([0.1, 0.2, 0.3, 0.4]), size=rng.integers(1, 30))
+        weights, slots = np.zeros(k_cap, np.float32), np.zeros(k_cap, np.int32)
+        top_n, top_last = np.zeros(1, np.int32), np.zeros(1, np.int32)
+        for j, w in enumerate(weights_in):
+            _offer(weights, slots, top_n, top_last, 0, w, j, k_cap)
+        n = int(top_n[0])
+        _sort_ranked(weights, slots, n)
+        expected = np.argsort(-weights_in, kind="stable")[:k_cap]
+        np.testing.assert_array_equal(slots[:n], expected, err_msg=f"trial {trial}")
+        np.testing.assert_array_equal(weights[:n], weights_in[expected])
