@@ -101,6 +101,7 @@ def _read_text(folder: Path) -> list[Camera]:
         except (IndexError, ValueError):
             raise SceneFormatError(cameras_path, f"malformed camera line: {line!r}") from None
         _check_model(model, camera_id, cameras_path)
+        _intrinsics_from_params(model, params, cameras_path)  # fail here, on the camera's own file
         cams[camera_id] = (model, width, height, params)
     lines = _data_lines(images_path)
     out = []

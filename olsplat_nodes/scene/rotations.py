@@ -23,13 +23,14 @@ def quat_to_rotmat(quat) -> np.ndarray:
 def rotmat_to_quat(rotation) -> np.ndarray:
     """[3, 3] rotation -> [4] unit quaternion wxyz with w >= 0."""
     m = np.asarray(rotation, dtype=np.float64)
-    # The eigenvector of the symmetric 4x4 "K3" matrix is robust for every rotation angle.
+    # The top eigenvector of this symmetric 4x4 matrix (lower triangle given; eigh reads only
+    # that) is the quaternion, robust for every rotation angle (Bar-Itzhack).
     k = np.array(
         [
             [m[0, 0] - m[1, 1] - m[2, 2], 0, 0, 0],
             [m[1, 0] + m[0, 1], m[1, 1] - m[0, 0] - m[2, 2], 0, 0],
             [m[2, 0] + m[0, 2], m[2, 1] + m[1, 2], m[2, 2] - m[0, 0] - m[1, 1], 0],
-            [m[1, 2] - m[2, 1], m[2, 0] - m[0, 2], m[0, 1] - m[1, 0], m[0, 0] + m[1, 1] + m[2, 2]],
+            [m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], m[0, 0] + m[1, 1] + m[2, 2]],
         ]
     ) / 3.0
     values, vectors = np.linalg.eigh(k)

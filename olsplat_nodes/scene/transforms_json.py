@@ -68,6 +68,7 @@ def read_transforms_json(path: str | Path) -> list[Camera]:
         fx, fy = float(fx if fx is not None else fy), float(fy if fy is not None else fx)
         cx, cy = float(value("cx", width / 2.0)), float(value("cy", height / 2.0))
         dist = np.array([float(value(key, 0.0)) for key in _DIST_KEYS])
+        dist = dist if dist[4] else dist[:4]  # (k1, k2, p1, p2) as COLMAP's OPENCV when k3 = 0
         dist = dist if dist.any() else np.zeros(0)
         try:
             pose_gl = np.asarray(frame["transform_matrix"], dtype=np.float64)
