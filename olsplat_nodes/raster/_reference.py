@@ -96,7 +96,8 @@ def rasterize_reference(
     features: np.ndarray | None = None,  # [N, D]
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> dict[str, np.ndarray]:
-    """Returns rgb, alpha, depth, features (if given), topk_ids, topk_weights as in RenderResult."""
+    """Returns rgb, alpha, depth, features (if given), topk_ids, topk_weights as in RenderResult,
+    and tile_pairs (RenderResult.n_tile_pairs)."""
     config = config or RasterConfig()
     proj = project_reference(gaussians, camera, config)
     order = np.flatnonzero(proj["valid"])
@@ -110,6 +111,7 @@ def rasterize_reference(
         "features": np.zeros((h, w, d)),
         "topk_ids": np.full((h, w, kmax), -1, np.int64),
         "topk_weights": np.zeros((h, w, kmax)),
+        "tile_pairs": 0,  # Gaussians tested, summed over pixels (a per-pixel tile-list loop's work)
     }
     for y in range(h):
         for x in range(w):
@@ -119,6 +121,8 @@ def rasterize_reference(
                 x0, y0, x1, y1 = proj["rect"][g]
                 if not (x0 <= x // t < x1 and y0 <= y // t < y1):
                     continue
+                # the fast path culls Gaussians that can never reach alpha_min before binning
+                out["tile_pairs"] += proj["opacity"][g] >= config.alpha_min
                 dx, dy = proj["mean2d"][g] - (x + 0.5, y + 0.5)
                 a, b, c = proj["conic"][g][0, 0], proj["conic"][g][0, 1], proj["conic"][g][1, 1]
                 sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy

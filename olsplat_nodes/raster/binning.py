@@ -73,13 +73,14 @@ def bin_tiles(
     tiles_x: int,
     tiles_y: int,
     n_chunks: int = 8,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (offsets [tiles_x * tiles_y + 1] int64, ids [n_intersections] int32).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (order [M] int32, offsets [tiles_x * tiles_y + 1] int64, slots [n_intersections] int32).
 
-    The Gaussians of tile t (row-major, t = ty * tiles_x + tx) are ids[offsets[t]:offsets[t+1]],
-    front to back.
+    ``order`` lists the M visible Gaussians front to back (map indices). The Gaussians of tile t
+    (row-major, t = ty * tiles_x + tx) are order[slots[offsets[t]:offsets[t+1]]], front to back;
+    slots index ``order``, so data gathered in that order is read nearly sequentially.
     """
     visible = np.flatnonzero(radii > 0).astype(np.int32)
     order = visible[radix_argsort(np.ascontiguousarray(depths[visible]))]
     offsets, slots = _bin_sorted(tile_rects[order], n_chunks, tiles_x, tiles_x * tiles_y)
-    return offsets, order[slots]
+    return order, offsets, slots

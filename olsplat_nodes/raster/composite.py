@@ -21,22 +21,22 @@ from numba import njit, prange
 
 
 @njit(cache=True, inline="always")
-def _ranks_before(w_a, j_a, w_b, j_b) -> bool:
-    """Entry a ranks before b: larger weight first, nearer (smaller j) first on ties."""
-    return w_a > w_b or (w_a == w_b and j_a < j_b)
+def _ranks_before(w_a, s_a, w_b, s_b) -> bool:
+    """Entry a ranks before b: larger weight first, nearer (smaller depth position s) on ties."""
+    return w_a > w_b or (w_a == w_b and s_a < s_b)
 
 
 @njit(cache=True, inline="always")
-def _offer(weights, slots, top_n, top_last, p, w, j, k_cap):
-    """Offer contribution (w, j) to pixel p's unsorted Top-k_cap list."""
+def _offer(weights, slots, top_n, top_last, p, w, s, k_cap):
+    """Offer contribution (w, s) to pixel p's unsorted Top-k_cap list."""
     n = top_n[p]
     if n < k_cap:
-        weights[n], slots[n] = w, j
+        weights[n], slots[n] = w, s
         top_n[p] = n + 1
         if n + 1 == k_cap:
             _find_last(weights, slots, top_last, p, k_cap)
     elif w > weights[top_last[p]]:  # ties lose: the earlier contribution ranks first
-        weights[top_last[p]], slots[top_last[p]] = w, j
+        weights[top_last[p]], slots[top_last[p]] = w, s
         _find_last(weights, slots, top_last, p, k_cap)
 
 
@@ -61,9 +61,31 @@ def _sort_ranked(weights, slots, n):
         weights[k], slots[k] = w, s
 
 
+# Columns of the packed per-Gaussian record: one 64-byte cache line per Gaussian, so the hot
+# loop touches one line per Gaussian instead of one per array.
+MX, MY, CA, CB, CC, OPACITY, CUT, EX, EY, RED, GREEN, BLUE, DEPTH = range(13)
+RECORD = 16
+
+
+@njit(parallel=True, cache=True)
+def pack_sorted(order, means2d, conics, opacities, sigma_cuts, extents, colors, depths):
+    """[M, RECORD] float32 records of the Gaussians ``order`` lists, in that (depth) order."""
+    packed = np.zeros((order.shape[0], RECORD), np.float32)
+    for s in prange(order.shape[0]):
+        g = order[s]
+        packed[s, MX], packed[s, MY] = means2d[g, 0], means2d[g, 1]
+        packed[s, CA], packed[s, CB], packed[s, CC] = conics[g, 0], conics[g, 1], conics[g, 2]
+        packed[s, OPACITY] = opacities[g]
+        packed[s, CUT] = sigma_cuts[g] + np.float32(1e-3)  # margin: the exact alpha test decides
+        packed[s, EX], packed[s, EY] = extents[g, 0], extents[g, 1]
+        packed[s, RED], packed[s, GREEN], packed[s, BLUE] = colors[g, 0], colors[g, 1], colors[g, 2]
+        packed[s, DEPTH] = depths[g]
+    return packed
+
+
 @njit(parallel=True, cache=True, fastmath=True)
 def composite_tiles(
-    offsets, ids, tile_order, means2d, conics, opacities, colors, depths, extents, sigma_cuts,
+    offsets, slots, order, tile_order, packed,
     features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
     topk_min, topk_max, topk_coverage, feature_eps, background,
     out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals,
@@ -88,23 +110,31 @@ def composite_tiles(
         acc_rgb = np.zeros((n_pix, 3), np.float32)
         acc_depth = np.zeros(n_pix, np.float32)
         acc_feat = np.zeros((n_pix, n_feat), np.float32)
-        # Per pixel, an unsorted list of up to k_cap (weight, tile-list position j) lives in the
-        # output arrays themselves; top_last is the slot of the entry that ranks last.
+        # Per pixel, an unsorted list of up to k_cap (weight, depth-order position s); top_last
+        # is the slot of the entry that ranks last. Tile-local so that it stays in cache (the
+        # allocator hands the same block back tile after tile); entries >= top_n are never read.
+        top_w = np.empty((n_pix, k_cap), np.float32)
+        top_s = np.empty((n_pix, k_cap), np.int32)
         top_n = np.zeros(n_pix, np.int32)
         top_last = np.zeros(n_pix, np.int32)
         evals = 0
+        # gsplat-style work for the same image: each pixel tests every Gaussian of the tile's
+        # list until it saturates. Reported next to our own count, never used for the output.
+        list_length = offsets[tile + 1] - offsets[tile]
+        tile_pairs = n_live * list_length
         for j in range(offsets[tile + 1] - offsets[tile]):  # j: position in the tile's list
             if n_live == 0:
                 break
-            g = ids[offsets[tile] + j]
-            mx, my = means2d[g, 0], means2d[g, 1]
-            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
-            opac, cut = opacities[g], sigma_cuts[g] + np.float32(1e-3)
+            s = slots[offsets[tile] + j]  # position in depth order
+            rec = packed[s]
+            mx, my = rec[MX], rec[MY]
+            ca, cb, cc = rec[CA], rec[CB], rec[CC]
+            opac, cut = rec[OPACITY], rec[CUT]
             # pixel box (tile-local) where alpha >= alpha_min is possible; +1 px for rounding
-            px0 = max(int(math.floor(mx - extents[g, 0] - 1.5)), x_start) - x_start
-            px1 = min(int(math.ceil(mx + extents[g, 0] + 0.5)), x_end) - x_start
-            py0 = max(int(math.floor(my - extents[g, 1] - 1.5)), y_start) - y_start
-            py1 = min(int(math.ceil(my + extents[g, 1] + 0.5)), y_end) - y_start
+            px0 = max(int(math.floor(mx - rec[EX] - 1.5)), x_start) - x_start
+            px1 = min(int(math.ceil(mx + rec[EX] + 0.5)), x_end) - x_start
+            py0 = max(int(math.floor(my - rec[EY] - 1.5)), y_start) - y_start
+            py1 = min(int(math.ceil(my + rec[EY] + 0.5)), y_end) - y_start
             for ly in range(py0, py1):
                 dy = my - (np.float32(y_start + ly) + half)
                 for lx in range(px0, px1):
@@ -124,18 +154,20 @@ def composite_tiles(
                     if next_t <= t_min:
                         done[p] = True
                         n_live -= 1
+                        tile_pairs -= list_length - j - 1
                         continue
                     w = alpha * t
-                    acc_rgb[p, 0] += w * colors[g, 0]
-                    acc_rgb[p, 1] += w * colors[g, 1]
-                    acc_rgb[p, 2] += w * colors[g, 2]
-                    acc_depth[p] += w * depths[g]
+                    acc_rgb[p, 0] += w * rec[RED]
+                    acc_rgb[p, 1] += w * rec[GREEN]
+                    acc_rgb[p, 2] += w * rec[BLUE]
+                    acc_depth[p] += w * rec[DEPTH]
                     for f in range(n_feat):
-                        acc_feat[p, f] += w * features[g, f]
+                        acc_feat[p, f] += w * features[s, f]
                     if k_cap > 0:
-                        _offer(out_topk_weights[y_start + ly, x_start + lx], out_topk_ids[y_start + ly, x_start + lx], top_n, top_last, p, w, j, k_cap)
+                        _offer(top_w[p], top_s[p], top_n, top_last, p, w, s, k_cap)
                     trans[p] = next_t
-        out_evals[tile] = evals
+        out_evals[tile, 0] = evals
+        out_evals[tile, 1] = tile_pairs
         for ly in range(y_end - y_start):
             for lx in range(tw):
                 p = ly * tile_size + lx
@@ -149,8 +181,8 @@ def composite_tiles(
                     out_features[y, x, f] = acc_feat[p, f] / (total + feature_eps)
                 if k_cap > 0:
                     n = top_n[p]
-                    weights, slots = out_topk_weights[y, x], out_topk_ids[y, x]
-                    _sort_ranked(weights, slots, n)
+                    weights, ranked = top_w[p], top_s[p]
+                    _sort_ranked(weights, ranked, n)
                     keep = n
                     cumulative = np.float32(0.0)
                     for k in range(n):
@@ -160,7 +192,8 @@ def composite_tiles(
                             break
                     keep = min(max(keep, topk_min), n)
                     for k in range(keep):
-                        slots[k] = ids[offsets[tile] + slots[k]]
+                        out_topk_ids[y, x, k] = order[ranked[k]]
+                        out_topk_weights[y, x, k] = weights[k]
                     for k in range(keep, k_cap):  # pad; the outputs arrive uninitialised
-                        slots[k] = -1
+                        out_topk_ids[y, x, k] = -1
                         out_topk_weights[y, x, k] = np.float32(0.0)

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..scene import Camera, Gaussians
 from .binning import bin_tiles
-from .composite import composite_tiles
+from .composite import composite_tiles, pack_sorted
 from .config import RasterConfig
 from .project import Projected, project
 
@@ -23,6 +23,7 @@ class RenderResult:
     topk_ids: np.ndarray | None  # [H, W, topk_max] int32 Gaussian indices by weight, -1 padded
     topk_weights: np.ndarray | None  # [H, W, topk_max] float32 alpha*T weights, 0 padded
     n_evaluations: int  # Gaussian-pixel pairs evaluated (the sigma computed)
+    n_tile_pairs: int  # pairs a per-pixel tile-list loop (gsplat classic) evaluates for the same image
     n_intersections: int  # Gaussian-tile pairs after binning
     n_visible: int  # Gaussians that survived projection
     seconds: dict[str, float]  # wall time per stage: project, bin, composite
@@ -54,7 +55,12 @@ def rasterize(
     clock = [time.perf_counter()]
     projected: Projected = project(gaussians, camera, config)
     clock.append(time.perf_counter())
-    offsets, ids = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
+    order, offsets, slots = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
+    packed = pack_sorted(
+        order, projected.means2d, projected.conics, projected.opacities, projected.sigma_cuts,
+        projected.extents, projected.colors, projected.depths,
+    )  # fmt: skip
+    sorted_features = feats[order] if feats.shape[1] else np.zeros((len(order), 0), np.float32)
     clock.append(time.perf_counter())
 
     k = config.topk_max if want_topk else 0
@@ -64,12 +70,11 @@ def rasterize(
     out_features = np.empty((height, width, feats.shape[1]), np.float32)
     topk_ids = np.empty((height, width, k), np.int32)  # every slot written by the kernel
     topk_weights = np.empty((height, width, k), np.float32)
-    evals = np.zeros(tiles_x * tiles_y, np.int64)
+    evals = np.zeros((tiles_x * tiles_y, 2), np.int64)
     # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
     tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
     composite_tiles(
-        offsets, ids, tile_order, projected.means2d, projected.conics, projected.opacities,
-        projected.colors, projected.depths, projected.extents, projected.sigma_cuts, feats,
+        offsets, slots, order, tile_order, packed, sorted_features,
         width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
         want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
         np.asarray(background, np.float32),
@@ -83,8 +88,9 @@ def rasterize(
         features=out_features if features is not None else None,
         topk_ids=topk_ids if want_topk else None,
         topk_weights=topk_weights if want_topk else None,
-        n_evaluations=int(evals.sum()),
-        n_intersections=int(len(ids)),
+        n_evaluations=int(evals[:, 0].sum()),
+        n_tile_pairs=int(evals[:, 1].sum()),
+        n_intersections=int(len(slots)),
         n_visible=int((projected.radii > 0).sum()),
         seconds=dict(zip(("project", "bin", "composite"), np.diff(clock).tolist())),
     )

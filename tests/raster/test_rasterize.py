@@ -53,6 +53,8 @@ def test_fast_matches_reference(width, height, n, kind, sh_degree, dim):
     if dim:
         np.testing.assert_allclose(fast.features, ref["features"], rtol=1e-3, atol=1e-4)
     assert_topk_matches(fast, ref)
+    assert fast.n_tile_pairs == ref["tile_pairs"]
+    assert 0 < fast.n_evaluations <= fast.n_tile_pairs
 
 
 def test_many_contributors_exercise_the_topk_cap():
