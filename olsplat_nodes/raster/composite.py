@@ -5,11 +5,15 @@ One tile is one unit of parallel work. Inside a tile the loop runs Gaussian by G
 alpha_min (``extents``): pixels outside that box would be skipped by the alpha test anyway,
 so the result is the same as testing every pixel of the tile, at a fraction of the work.
 
-Per pixel, a contribution of Gaussian g is w = alpha_g * T with T the transmittance before g;
-the pixel's running Top-``topk_max`` list (sorted by w, earlier Gaussian first on ties) is
-updated by insertion. At the end the adaptive K is the smallest k whose cumulative weight
-reaches ``topk_coverage`` of the pixel's total weight (1 - T_final), clamped to
-[topk_min, topk_max] and to the number of contributors.
+Per pixel, a contribution of Gaussian g is w = alpha_g * T with T the transmittance before g.
+The pixel keeps an unsorted list of its best ``topk_max`` contributions: while the list is
+full, a new contribution replaces the last-ranked entry when it ranks higher (rank: larger w
+first, the nearer Gaussian first on ties). At the end the list is sorted once, and the
+adaptive K is the smallest k whose cumulative weight reaches ``topk_coverage`` of the pixel's
+total weight (1 - T_final), clamped to [topk_min, topk_max] and to the number of contributors.
+
+Gaussians arrive as packed records in depth order (``pack_sorted``), so a tile's list walks
+memory forwards and each Gaussian costs one cache line.
 """
 
 from __future__ import annotations
