@@ -1,5 +1,6 @@
-"""olsplat_sim: synthetic UAV scenes and replay (the replay simulator grows here)."""
+"""olsplat_sim: synthetic UAV scenes with ground truth, flights, annotations and replay logs."""
 
-from .town import Town, make_town
+from .labels import CATEGORIES, LABELS, QUERIES
+from .scene import TruthScene, generate_scene
 
-__all__ = ["Town", "make_town"]
+__all__ = ["CATEGORIES", "LABELS", "QUERIES", "TruthScene", "generate_scene"]

@@ -1,6 +1,6 @@
 """``olsplat bench raster``: seconds per view, throughput, and the speed-up over the reference.
 
-Scenes are generated towns (``olsplat_sim.make_town``) of 150 m x 150 m seen by an oblique
+Scenes are generated towns (``olsplat_sim.generate_scene``) of 150 m x 150 m seen by an oblique
 (45 degree) camera 90 m up and 90 m out, 70 degree horizontal field of view, so that nearly
 the whole map is in view: the hardest case for one view. Each figure is the median of
 ``--repeat`` renders after one warm-up render (numba compilation excluded).
@@ -42,9 +42,9 @@ def _median_render(gaussians: Gaussians, camera: Camera, want_topk: bool, repeat
 
 def reference_speedup(threads: int) -> tuple[float, float]:
     """(reference seconds, fast seconds) on a scene small enough for the reference."""
-    from olsplat_sim import make_town
+    from olsplat_sim import generate_scene
 
-    gaussians = make_town(3_000, size_m=150.0, seed=1).gaussians
+    gaussians = generate_scene(3_000, size_m=150.0, seed=1).gaussians
     camera = bench_camera(64, 48)
     start = time.perf_counter()
     rasterize_reference(gaussians, camera)
@@ -64,7 +64,7 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import numba
-    from olsplat_sim import make_town
+    from olsplat_sim import generate_scene
 
     threads = numba.get_num_threads()
     print(f"machine: {platform.processor() or platform.machine()}, {threads} numba threads, python {platform.python_version()}")
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         f"{'pairs(M)':>7} {'per core':>9} {'(s)':>8} {'(s)':>6} {'(s)':>8}"
     )
     for n in args.gaussians:
-        gaussians = make_town(n, size_m=150.0, seed=0).gaussians
+        gaussians = generate_scene(n, size_m=150.0, seed=0).gaussians
         for size in args.sizes:
             width, height = (int(v) for v in size.split("x"))
             camera = bench_camera(width, height)

@@ -38,12 +38,12 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from olsplat_sim import make_town
+    from olsplat_sim import generate_scene
 
     out: Path = args.out
     (out / "scene").mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    town = make_town(args.gaussians, size_m=150.0, seed=args.seed)
+    town = generate_scene(args.gaussians, size_m=150.0, seed=args.seed)
     write_ply(out / "scene" / "town.ply", town.gaussians)
     write_colmap(out / "scene" / "sparse" / "0", flight_cameras(town.size_m))
     print(f"generated {len(town.gaussians):,} Gaussians in {time.perf_counter() - start:.1f} s -> {out / 'scene'}")

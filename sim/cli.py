@@ -1,0 +1,70 @@
+"""``olsplat sim make`` and ``olsplat sim replay``."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+from .presets import PRESETS
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("sim", help="synthetic UAV scenes: make a dataset, replay a log")
+    commands = parser.add_subparsers(dest="sim_command", required=True, metavar="COMMAND")
+
+    make = commands.add_parser("make", help="generate a scene, fly over it, write a dataset")
+    make.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
+    make.add_argument("--seed", type=int, default=0)
+    make.add_argument("--out", type=Path, required=True)
+    make.add_argument("--views", type=int, help="override the preset's number of views")
+    make.add_argument("--gaussians", type=int, help="override the preset's number of Gaussians")
+    make.add_argument("--motion-blur", type=float, default=0.0, metavar="SECONDS", help="shutter time for motion blur (0: none)")
+    make.add_argument("--no-pose-noise", action="store_true", help="write the true poses to sparse/0 and the log")
+    make.set_defaults(run=run_make)
+
+    replay = commands.add_parser("replay", help="play a replay log (.mcap) or an image folder + COLMAP model")
+    replay.add_argument("--log", type=Path, required=True)
+    pace = replay.add_mutually_exclusive_group()
+    pace.add_argument("--rate", type=float, metavar="HZ", help="frames per second (default: as recorded)")
+    pace.add_argument("--fast", action="store_true", help="as fast as possible")
+    replay.add_argument("--limit", type=int, help="stop after this many frames")
+    replay.set_defaults(run=run_replay)
+
+
+def run_make(args: argparse.Namespace) -> int:
+    from olsplat_nodes.errors import OlsplatInputError
+
+    from .make import MakeOptions, make_dataset
+    from .reconstruct import ReconstructionSpec
+    from .sensor import SensorSpec
+
+    preset = PRESETS[args.preset]
+    changes = {k: v for k, v in (("n_views", args.views), ("n_gaussians", args.gaussians)) if v is not None}
+    if any(v <= 0 for v in changes.values()):
+        raise OlsplatInputError(f"--views and --gaussians must be positive, got {changes}")
+    preset = dataclasses.replace(preset, **changes)
+    recon = ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
+    options = MakeOptions(sensor=SensorSpec(blur_exposure_s=args.motion_blur), reconstruction=recon)
+    make_dataset(preset, args.seed, args.out, options)
+    return 0
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    from .replay_log import paced, read_replay
+
+    start, count, first = time.monotonic(), 0, None
+    for frame in paced(read_replay(args.log), rate_hz=args.rate, fast=args.fast):
+        first = frame.stamp_ns if first is None else first
+        x, y, z = frame.camera.center
+        print(
+            f"{frame.seq:5d} {frame.name:20s} t={(frame.stamp_ns - first) / 1e9:8.3f} s  "
+            f"{frame.camera.width}x{frame.camera.height}  camera at ({x:7.1f}, {y:7.1f}, {z:6.1f}) m"
+        )
+        count += 1
+        if args.limit and count >= args.limit:
+            break
+    elapsed = time.monotonic() - start
+    print(f"{count} frames in {elapsed:.2f} s ({count / max(elapsed, 1e-9):.1f} frames/s)")
+    return 0

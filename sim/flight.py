@@ -1,0 +1,98 @@
+"""UAV flights over a town: lawnmower and orbit trajectories with nadir and oblique views.
+
+A flight is a list of frames, each a true camera pose and a timestamp. Views are split
+between a nadir lawnmower (half), an oblique lawnmower looking forward along its track
+(a quarter) and an oblique orbit looking inwards across the town (a quarter); view centres
+stay on the town. Oblique pitch is
+measured from nadir (0 = straight down) and drawn in [30, 60] degrees per flight.
+Timestamps advance at ``rate_hz`` from a fixed epoch, so a flight is bit-for-bit repeatable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from olsplat_nodes.scene import Camera, intrinsics, look_at
+
+EPOCH_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: flights start here
+
+
+@dataclass(frozen=True)
+class FlightSpec:
+    n_views: int
+    width: int
+    height: int
+    fov_deg: float = 50.0  # horizontal field of view (a 35 mm-equivalent lens)
+    altitude_m: float = 80.0  # above the ground, 60-120 m in the paper's data
+    rate_hz: float = 1.0  # frames per second
+    oblique_deg: tuple[float, float] = (30.0, 60.0)  # pitch range of oblique views, from nadir
+
+
+@dataclass
+class FlightFrame:
+    camera: Camera  # true pose (OpenCV axes)
+    stamp_ns: int
+    kind: str  # "nadir", "oblique" or "orbit"
+
+
+def _lawnmower(n: int, extent: float, altitude: float, pitch: float, rng) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """n (eye, target, up) on boustrophedon lines whose view centres cover [-extent, extent]^2.
+
+    The camera looks ``pitch`` from nadir, forwards along its track; the point it looks at
+    (not the drone) follows the lines, so oblique views stay on the town.
+    """
+    if n <= 0:
+        return []
+    lines = max(2, int(round(np.sqrt(n / 2))))
+    per_line = int(np.ceil(n / lines))
+    reach = altitude * np.tan(pitch)
+    out = []
+    for k in range(lines):
+        x = -extent + 2 * extent * k / (lines - 1)
+        ys = np.linspace(-extent, extent, per_line)
+        heading = np.array([0.0, 1.0, 0.0])
+        if k % 2:
+            ys, heading = ys[::-1], -heading
+        for y in ys:
+            target = np.array([x, y, 0.0]) + np.r_[rng.normal(0, 0.5, 2), 0.0]  # GPS-grade wobble
+            eye = target - heading * reach + np.array([0.0, 0.0, altitude + rng.normal(0, 0.5)])
+            out.append((eye, target + heading * 1e-3, heading))
+    return out[:n]
+
+
+def _orbit(n: int, ring: float, altitude: float, pitch: float, rng) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """n views around the town looking inwards at points of a ring of radius ``ring``."""
+    reach = altitude * np.tan(pitch)
+    start = rng.uniform(0, 2 * np.pi)
+    out = []
+    for i in range(n):
+        angle = start + 2 * np.pi * i / max(n, 1)
+        outward = np.array([np.cos(angle), np.sin(angle), 0.0])
+        target = ring * outward
+        eye = target + outward * reach + np.array([0.0, 0.0, altitude])
+        out.append((eye, target, np.array([0.0, 0.0, 1.0])))
+    return out
+
+
+def plan_flight(size_m: float, spec: FlightSpec, rng: np.random.Generator) -> list[FlightFrame]:
+    """The frames of one flight over a town of side ``size_m`` centred on the origin."""
+    focal = 0.5 * spec.width / np.tan(np.radians(spec.fov_deg) / 2)
+    K = intrinsics(focal, focal, spec.width / 2, spec.height / 2)
+    n_nadir = spec.n_views // 2
+    n_oblique = (spec.n_views - n_nadir) // 2
+    n_orbit = spec.n_views - n_nadir - n_oblique
+    pitch = np.radians(rng.uniform(*spec.oblique_deg))
+    footprint = 2 * spec.altitude_m * np.tan(np.radians(spec.fov_deg) / 2)  # nadir view width on the ground
+    extent = max(0.0, 0.5 * size_m - 0.4 * footprint)
+    poses = [("nadir", *p) for p in _lawnmower(n_nadir, extent, spec.altitude_m, 0.0, rng)]
+    poses += [("oblique", *p) for p in _lawnmower(n_oblique, 0.8 * extent, spec.altitude_m, pitch, rng)]
+    poses += [("orbit", *p) for p in _orbit(n_orbit, 0.2 * size_m, spec.altitude_m, pitch, rng)]
+    frames = []
+    for i, (kind, eye, target, up) in enumerate(poses):
+        pose = look_at(eye, target, up)
+        name = f"frame_{i:04d}.jpg"
+        stamp = EPOCH_NS + int(round(i * 1e9 / spec.rate_hz))
+        frames.append(FlightFrame(Camera(name, spec.width, spec.height, K, pose), stamp, kind))
+    return frames

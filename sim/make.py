@@ -1,0 +1,143 @@
+"""``olsplat sim make``: one complete synthetic dataset, the way a user would have a real one.
+
+Output folder (documented in sim/README.md):
+
+    map/point_cloud.ply        the reconstructed map (INRIA PLY), what the method runs on
+    sparse/0/                  COLMAP text model: the SfM poses (with pose noise) of every image
+    images/                    the frames as JPEG, + timestamps.csv (name, stamp_ns)
+    annotations/<frame>.json   LabelMe polygons of the visible targets in each frame
+    queries.json               evaluation queries: text, target labels, instance ids
+    replay.mcap                the flight as a replay log (images, calibration, poses)
+    truth/                     labels of every map Gaussian, the true scene and true poses
+    preview/                   contact_sheet.jpg and overview.jpg
+    scene.json                 how the dataset was made (preset, seed, counts, parameters)
+
+Everything is a pure function of (preset, seed, options): same inputs, same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from olsplat_nodes.raster import rasterize
+from olsplat_nodes.scene import Camera, write_colmap, write_ply
+
+from .annotate import annotate_view, label_maps
+from .flight import FlightFrame, FlightSpec, plan_flight
+from .labels import CATEGORIES, LABELS, QUERIES
+from .presets import Preset
+from .preview import contact_sheet, overlay, overview
+from .reconstruct import ReconstructionSpec, perturb_pose, reconstruct
+from .replay_log import encode_jpeg, write_mcap, write_timestamps
+from .scene import generate_scene
+from .sensor import SensorSpec, apply_sensor, exposure_gains, to_uint8
+
+BACKGROUND = (0.45, 0.43, 0.38)  # beyond the town: bare land, not a black void
+
+
+@dataclass(frozen=True)
+class MakeOptions:
+    sensor: SensorSpec = field(default_factory=SensorSpec)
+    reconstruction: ReconstructionSpec = field(default_factory=ReconstructionSpec)
+    jpeg_quality: int = 92
+
+
+def _render_frame(gaussians, frame: FlightFrame, velocity: np.ndarray, sensor: SensorSpec):
+    """(rgb [H, W, 3] float, RenderResult at the frame's pose) with optional motion blur."""
+    result = rasterize(gaussians, frame.camera, background=BACKGROUND)
+    if sensor.blur_exposure_s <= 0:
+        return result.rgb, result
+    rgb = np.zeros_like(result.rgb)
+    for t in np.linspace(-0.5, 0.5, sensor.blur_samples) * sensor.blur_exposure_s:
+        pose = frame.camera.world_from_camera.copy()
+        pose[:3, 3] += velocity * t
+        moved = Camera(frame.camera.name, frame.camera.width, frame.camera.height, frame.camera.K, pose)
+        rgb += rasterize(gaussians, moved, want_topk=False, background=BACKGROUND).rgb
+    return rgb / sensor.blur_samples, result
+
+
+def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = MakeOptions(), log=print) -> dict:
+    """Write the dataset of ``preset`` and ``seed`` to ``out``; returns the scene.json summary."""
+    start = time.perf_counter()
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
+    flight_rng, sensor_rng, recon_rng, pose_rng = streams
+    for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+
+    truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
+    log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
+        f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x {preset.size_m:.0f} m")  # fmt: skip
+    spec = FlightSpec(preset.n_views, preset.width, preset.height, altitude_m=preset.altitude_m)
+    frames = plan_flight(preset.size_m, spec, flight_rng)
+    gains = exposure_gains(len(frames), options.sensor, sensor_rng)
+    recon = reconstruct(truth, options.reconstruction, recon_rng)
+    sfm_cameras = [perturb_pose(f.camera, options.reconstruction, pose_rng) for f in frames]
+
+    write_ply(out / "map" / "point_cloud.ply", recon.gaussians)
+    write_colmap(out / "sparse" / "0", sfm_cameras, binary=False)
+    write_colmap(out / "truth" / "true_poses", [f.camera for f in frames], binary=False)
+    write_ply(out / "truth" / "ground_truth.ply", truth.gaussians)
+    np.savez_compressed(out / "truth" / "map_labels.npz", category=recon.category, instance=recon.instance, label=recon.label)
+    np.savez_compressed(out / "truth" / "ground_truth_labels.npz", category=truth.category, instance=truth.instance, label=truth.label)
+    (out / "truth" / "labels.json").write_text(json.dumps({"categories": CATEGORIES, "labels": LABELS}, indent=2))
+    log(f"map: {len(recon.gaussians):,} Gaussians -> {out / 'map' / 'point_cloud.ply'}")
+
+    seen: dict[int, set[int]] = {i: set() for i in range(len(LABELS))}
+    previews = []
+    preview_at = set(np.linspace(0, len(frames) - 1, min(6, len(frames))).round().astype(int).tolist())
+
+    def rendered():
+        for i, frame in enumerate(frames):
+            nxt = frames[min(i + 1, len(frames) - 1)].camera.center
+            prev = frames[max(i - 1, 0)].camera.center
+            velocity = (nxt - prev) * spec.rate_hz / max(1, min(i + 1, len(frames) - 1) - max(i - 1, 0))
+            rgb, result = _render_frame(truth.gaussians, frame, velocity, options.sensor)
+            image = to_uint8(apply_sensor(rgb, gains[i], options.sensor, sensor_rng))
+            jpeg = encode_jpeg(image, options.jpeg_quality)
+            (out / "images" / frame.camera.name).write_bytes(jpeg)
+            labels, instances = label_maps(result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance)
+            doc = annotate_view(labels, instances, f"../images/{frame.camera.name}")
+            (out / "annotations" / (Path(frame.camera.name).stem + ".json")).write_text(json.dumps(doc))
+            for shape in doc["shapes"]:
+                if shape["group_id"] is not None:
+                    seen[LABELS.index(shape["label"])].add(shape["group_id"])
+            if i in preview_at:
+                decoded = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+                previews.append((f"{frame.camera.name} ({frame.kind})", decoded, overlay(decoded[..., ::-1], doc)))
+            if (i + 1) % max(1, len(frames) // 10) == 0 or i + 1 == len(frames):
+                log(f"frames: {i + 1}/{len(frames)} ({time.perf_counter() - start:.0f} s)")
+            yield frame.stamp_ns, frame.camera.name, jpeg, sfm_cameras[i]
+
+    write_mcap(out / "replay.mcap", rendered())
+    write_timestamps(out / "images" / "timestamps.csv", [f.camera.name for f in frames], [f.stamp_ns for f in frames])
+
+    queries = []
+    for text, labels, instance_query in QUERIES:
+        ids = sorted(set().union(*(seen[LABELS.index(label)] for label in labels))) if instance_query else []
+        queries.append({"text": text, "labels": list(labels), "instances": ids})
+    (out / "queries.json").write_text(json.dumps({"labels": LABELS, "queries": queries}, indent=2))
+
+    cv2.imwrite(str(out / "preview" / "contact_sheet.jpg"), contact_sheet(previews), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    kinds = [(f.kind, f.camera) for f in frames]
+    cv2.imwrite(str(out / "preview" / "overview.jpg"), overview(truth.gaussians, preset.size_m, kinds, background=BACKGROUND), [cv2.IMWRITE_JPEG_QUALITY, 90])
+
+    summary = {
+        "preset": asdict(preset),
+        "seed": seed,
+        "ground_truth_gaussians": len(truth.gaussians),
+        "map_gaussians": len(recon.gaussians),
+        "views": len(frames),
+        "buildings": len(truth.layout.buildings),
+        "trees": len(truth.layout.trees),
+        "cars": len(truth.layout.cars),
+        "options": asdict(options),
+    }
+    (out / "scene.json").write_text(json.dumps(summary, indent=2))
+    log(f"done in {time.perf_counter() - start:.0f} s -> {out}")
+    return summary

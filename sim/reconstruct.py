@@ -1,0 +1,119 @@
+"""The map a user would have: the truth degraded the way a real reconstruction is.
+
+Real Gaussian-splatting maps are not the scene: Gaussians sit a little off the surface, have
+the wrong size and opacity, some surfaces are missing, neighbours are merged into one blob,
+floaters hang in the air, colours carry view-dependent residue, and the camera poses of
+structure-from-motion are slightly wrong. ``reconstruct`` applies all of that, keeps each
+surviving Gaussian's truth labels (floaters get label -1), and shuffles the map so that
+nothing can be read from the order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from olsplat_nodes.scene import Camera, Gaussians
+from olsplat_nodes.scene.rotations import quat_to_rotmat
+
+from .labels import CATEGORY
+from .scene import TruthScene
+
+
+@dataclass(frozen=True)
+class ReconstructionSpec:
+    missing: float = 0.03  # fraction of Gaussians dropped
+    merged: float = 0.04  # fraction merged into a neighbour
+    floaters: float = 0.015  # floaters added, as a fraction of the map
+    position_jitter: float = 0.25  # std, in units of the mean Gaussian spacing
+    log_scale_jitter: float = 0.25  # std of the log-scale error
+    opacity_logit_jitter: float = 0.6  # std of the opacity-logit error
+    color_jitter: float = 0.03  # std of the colour error
+    view_dependence: float = 0.04  # std of the degree-1 SH coefficients
+    pose_position_m: float = 0.05  # std of the camera position error
+    pose_rotation_deg: float = 0.03  # std of the camera rotation error
+
+
+@dataclass
+class ReconstructedMap:
+    gaussians: Gaussians
+    category: np.ndarray  # [M] int16, CATEGORY["floater"] for floaters
+    instance: np.ndarray  # [M] int32, -1 for stuff and floaters
+    label: np.ndarray  # [M] int16, -1 for floaters
+
+
+def _merge_pairs(means: np.ndarray, fraction: float, cell: float, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(keep [k] indices, partner [k] indices): pairs of Gaussians sharing a voxel of side ``cell``."""
+    keys = np.floor(means / cell).astype(np.int64)
+    keys = (keys[:, 0] * 73856093) ^ (keys[:, 1] * 19349663) ^ (keys[:, 2] * 83492791)
+    order = np.argsort(keys, kind="stable")
+    same = keys[order[:-1]] == keys[order[1:]]
+    starts = np.flatnonzero(same)
+    starts = starts[np.r_[True, np.diff(starts) > 1]] if len(starts) else starts  # disjoint pairs
+    chosen = rng.random(len(starts)) < fraction * len(means) / max(len(starts), 1)
+    return order[starts[chosen]], order[starts[chosen] + 1]
+
+
+def reconstruct(truth: TruthScene, spec: ReconstructionSpec, rng: np.random.Generator) -> ReconstructedMap:
+    g = truth.gaussians
+    n = len(g)
+    spacing = float(np.median(np.exp(g.log_scales[:, 0]))) / 0.85
+    means = g.means.astype(np.float64).copy()
+    log_scales = g.log_scales.astype(np.float64).copy()
+    colors = g.sh[:, 0, :].astype(np.float64).copy()
+    opacity = g.opacity_logits.astype(np.float64).copy()
+    quats = g.quats.astype(np.float64).copy()
+
+    keep, partner = _merge_pairs(means, spec.merged, 2.0 * spacing, rng)
+    gap = np.linalg.norm(means[keep] - means[partner], axis=1)
+    means[keep] = 0.5 * (means[keep] + means[partner])
+    log_scales[keep] = np.log(np.exp(np.maximum(log_scales[keep], log_scales[partner])) + 0.5 * gap[:, None])
+    colors[keep] = 0.5 * (colors[keep] + colors[partner])
+    alive = np.ones(n, bool)
+    alive[partner] = False
+    alive &= rng.random(n) >= spec.missing
+    index = np.flatnonzero(alive)
+
+    m = len(index)
+    normals = quat_to_rotmat(quats[index])[:, :, 2]  # a flat Gaussian's thin axis
+    out_means = means[index] + rng.normal(0, spec.position_jitter * spacing, (m, 3))
+    out_means += normals * rng.normal(0, 0.3 * spec.position_jitter * spacing, (m, 1))
+    sh = np.zeros((m, 4, 3))
+    sh[:, 0] = colors[index] + rng.normal(0, spec.color_jitter / 0.2820948, (m, 3))
+    sh[:, 1:] = rng.normal(0, spec.view_dependence, (m, 3, 3))
+    category, instance, label = truth.category[index], truth.instance[index], truth.label[index]
+
+    # floaters: loose, translucent blobs in the air between the town and the cameras
+    k = int(spec.floaters * n)
+    half = truth.size_m / 2
+    f_means = np.c_[rng.uniform(-half, half, (k, 2)), rng.uniform(2.0, 45.0, k)]
+    f_sh = np.zeros((k, 4, 3))
+    f_sh[:, 0] = (rng.uniform(0.2, 0.8, (k, 1)) + rng.normal(0, 0.05, (k, 3)) - 0.5) / 0.2820948
+    gaussians = Gaussians(
+        means=np.concatenate([out_means, f_means]),
+        quats=np.concatenate([quats[index], rng.normal(size=(k, 4))]),
+        log_scales=np.concatenate(
+            [log_scales[index] + rng.normal(0, spec.log_scale_jitter, (m, 3)), np.log(rng.uniform(0.1, 1.5, (k, 3)))]
+        ),
+        opacity_logits=np.concatenate([opacity[index] + rng.normal(0, spec.opacity_logit_jitter, m), rng.uniform(-3.0, 0.0, k)]),
+        sh=np.concatenate([sh, f_sh]),
+    )
+    category = np.concatenate([category, np.full(k, CATEGORY["floater"], np.int16)])
+    instance = np.concatenate([instance, np.full(k, -1, np.int32)])
+    label = np.concatenate([label, np.full(k, -1, np.int16)])
+    shuffle = rng.permutation(len(category))
+    return ReconstructedMap(gaussians.subset(shuffle), category[shuffle], instance[shuffle], label[shuffle])
+
+
+def perturb_pose(camera: Camera, spec: ReconstructionSpec, rng: np.random.Generator) -> Camera:
+    """The camera with the pose error of structure-from-motion (position and rotation noise)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(rng.normal(0, spec.pose_rotation_deg))
+    skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew  # Rodrigues
+    pose = camera.world_from_camera.copy()
+    pose[:3, :3] = rotation @ pose[:3, :3]
+    pose[:3, 3] += rng.normal(0, spec.pose_position_m, 3)
+    return Camera(camera.name, camera.width, camera.height, camera.K, pose, camera.dist, camera.model)
