@@ -4,7 +4,7 @@ From the truth render's Top-K lists, each pixel gets the label holding most of i
 (unlabelled where less than half the pixel is covered) and, for instance labels, the
 instance of its strongest Gaussian of that label. Each (label, instance) region becomes
 polygons: outer boundaries, and holes marked ``"flags": {"hole": true}`` (a lawn around a
-tree's crown, say). The format is described in ``sim/ANNOTATIONS.md``; ``rasterize_annotation``
+tree's crown, say). The format is described in sim/README.md; ``rasterize_annotation``
 turns a file back into label and instance maps, whoever wrote it.
 """
 

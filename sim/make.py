@@ -46,6 +46,8 @@ class MakeOptions:
     sensor: SensorSpec = field(default_factory=SensorSpec)
     reconstruction: ReconstructionSpec = field(default_factory=ReconstructionSpec)
     jpeg_quality: int = 92
+    rate_hz: float = 1.0  # frame rate of the flight
+    fov_deg: float = 50.0  # horizontal field of view
 
 
 def _render_frame(gaussians, frame: FlightFrame, velocity: np.ndarray, sensor: SensorSpec):
@@ -73,7 +75,9 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
     truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
     log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
         f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x {preset.size_m:.0f} m")  # fmt: skip
-    spec = FlightSpec(preset.n_views, preset.width, preset.height, altitude_m=preset.altitude_m)
+    spec = FlightSpec(
+        preset.n_views, preset.width, preset.height, fov_deg=options.fov_deg, altitude_m=preset.altitude_m, rate_hz=options.rate_hz
+    )
     frames = plan_flight(preset.size_m, spec, flight_rng)
     gains = exposure_gains(len(frames), options.sensor, sensor_rng)
     recon = reconstruct(truth, options.reconstruction, recon_rng)

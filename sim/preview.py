@@ -63,7 +63,11 @@ def contact_sheet(tiles: list[tuple[str, np.ndarray, np.ndarray]], columns: int 
 
 
 def overview(gaussians, size_m: float, cameras: list[tuple[str, Camera]], pixels: int = 1024, background=(0.45, 0.43, 0.38)) -> np.ndarray:
-    """Top-down BGR picture of the map with the flight's camera positions drawn on it."""
+    """Top-down BGR picture of the map with the flight's view centres on it.
+
+    A view centre is where the camera's optical axis meets the ground (z = 0): for a nadir view
+    it is below the drone, for an oblique one far ahead of it, so the dots show coverage.
+    """
     fov = np.radians(30.0)
     altitude = 0.55 * size_m / np.tan(fov / 2) + 40.0
     focal = 0.5 * pixels / np.tan(fov / 2)
@@ -74,13 +78,15 @@ def overview(gaussians, size_m: float, cameras: list[tuple[str, Camera]], pixels
     view = top.camera_from_world
     previous = None
     for kind, camera in cameras:
-        p = view[:3, :3] @ camera.center + view[:3, 3]
+        centre, axis = camera.center, camera.world_from_camera[:3, 2]
+        ground = centre - axis * centre[2] / axis[2] if axis[2] < -1e-6 else centre
+        p = view[:3, :3] @ ground + view[:3, 3]
         uv = (int(focal * p[0] / p[2] + pixels / 2), int(focal * p[1] / p[2] + pixels / 2))
-        if previous is not None:
-            cv2.line(out, previous, uv, (200, 200, 200), 1, cv2.LINE_AA)
+        if previous is not None and previous[0] == kind:
+            cv2.line(out, previous[1], uv, (220, 220, 220), 1, cv2.LINE_AA)
         cv2.circle(out, uv, 4, colors.get(kind, (255, 255, 255)), -1, cv2.LINE_AA)
-        previous = uv
+        previous = (kind, uv)
     for i, (kind, color) in enumerate(colors.items()):
         cv2.circle(out, (16, 18 + 20 * i), 5, color, -1)
-        cv2.putText(out, f"{kind} views", (28, 23 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(out, f"{kind} view centres", (28, 23 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return out

@@ -1,6 +1,6 @@
 """Replay logs: write a flight to MCAP, read it (or a folder of images + COLMAP) back as frames.
 
-MCAP layout (``REPLAY.md`` beside this file has the full description): JSON-encoded messages
+MCAP layout (sim/README.md has the full description): JSON-encoded messages
 with Foxglove schemas, so Foxglove opens the file and shows the images and camera poses.
 
 | topic                | schema                    | per frame                                  |

@@ -123,3 +123,24 @@ def test_every_category_present(preset):
     truth = generate_scene(PRESETS[preset].n_gaussians * 5, 160.0, 3)
     present = set(np.unique(truth.category).tolist())
     assert present == set(range(len(CATEGORY))) - {CATEGORY["floater"]}
+
+
+def test_cli_options_and_motion_blur(tmp_path, capsys):
+    """Fewer views, a faster rate and a long shutter: blur softens the frame, stamps follow the rate."""
+    from olsplat_nodes.cli import main
+    from olsplat_sim.replay_log import read_replay
+
+    common = ["sim", "make", "--preset", "tiny", "--views", "3", "--rate", "4"]
+    assert main([*common, "--out", str(tmp_path / "sharp")]) == 0
+    assert main([*common, "--out", str(tmp_path / "blur"), "--motion-blur", "0.5"]) == 0
+    frames = list(read_replay(tmp_path / "sharp" / "replay.mcap"))
+    assert len(frames) == 3 and frames[1].stamp_ns - frames[0].stamp_ns == 250_000_000
+
+    def sharpness(path):
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+        return cv2.Laplacian(image, cv2.CV_32F).var()
+
+    name = "images/frame_0001.jpg"
+    assert sharpness(tmp_path / "blur" / name) < 0.8 * sharpness(tmp_path / "sharp" / name)
+    assert main(["sim", "make", "--preset", "tiny", "--views", "0", "--out", str(tmp_path / "x")]) == 1
+    assert "--views and --gaussians must be positive" in capsys.readouterr().err
