@@ -91,7 +91,7 @@ def _road_lines(size_m: float, rng: np.random.Generator) -> list[float]:
     lines, position = [], -half + rng.uniform(18, 35)
     while position < half - 18:
         lines.append(position)
-        position += rng.uniform(48, 78)
+        position += rng.uniform(55, 85)
     return lines
 
 
@@ -122,7 +122,7 @@ class _Builder:
                 boxes.append((x0, y1 - 0.1, x0 + w * rng.uniform(0.35, 0.55), y1 + d * rng.uniform(0.4, 0.8)))
             else:
                 boxes.append((x1 - 0.1, y0, x1 + w * rng.uniform(0.4, 0.7), y0 + d * rng.uniform(0.35, 0.55)))
-        if any(_overlaps(b, self.footprints, 2.0) for b in boxes):
+        if any(_overlaps(b, self.footprints, 1.5) for b in boxes):
             return False
         half = self.layout.size_m / 2
         if any(b[0] < -half + 1 or b[1] < -half + 1 or b[2] > half - 1 or b[3] > half - 1 for b in boxes):
@@ -156,10 +156,11 @@ def _fill_residential(b: _Builder, block, ground) -> None:
     paint(ground, block, "lawn", b.layout.size_m)
     for side in range(4):  # houses facing each street around the block
         length = (x1 - x0) if side % 2 == 0 else (y1 - y0)
-        t = rng.uniform(1, 5)
-        while t < length - 8:
-            w, d, setback = rng.uniform(8, 15), rng.uniform(8, 12), rng.uniform(2.5, 6)
-            if t + w > length - 1:
+        # sides 0 and 2 take the corners; sides 1 and 3 start behind those corner houses
+        t, end = (rng.uniform(1, 4), length) if side % 2 == 0 else (rng.uniform(17, 19), length - 17)
+        while t < end - 8:
+            w, d, setback = rng.uniform(8, 13), rng.uniform(8, 11), rng.uniform(2, 5)
+            if t + w > end - 1:
                 break
             if side == 0:
                 box = (x0 + t, y0 + setback, x0 + t + w, y0 + setback + d)
@@ -170,7 +171,12 @@ def _fill_residential(b: _Builder, block, ground) -> None:
             else:
                 box = (x0 + setback, y1 - t - w, x0 + setback + d, y1 - t)
             b.building(box, rng.uniform(3.0, 7.5), "gable" if rng.random() < 0.75 else "flat", l_shape=rng.random() < 0.25)
-            t += w + rng.uniform(3, 8)
+            t += w + rng.uniform(2.5, 6)
+    for _ in range(int((x1 - x0) * (y1 - y0) / 120)):  # back-garden houses where they fit
+        w, d = rng.uniform(8, 12, 2)
+        bx, by = rng.uniform(x0 + 2, max(x0 + 2, x1 - 2 - w)), rng.uniform(y0 + 2, max(y0 + 2, y1 - 2 - d))
+        if bx + w < x1 - 1 and by + d < y1 - 1:
+            b.building((bx, by, bx + w, by + d), rng.uniform(3.0, 7.0), "gable" if rng.random() < 0.75 else "flat")
     for _ in range(int((x1 - x0) * (y1 - y0) / 250)):  # garden trees
         x, y = rng.uniform(x0 + 2, x1 - 2), rng.uniform(y0 + 2, y1 - 2)
         if not _overlaps((x - 1.5, y - 1.5, x + 1.5, y + 1.5), b.footprints, 0.5):
@@ -332,8 +338,8 @@ def generate_layout(size_m: float, rng: np.random.Generator) -> Layout:
             if block[2] - block[0] >= 12 and block[3] - block[1] >= 12:
                 blocks.append(block)
     # every kind of block appears (as far as there are blocks), the rest are drawn at random
-    kinds = ["residential", "parking", "commercial", "park"][: len(blocks)]
-    kinds += list(rng.choice(["residential", "commercial", "park", "parking"], p=[0.6, 0.22, 0.08, 0.1], size=len(blocks) - len(kinds)))
+    kinds = ["residential", "parking", "residential", "commercial", "park"][: len(blocks)]
+    kinds += list(rng.choice(["residential", "commercial", "park", "parking"], p=[0.66, 0.16, 0.08, 0.1], size=len(blocks) - len(kinds)))
     fill = {"residential": _fill_residential, "commercial": _fill_commercial, "park": _fill_park}
     for block, kind in zip(blocks, rng.permutation(kinds)):
         if kind == "parking":

@@ -42,8 +42,12 @@ def test_layout_of_the_output(tiny):
 
 def test_map_and_cameras_read_back(tiny):
     out, summary = tiny
-    vertex = PlyData.read(str(out / "map" / "point_cloud.ply"))["vertex"]  # a standard reader
+    vertex = PlyData.read(str(out / "map" / "point_cloud.ply"))["vertex"]  # standard readers
     assert len(vertex) == summary["map_gaussians"]
+    import open3d
+
+    cloud = open3d.io.read_point_cloud(str(out / "map" / "point_cloud.ply"))
+    assert len(cloud.points) == summary["map_gaussians"]
     gaussians = read_ply(out / "map" / "point_cloud.ply")
     truth = np.load(out / "truth" / "map_labels.npz")
     assert len(truth["label"]) == len(gaussians)
