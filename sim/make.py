@@ -98,9 +98,8 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
 
     def rendered():
         for i, frame in enumerate(frames):
-            nxt = frames[min(i + 1, len(frames) - 1)].camera.center
-            prev = frames[max(i - 1, 0)].camera.center
-            velocity = (nxt - prev) * spec.rate_hz / max(1, min(i + 1, len(frames) - 1) - max(i - 1, 0))
+            a, b = frames[max(i - 1, 0)], frames[min(i + 1, len(frames) - 1)]  # central difference
+            velocity = (b.camera.center - a.camera.center) / max((b.stamp_ns - a.stamp_ns) / 1e9, 1e-9)
             rgb, result = _render_frame(truth.gaussians, frame, velocity, options.sensor)
             image = to_uint8(apply_sensor(rgb, gains[i], options.sensor, sensor_rng))
             jpeg = encode_jpeg(image, options.jpeg_quality)
