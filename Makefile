@@ -27,6 +27,9 @@ $(STAMP): pyproject.toml | system-deps
 	# torch first and pinned: 2.13.0 is the local CPU build, anything else drags in CUDA.
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[test]'
+	# open_clip's files only (never imported: it needs torchvision): its BPE vocabulary and its
+	# tokenizer are the reference the tokenizer tests compare with.
+	$(PY) -m pip install -q --no-deps open_clip_torch==3.3.0
 	touch $(STAMP)
 
 demo: setup

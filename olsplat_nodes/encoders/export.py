@@ -1,0 +1,94 @@
+"""``olsplat export-clip``: an open_clip checkpoint -> ONNX image and text towers + manifest.
+
+The output folder is what ``OnnxClipEncoder`` loads:
+
+    encoder.json   manifest: name, embedding size, crop size, pixel mean/std, context length,
+                   vocabulary size and the file names below
+    image.onnx     [B, 3, S, S] float32 normalised pixels -> [B, D] image embeddings
+    text.onnx      [T, context_length] int64 token ids -> [T, D] text embeddings
+    vocab.txt.gz   the BPE merges the text tower was trained with (copied)
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import torch
+
+from .clip_model import Activation, ClipModel, load_clip
+from .tokenizer import ClipTokenizer
+
+OPENAI_MEAN = (0.48145466, 0.4578275, 0.40821073)  # the pixel statistics CLIP models are trained with
+OPENAI_STD = (0.26862954, 0.26130258, 0.27577711)
+MANIFEST = "encoder.json"
+
+
+class _ImageTower(torch.nn.Module):
+    def __init__(self, model: ClipModel):
+        super().__init__()
+        self.model = model
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        return self.model.encode_image(pixels)
+
+
+class _TextTower(_ImageTower):
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        return self.model.encode_text(tokens)
+
+
+def _export(module: torch.nn.Module, example: torch.Tensor, path: Path, input_name: str) -> None:
+    batch = torch.export.Dim("batch", min=1, max=4096)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exporter's progress chatter and deprecation notes
+        torch.onnx.export(
+            module, (example,), str(path), input_names=[input_name], output_names=["embeddings"],
+            dynamic_shapes=({0: batch},), verbose=False, external_data=False,
+        )  # fmt: skip
+
+
+def export_model(model: ClipModel, vocab: str | Path, out: str | Path, name: str, mean=OPENAI_MEAN, std=OPENAI_STD) -> Path:
+    """Export a ClipModel (with its BPE vocabulary) to an ONNX encoder folder."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    c = model.config
+    tokenizer = ClipTokenizer(vocab, context_length=c.context_length)
+    if tokenizer.vocab_size != c.vocab_size:
+        raise ValueError(f"{vocab}: {tokenizer.vocab_size} tokens, but the text tower embeds {c.vocab_size}: not its vocabulary")
+    model = model.eval()
+    with torch.no_grad():
+        _export(_ImageTower(model), torch.zeros(2, 3, c.image_size, c.image_size), out / "image.onnx", "pixels")
+        _export(_TextTower(model), torch.as_tensor(tokenizer(["a photo", "a map"])), out / "text.onnx", "tokens")
+    shutil.copyfile(vocab, out / "vocab.txt.gz") if str(vocab).endswith(".gz") else _gzip_copy(vocab, out / "vocab.txt.gz")
+    manifest = {
+        "format": "olsplat-clip-onnx",
+        "version": 1,
+        "name": name,
+        "embed_dim": c.embed_dim,
+        "image_size": c.image_size,
+        "context_length": c.context_length,
+        "vocab_size": c.vocab_size,
+        "mean": list(mean),
+        "std": list(std),
+        "image": "image.onnx",
+        "text": "text.onnx",
+        "vocab": "vocab.txt.gz",
+    }
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=2))
+    return out
+
+
+def _gzip_copy(src, dst) -> None:
+    import gzip
+
+    with open(src, "rb") as f, gzip.open(dst, "wb", mtime=0) as g:
+        g.write(f.read())
+
+
+def export_clip(checkpoint: str | Path, vocab: str | Path, out: str | Path, activation: Activation = "gelu", name: str | None = None) -> Path:
+    """Load an open_clip checkpoint and export it (see the module docstring)."""
+    model = load_clip(str(checkpoint), activation)
+    return export_model(model, vocab, out, name or Path(checkpoint).stem)

@@ -1,0 +1,52 @@
+"""Fusing several vision-language encoders (the paper's eq. 2d_feature_fusion).
+
+The paper fuses two CLIP-family encoders as f = λ φ_R + (1 - λ) φ_S with λ = 0.6. A sum only
+means something when both share one embedding space (RemoteCLIP and GeoRSCLIP are both
+fine-tuned from the same CLIP, so roughly they do): mode ``"sum"``. Encoders trained apart
+(our shipped compact ones) do not share a space, so the default mode ``"concat"`` stacks
+sqrt(w_i) φ_i: the dot product of two such vectors is Σ w_i cos_i, the same weighted fusion
+applied to the similarities, valid for any encoders and dimensions. Either way the result is
+L2-normalised again.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from .base import VisionLanguageEncoder, normalize
+
+
+class FusedEncoder:
+    def __init__(
+        self,
+        encoders: list[VisionLanguageEncoder],
+        weights: list[float] | None = None,
+        mode: Literal["concat", "sum"] = "concat",
+    ):
+        if not encoders:
+            raise ValueError("FusedEncoder needs at least one encoder")
+        weights = [1.0 / len(encoders)] * len(encoders) if weights is None else list(weights)
+        if len(weights) != len(encoders) or any(w < 0 for w in weights) or sum(weights) <= 0:
+            raise ValueError(f"need one non-negative weight per encoder, got weights={weights}")
+        if mode == "sum" and len({e.dim for e in encoders}) > 1:
+            raise ValueError(f"mode='sum' needs encoders of one dimension, got {[e.dim for e in encoders]}")
+        if mode not in ("concat", "sum"):
+            raise ValueError(f"mode must be 'concat' or 'sum', got mode={mode!r}")
+        total = float(sum(weights))
+        self.encoders, self.weights, self.mode = encoders, [w / total for w in weights], mode
+        self.name = "+".join(f"{e.name}:{w:.2f}" for e, w in zip(encoders, self.weights))
+        self.dim = encoders[0].dim if mode == "sum" else sum(e.dim for e in encoders)
+
+    def _fuse(self, parts: list[np.ndarray]) -> np.ndarray:
+        if self.mode == "sum":
+            return normalize(sum(w * p for w, p in zip(self.weights, parts)))
+        return normalize(np.concatenate([np.sqrt(w) * p for w, p in zip(self.weights, parts)], axis=-1))
+
+    def encode_images_per_encoder(self, crops_by_size: dict[int, np.ndarray]) -> np.ndarray:
+        """Crops already made at each encoder's input size -> [B, dim] fused features."""
+        return self._fuse([e.encode_images(crops_by_size[e.input_size]) for e in self.encoders])
+
+    def encode_text(self, texts: list[str]) -> np.ndarray:
+        return self._fuse([e.encode_text(texts) for e in self.encoders])
