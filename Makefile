@@ -27,9 +27,11 @@ $(STAMP): pyproject.toml | system-deps
 	# torch first and pinned: 2.13.0 is the local CPU build, anything else drags in CUDA.
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[test]'
-	# open_clip's files only (never imported: it needs torchvision): its BPE vocabulary and its
-	# tokenizer are the reference the tokenizer tests compare with.
-	$(PY) -m pip install -q --no-deps open_clip_torch==3.3.0
+	# Two files of open_clip (not installed: it needs torchvision): CLIP's BPE vocabulary and
+	# open_clip's tokenizer, the reference the tokenizer tests compare with.
+	$(PY) -m pip download -q --no-deps open_clip_torch==3.3.0 -d $(VENV)/reference
+	$(PY) -c "import glob, zipfile; z = zipfile.ZipFile(glob.glob('$(VENV)/reference/open_clip_torch-*.whl')[0]); \
+		[z.extract(n, '$(VENV)/reference') for n in ('open_clip/tokenizer.py', 'open_clip/bpe_simple_vocab_16e6.txt.gz')]"
 	touch $(STAMP)
 
 demo: setup

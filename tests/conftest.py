@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from olsplat_nodes.scene import Camera, Gaussians, intrinsics, look_at
+from olsplat_sim.make import make_dataset
+from olsplat_sim.presets import PRESETS
 
 SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
@@ -47,3 +49,11 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"the shared real data folder is absent ({SHARED_DATA})")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory):
+    """The tiny simulator preset, generated once per test session (a few seconds)."""
+    out = tmp_path_factory.mktemp("tiny") / "scene"
+    summary = make_dataset(PRESETS["tiny"], 0, out, log=lambda *_: None)
+    return out, summary

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gzip
 import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -74,11 +75,10 @@ def test_tokenizer_on_a_known_vocabulary(vocab):
 
 
 def _open_clip_reference():
-    """open_clip's own tokenizer module and vocabulary, when the package files are installed."""
-    spec = importlib.util.find_spec("open_clip")
-    if spec is None or not spec.submodule_search_locations:
-        pytest.skip("open_clip_torch files are not installed (make test installs them without dependencies)")
-    folder = Path(spec.submodule_search_locations[0])
+    """open_clip's own tokenizer module and vocabulary (make's set-up unpacks them into .venv/reference)."""
+    folder = Path(sys.prefix) / "reference" / "open_clip"
+    if not (folder / "tokenizer.py").is_file():
+        pytest.skip(f"open_clip's tokenizer files are not in {folder} (make setup puts them there)")
     module_spec = importlib.util.spec_from_file_location("open_clip_tokenizer_reference", folder / "tokenizer.py")
     module = importlib.util.module_from_spec(module_spec)
     module_spec.loader.exec_module(module)  # tokenizer.py imports no other part of open_clip

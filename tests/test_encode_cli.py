@@ -1,0 +1,41 @@
+"""`olsplat encode` on a simulator scene: regions, features from exported encoders, overlays."""
+
+from __future__ import annotations
+
+import gzip
+import shutil
+
+import numpy as np
+import torch
+
+from olsplat_nodes.cli import main
+from olsplat_nodes.encoders.clip_model import ClipModel
+from olsplat_nodes.encoders.export import export_model
+
+from .encoders.test_clip_export import MERGES, small_config
+
+
+def test_encode_scene(tiny, tmp_path, capsys):
+    scene = tmp_path / "scene"  # a copy: the shared tiny scene stays as `sim make` wrote it
+    shutil.copytree(tiny[0], scene)
+    vocab = tmp_path / "merges.txt.gz"
+    with gzip.open(vocab, "wt", encoding="utf-8") as f:
+        f.write("#version: 0.2\n" + "\n".join(MERGES) + "\n")
+    torch.manual_seed(0)
+    folders = [export_model(ClipModel(small_config()), vocab, tmp_path / f"e{i}", f"e{i}") for i in range(2)]
+    args = ["encode", "--scene", str(scene), "--limit", "2", "--levels", "2", "--png", "--force",
+            "--encoders", ",".join(map(str, folders)), "--weights", "0.6,0.4"]  # fmt: skip
+    assert main(args) == 0
+    data = np.load(scene / "cache" / "encode" / "frame_0000.npz")
+    maps = data["label_maps"]
+    assert maps.shape == (2, 240, 320) and maps.dtype == np.int32
+    for level in range(2):
+        features = data[f"features_{level}"]
+        assert features.shape == (maps[level].max() + 1, 32) and features.dtype == np.float16
+    assert str(data["encoder"]) == "e0:0.60+e1:0.40"
+    assert (scene / "cache" / "encode" / "frame_0001_regions.png").stat().st_size > 0
+    assert not (scene / "cache" / "encode" / "frame_0002.npz").exists()
+    assert main(["encode", "--scene", str(tmp_path), "--levels", "2"]) == 1
+    assert "no images/ folder" in capsys.readouterr().err
+    assert main(["encode", "--scene", str(scene), "--levels", "9"]) == 1
+    assert "--levels must be 1..6" in capsys.readouterr().err
