@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from . import raster
+from . import encode, raster, regions
 
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("bench", help="run a benchmark and print its figures")
     targets = parser.add_subparsers(dest="target", required=True, metavar="TARGET")
     raster.add_parser(targets)
+    regions.add_parser(targets)
+    encode.add_parser(targets)

@@ -12,6 +12,7 @@ The output folder is what ``OnnxClipEncoder`` loads:
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import warnings
 from pathlib import Path
@@ -42,6 +43,8 @@ class _TextTower(_ImageTower):
 
 def _export(module: torch.nn.Module, example: torch.Tensor, path: Path, input_name: str) -> None:
     batch = torch.export.Dim("batch", min=1, max=4096)
+    # the exporter logs a line per torchvision operator it cannot find; we need none of them
+    logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exporter's progress chatter and deprecation notes
         torch.onnx.export(
