@@ -61,7 +61,7 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..encoders import encode_regions
-    from ..encoders.onnx_clip import OnnxClipEncoder
+    from ..encoders.onnx_encoder import OnnxEncoder
     from ..regions import propose_regions
 
     image = _frame(args.scene)
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             folders.append(vit_b32_random(Path(tmp)))
             print(f"exported a random ViT-B/32 in {time.perf_counter() - start:.0f} s")
         for folder in folders:
-            encoder = OnnxClipEncoder(folder)
+            encoder = OnnxEncoder(folder)
             encode_regions(image, levels, encoder)  # warm-up
             start = time.perf_counter()
             encode_regions(image, levels, encoder)

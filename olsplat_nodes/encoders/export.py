@@ -1,6 +1,6 @@
 """``olsplat export-clip``: an open_clip checkpoint -> ONNX image and text towers + manifest.
 
-The output folder is what ``OnnxClipEncoder`` loads:
+The output folder is what ``OnnxEncoder`` loads:
 
     encoder.json   manifest: name, embedding size, crop size, pixel mean/std, context length,
                    vocabulary size and the file names below
@@ -41,7 +41,7 @@ class _TextTower(_ImageTower):
         return self.model.encode_text(tokens)
 
 
-def _export(module: torch.nn.Module, example: torch.Tensor, path: Path, input_name: str) -> None:
+def export_tower(module: torch.nn.Module, example: torch.Tensor, path: Path, input_name: str) -> None:
     batch = torch.export.Dim("batch", min=1, max=4096)
     # the exporter logs a line per torchvision operator it cannot find; we need none of them
     logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)
@@ -63,8 +63,8 @@ def export_model(model: ClipModel, vocab: str | Path, out: str | Path, name: str
         raise ValueError(f"{vocab}: {tokenizer.vocab_size} tokens, but the text tower embeds {c.vocab_size}: not its vocabulary")
     model = model.eval()
     with torch.no_grad():
-        _export(_ImageTower(model), torch.zeros(2, 3, c.image_size, c.image_size), out / "image.onnx", "pixels")
-        _export(_TextTower(model), torch.as_tensor(tokenizer(["a photo", "a map"])), out / "text.onnx", "tokens")
+        export_tower(_ImageTower(model), torch.zeros(2, 3, c.image_size, c.image_size), out / "image.onnx", "pixels")
+        export_tower(_TextTower(model), torch.as_tensor(tokenizer(["a photo", "a map"])), out / "text.onnx", "tokens")
     shutil.copyfile(vocab, out / "vocab.txt.gz") if str(vocab).endswith(".gz") else _gzip_copy(vocab, out / "vocab.txt.gz")
     manifest = {
         "format": "olsplat-clip-onnx",
@@ -79,6 +79,7 @@ def export_model(model: ClipModel, vocab: str | Path, out: str | Path, name: str
         "image": "image.onnx",
         "text": "text.onnx",
         "vocab": "vocab.txt.gz",
+        "tokenizer": "clip-bpe",
     }
     (out / MANIFEST).write_text(json.dumps(manifest, indent=2))
     return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import gzip
 import html
+import json
 from functools import lru_cache
 from pathlib import Path
 
@@ -106,5 +107,42 @@ class ClipTokenizer:
         out = np.zeros((len(texts), self.context_length), np.int64)
         for row, text in enumerate(texts):
             ids = [self.start_id] + self.encode(text)[: self.context_length - 2] + [self.end_id]
+            out[row, : len(ids)] = ids
+        return out
+
+
+class WordTokenizer:
+    """Whole-word tokens for the shipped compact encoders: 0 = padding, 1 = unknown word.
+
+    ``vocab`` is the list of known words (ids 2, 3, ...), read from a JSON file. Text is
+    cleaned like CLIP's (see ``clean``) and split into runs of letters or digits.
+    """
+
+    PAD, UNKNOWN = 0, 1
+
+    def __init__(self, vocab_path: str | Path, context_length: int = 16):
+        path = Path(vocab_path)
+        try:
+            words = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{path}: not a readable word list ({type(exc).__name__}: {exc})") from None
+        if not isinstance(words, list) or not all(isinstance(w, str) for w in words):
+            raise ValueError(f"{path}: a word vocabulary must be a JSON list of strings")
+        self.ids = {word: i + 2 for i, word in enumerate(words)}
+        self.context_length = context_length
+        self.path = path
+
+    @property
+    def vocab_size(self) -> int:
+        return len(self.ids) + 2
+
+    def words(self, text: str) -> list[str]:
+        return regex.findall(r"[\p{L}\p{N}]+", clean(text))
+
+    def __call__(self, texts: list[str]) -> np.ndarray:
+        """[T, context_length] int64 word ids, zero padded, cut at context_length."""
+        out = np.zeros((len(texts), self.context_length), np.int64)
+        for row, text in enumerate(texts):
+            ids = [self.ids.get(w, self.UNKNOWN) for w in self.words(text)][: self.context_length]
             out[row, : len(ids)] = ids
         return out

@@ -68,13 +68,13 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..encoders import FusedEncoder, encode_regions
-    from ..encoders.onnx_clip import OnnxClipEncoder
+    from ..encoders.onnx_encoder import OnnxEncoder
     from ..regions import RegionConfig, propose_regions
 
     config = RegionConfig(level_counts=level_counts(args.levels))
     encoder = None
     if args.encoders:
-        members = [OnnxClipEncoder(Path(p)) for p in args.encoders.split(",")]
+        members = [OnnxEncoder(Path(p)) for p in args.encoders.split(",")]
         weights = [float(w) for w in args.weights.split(",")] if args.weights else None
         try:
             encoder = FusedEncoder(members, weights, args.fusion) if len(members) > 1 or weights else members[0]

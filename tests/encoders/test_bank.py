@@ -9,7 +9,7 @@ import torch
 from olsplat_nodes.encoders import CropConfig, FusedEncoder, encode_regions, region_crops
 from olsplat_nodes.encoders.clip_model import ClipModel
 from olsplat_nodes.encoders.export import export_model
-from olsplat_nodes.encoders.onnx_clip import OnnxClipEncoder
+from olsplat_nodes.encoders.onnx_encoder import OnnxEncoder
 from olsplat_nodes.regions import RegionConfig, propose_regions
 
 from ..regions.test_regions import blocks_image
@@ -29,7 +29,7 @@ def encoders(tmp_path_factory):
     for seed, size in ((1, 32), (2, 48)):
         torch.manual_seed(seed)
         model = ClipModel(small_config(image_size=size))
-        out.append(OnnxClipEncoder(export_model(model, vocab, folder / f"enc{seed}", f"enc{seed}")))
+        out.append(OnnxEncoder(export_model(model, vocab, folder / f"enc{seed}", f"enc{seed}")))
     return out
 
 

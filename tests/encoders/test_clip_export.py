@@ -14,7 +14,7 @@ import torch
 
 from olsplat_nodes.cli import main
 from olsplat_nodes.encoders.clip_model import ClipConfig, ClipModel, load_clip
-from olsplat_nodes.encoders.onnx_clip import OnnxClipEncoder
+from olsplat_nodes.encoders.onnx_encoder import OnnxEncoder
 from olsplat_nodes.encoders.tokenizer import ClipTokenizer
 from olsplat_nodes.errors import OlsplatInputError
 
@@ -99,7 +99,7 @@ def test_tokenizer_matches_clips_bpe():
 def test_export_and_onnxruntime_agree_with_torch(checkpoint, vocab, tmp_path):
     out = tmp_path / "encoder"
     assert main(["export-clip", "--checkpoint", str(checkpoint), "--vocab", str(vocab), "--out", str(out), "--name", "tiny-clip"]) == 0
-    encoder = OnnxClipEncoder(out)
+    encoder = OnnxEncoder(out)
     assert (encoder.name, encoder.dim, encoder.input_size) == ("tiny-clip", 16, 32)
     model = load_clip(str(checkpoint))
     crops = np.random.default_rng(0).integers(0, 256, (5, 32, 32, 3), dtype=np.uint8)
@@ -133,16 +133,16 @@ def test_bad_checkpoints_and_folders(checkpoint, vocab, tmp_path, capsys):
     manifest["vocab_size"] = 49408  # as if a different vocabulary had been shipped with this text tower
     (out / "encoder.json").write_text(json.dumps(manifest))
     with pytest.raises(OlsplatInputError, match="not the vocabulary of this text tower"):
-        OnnxClipEncoder(out)
+        OnnxEncoder(out)
     manifest["vocab_size"], manifest["image_size"] = 519, 64
     (out / "encoder.json").write_text(json.dumps(manifest))
     with pytest.raises(OlsplatInputError, match=r"image\.onnx: takes"):
-        OnnxClipEncoder(out)
+        OnnxEncoder(out)
     (out / "image.onnx").write_bytes(b"not onnx")
     with pytest.raises(OlsplatInputError, match=r"image\.onnx: not a loadable ONNX model"):
-        OnnxClipEncoder(out)
+        OnnxEncoder(out)
     (out / "text.onnx").unlink()
     with pytest.raises(OlsplatInputError, match=r"text\.onnx: missing"):
-        OnnxClipEncoder(out)
+        OnnxEncoder(out)
     with pytest.raises(OlsplatInputError, match=r"encoder\.json: missing"):
-        OnnxClipEncoder(tmp_path)
+        OnnxEncoder(tmp_path)

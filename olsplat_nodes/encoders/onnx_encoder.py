@@ -1,4 +1,8 @@
-"""A CLIP-family encoder run by onnxruntime from a folder made by ``olsplat export-clip``."""
+"""An encoder run by onnxruntime from a folder with a manifest and two ONNX towers.
+
+Made by ``olsplat export-clip`` (CLIP-family models, CLIP's BPE tokenizer) or shipped in the
+package (compact models, whole-word tokenizer): the manifest's ``tokenizer`` says which.
+"""
 
 from __future__ import annotations
 
@@ -10,10 +14,10 @@ import numpy as np
 from ..errors import OlsplatInputError
 from .base import normalize
 from .export import MANIFEST
-from .tokenizer import ClipTokenizer
+from .tokenizer import ClipTokenizer, WordTokenizer
 
 
-class OnnxClipEncoder:
+class OnnxEncoder:
     """Implements ``VisionLanguageEncoder``. Every file problem raises OlsplatInputError naming the file."""
 
     def __init__(self, folder: str | Path, threads: int = 0):
@@ -29,6 +33,9 @@ class OnnxClipEncoder:
             self.std = np.asarray(manifest["std"], np.float32)
             files = {key: folder / manifest[key] for key in ("image", "text", "vocab")}
             vocab_size = int(manifest["vocab_size"])
+            tokenizer_kind = manifest.get("tokenizer", "clip-bpe")
+            if tokenizer_kind not in ("clip-bpe", "words"):
+                raise ValueError(f"unknown tokenizer {tokenizer_kind!r}")
         except FileNotFoundError:
             raise OlsplatInputError(f"{manifest_path}: missing (make the folder with 'olsplat export-clip')") from None
         except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
@@ -47,7 +54,8 @@ class OnnxClipEncoder:
                 raise OlsplatInputError(f"{files[key]}: not a loadable ONNX model ({str(exc).splitlines()[0]})") from None
         self._check_io(files, context)
         try:
-            self.tokenizer = ClipTokenizer(files["vocab"], context_length=context)
+            make = ClipTokenizer if tokenizer_kind == "clip-bpe" else WordTokenizer
+            self.tokenizer = make(files["vocab"], context_length=context)
         except ValueError as exc:
             raise OlsplatInputError(str(exc)) from None
         if self.tokenizer.vocab_size != vocab_size:
