@@ -26,6 +26,19 @@ def add_parser(subparsers) -> None:
     make.add_argument("--no-pose-noise", action="store_true", help="write the true poses to sparse/0 and the log")
     make.set_defaults(run=run_make)
 
+    train = commands.add_parser("train-encoders", help="train the compact encoders shipped in the package")
+    train.add_argument("--out", type=Path, help="output folder (default: the package's encoders/assets)")
+    train.add_argument("--seeds", type=int, default=10, help="training scenes (seeds 1000, 1001, ...)")
+    train.add_argument("--views", type=int, default=16, help="views per scene")
+    train.add_argument("--epochs", type=int, default=8)
+    train.set_defaults(run=run_train)
+
+    zero = commands.add_parser("zeroshot", help="region-level zero-shot accuracy on held-out scenes")
+    zero.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="evaluation seeds (< 1000)")
+    zero.add_argument("--views", type=int, default=12)
+    zero.add_argument("--encoders", help="comma-separated extra encoder folders to evaluate too")
+    zero.set_defaults(run=run_zeroshot)
+
     replay = commands.add_parser("replay", help="play a replay log (.mcap) or an image folder + COLMAP model")
     replay.add_argument("--log", type=Path, required=True)
     pace = replay.add_mutually_exclusive_group()
@@ -71,4 +84,39 @@ def run_replay(args: argparse.Namespace) -> int:
             break
     elapsed = time.monotonic() - start
     print(f"{count} frames in {elapsed:.2f} s ({count / max(elapsed, 1e-9):.1f} frames/s)")
+    return 0
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from .train_encoders import ASSETS, train_all
+
+    train_all(args.out or ASSETS, args.seeds, args.views, args.epochs)
+    return 0
+
+
+def run_zeroshot(args: argparse.Namespace) -> int:
+    from olsplat_nodes.encoders.onnx_encoder import OnnxEncoder
+    from olsplat_nodes.encoders.shipped import SHIPPED, default_encoder, shipped_encoder
+    from olsplat_nodes.errors import OlsplatInputError
+
+    from .labels import LABELS
+    from .zeroshot import evaluate, label_queries
+
+    encoders = {name: shipped_encoder(name) for name in SHIPPED}
+    encoders["fusion (lambda_2D = 0.6)"] = default_encoder()
+    for folder in (args.encoders or "").split(",") if args.encoders else []:
+        encoder = OnnxEncoder(Path(folder))
+        encoders[encoder.name] = encoder
+    try:
+        results = evaluate(encoders, args.seeds, args.views)
+    except ValueError as exc:
+        raise OlsplatInputError(str(exc)) from None
+    counts = results.pop("_counts")
+    print(f"held-out seeds {args.seeds}, {args.views} views each, {int(counts.sum())} regions; queries: {label_queries()}")
+    short = [label.replace(" buildings", "") for label in LABELS]
+    print(f"{'encoder':26s} {'accuracy':>8s} {'balanced':>8s}  " + " ".join(f"{s[:9]:>9s}" for s in short))
+    print(f"{'(regions per label)':26s} {'':>8s} {'':>8s}  " + " ".join(f"{int(c):>9d}" for c in counts))
+    for name, r in results.items():
+        cells = " ".join(f"{v:>9.2f}" if v == v else f"{'-':>9s}" for v in r["per_label"])
+        print(f"{name:26s} {r['accuracy']:>8.3f} {r['balanced']:>8.3f}  {cells}")
     return 0

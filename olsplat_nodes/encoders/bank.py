@@ -29,21 +29,21 @@ def encode_regions(
     crop_config: CropConfig = CropConfig(),
     batch: int = 64,
 ) -> FeatureBank:
-    """Crop every region of every level and embed it (see ``crops`` for how crops are made)."""
+    """Crop every region of every level and embed it (see ``crops`` for how crops are made).
+
+    An encoder with a ``crop_config`` of its own (shipped ones say how they were trained)
+    gets crops made that way; others get ``crop_config``.
+    """
     if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
         raise ValueError(f"image must be [H, W, 3] uint8 RGB, got shape {image_rgb.shape} dtype {image_rgb.dtype}")
     members = encoder.encoders if isinstance(encoder, FusedEncoder) else [encoder]
-    sizes = sorted({e.input_size for e in members})
     features = []
     for label_map in levels.label_maps:
-        crops = {size: region_crops(image_rgb, label_map, size, crop_config) for size in sizes}
-        n = len(crops[sizes[0]])
+        # each member gets crops its own way: its input size and, if it has one, its crop style
+        crops = [region_crops(image_rgb, label_map, m.input_size, getattr(m, "crop_config", None) or crop_config) for m in members]
         chunks = []
-        for start in range(0, n, batch):
-            part = {size: c[start : start + batch] for size, c in crops.items()}
-            if isinstance(encoder, FusedEncoder):
-                chunks.append(encoder.encode_images_per_encoder(part))
-            else:
-                chunks.append(encoder.encode_images(part[encoder.input_size]))
+        for start in range(0, len(crops[0]), batch):
+            part = [c[start : start + batch] for c in crops]
+            chunks.append(encoder.encode_crops(part) if isinstance(encoder, FusedEncoder) else encoder.encode_images(part[0]))
         features.append(np.concatenate(chunks).astype(np.float32))
     return FeatureBank(features, encoder.name)

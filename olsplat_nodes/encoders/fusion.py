@@ -44,9 +44,9 @@ class FusedEncoder:
             return normalize(sum(w * p for w, p in zip(self.weights, parts)))
         return normalize(np.concatenate([np.sqrt(w) * p for w, p in zip(self.weights, parts)], axis=-1))
 
-    def encode_images_per_encoder(self, crops_by_size: dict[int, np.ndarray]) -> np.ndarray:
-        """Crops already made at each encoder's input size -> [B, dim] fused features."""
-        return self._fuse([e.encode_images(crops_by_size[e.input_size]) for e in self.encoders])
+    def encode_crops(self, crops: list[np.ndarray]) -> np.ndarray:
+        """One [B, S_i, S_i, 3] crop batch per member encoder (its size, its crop style) -> [B, dim]."""
+        return self._fuse([e.encode_images(c) for e, c in zip(self.encoders, crops)])
 
     def encode_text(self, texts: list[str]) -> np.ndarray:
         return self._fuse([e.encode_text(texts) for e in self.encoders])

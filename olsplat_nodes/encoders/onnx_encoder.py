@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import OlsplatInputError
 from .base import normalize
+from .crops import CropConfig
 from .export import MANIFEST
 from .tokenizer import ClipTokenizer, WordTokenizer
 
@@ -34,6 +35,7 @@ class OnnxEncoder:
             files = {key: folder / manifest[key] for key in ("image", "text", "vocab")}
             vocab_size = int(manifest["vocab_size"])
             tokenizer_kind = manifest.get("tokenizer", "clip-bpe")
+            self.crop_config = CropConfig(**manifest["crop"]) if "crop" in manifest else None
             if tokenizer_kind not in ("clip-bpe", "words"):
                 raise ValueError(f"unknown tokenizer {tokenizer_kind!r}")
         except FileNotFoundError:

@@ -115,7 +115,8 @@ class WordTokenizer:
     """Whole-word tokens for the shipped compact encoders: 0 = padding, 1 = unknown word.
 
     ``vocab`` is the list of known words (ids 2, 3, ...), read from a JSON file. Text is
-    cleaned like CLIP's (see ``clean``) and split into runs of letters or digits.
+    cleaned like CLIP's (see ``clean``) and split into runs of letters or digits; an unknown
+    word ending in "s" whose singular is known takes the singular's id ("buildings").
     """
 
     PAD, UNKNOWN = 0, 1
@@ -136,6 +137,11 @@ class WordTokenizer:
     def vocab_size(self) -> int:
         return len(self.ids) + 2
 
+    def _id(self, word: str) -> int:
+        if word in self.ids:
+            return self.ids[word]
+        return self.ids.get(word[:-1], self.UNKNOWN) if word.endswith("s") and len(word) > 3 else self.UNKNOWN
+
     def words(self, text: str) -> list[str]:
         return regex.findall(r"[\p{L}\p{N}]+", clean(text))
 
@@ -143,6 +149,6 @@ class WordTokenizer:
         """[T, context_length] int64 word ids, zero padded, cut at context_length."""
         out = np.zeros((len(texts), self.context_length), np.int64)
         for row, text in enumerate(texts):
-            ids = [self.ids.get(w, self.UNKNOWN) for w in self.words(text)][: self.context_length]
+            ids = [self._id(w) for w in self.words(text)][: self.context_length]
             out[row, : len(ids)] = ids
         return out

@@ -27,7 +27,12 @@ def level_counts(levels: int) -> tuple[int, ...]:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("encode", help="multi-level regions and region features for a scene's views")
     parser.add_argument("--scene", required=True, type=Path, help="folder with images/ (and sparse/0/)")
-    parser.add_argument("--encoders", help="comma-separated encoder folders (made by 'olsplat export-clip')")
+    parser.add_argument(
+        "--encoders",
+        default="shipped",
+        help="comma-separated encoder folders (made by 'olsplat export-clip'); 'shipped' (default): the two "
+        "compact encoders in the package, fused; 'none': regions only",
+    )
     parser.add_argument("--weights", help="comma-separated fusion weights (default: equal; the paper: 0.6,0.4)")
     parser.add_argument("--fusion", choices=["concat", "sum"], default="concat")
     parser.add_argument("--levels", type=int, default=3, help="region levels (default 3)")
@@ -73,7 +78,12 @@ def run(args: argparse.Namespace) -> int:
 
     config = RegionConfig(level_counts=level_counts(args.levels))
     encoder = None
-    if args.encoders:
+    if args.encoders == "shipped":
+        from ..encoders.shipped import DEFAULT_WEIGHTS, default_encoder
+
+        weights = tuple(float(w) for w in args.weights.split(",")) if args.weights else DEFAULT_WEIGHTS
+        encoder = default_encoder(weights)
+    elif args.encoders != "none":
         members = [OnnxEncoder(Path(p)) for p in args.encoders.split(",")]
         weights = [float(w) for w in args.weights.split(",")] if args.weights else None
         try:

@@ -50,10 +50,10 @@ def test_fusion_is_the_weighted_similarity(encoders):
     fused = FusedEncoder([a, b], [0.6, 0.4])
     assert fused.dim == a.dim + b.dim
     rng = np.random.default_rng(0)
-    crops = {32: rng.integers(0, 256, (3, 32, 32, 3), dtype=np.uint8), 48: rng.integers(0, 256, (3, 48, 48, 3), dtype=np.uint8)}
+    crops = [rng.integers(0, 256, (3, 32, 32, 3), dtype=np.uint8), rng.integers(0, 256, (3, 48, 48, 3), dtype=np.uint8)]
     texts = ["the road", "road"]
-    image_f, text_f = fused.encode_images_per_encoder(crops), fused.encode_text(texts)
-    expected = 0.6 * a.encode_images(crops[32]) @ a.encode_text(texts).T + 0.4 * b.encode_images(crops[48]) @ b.encode_text(texts).T
+    image_f, text_f = fused.encode_crops(crops), fused.encode_text(texts)
+    expected = 0.6 * a.encode_images(crops[0]) @ a.encode_text(texts).T + 0.4 * b.encode_images(crops[1]) @ b.encode_text(texts).T
     np.testing.assert_allclose(image_f @ text_f.T, expected, atol=1e-5)
     summed = FusedEncoder([a, a], [0.6, 0.4], mode="sum")
     assert summed.dim == a.dim

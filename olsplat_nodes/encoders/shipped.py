@@ -1,0 +1,27 @@
+"""The compact encoders that ship inside the package (trained by ``olsplat sim train-encoders``).
+
+They know the simulator's world only: a stand-in that lets the pipeline run offline until the
+user exports RemoteCLIP / GeoRSCLIP with ``olsplat export-clip``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .fusion import FusedEncoder
+from .onnx_encoder import OnnxEncoder
+
+ASSETS = Path(__file__).resolve().parent / "assets"
+SHIPPED = ("olsplat-cnn64", "olsplat-vit48")
+DEFAULT_WEIGHTS = (0.6, 0.4)  # the paper's lambda_2D = 0.6 for the first encoder
+
+
+def shipped_encoder(name: str) -> OnnxEncoder:
+    if name not in SHIPPED:
+        raise ValueError(f"no shipped encoder {name!r}; shipped: {', '.join(SHIPPED)}")
+    return OnnxEncoder(ASSETS / name)
+
+
+def default_encoder(weights: tuple[float, float] = DEFAULT_WEIGHTS) -> FusedEncoder:
+    """Both shipped encoders fused with lambda_2D = weights[0]."""
+    return FusedEncoder([shipped_encoder(n) for n in SHIPPED], list(weights))
