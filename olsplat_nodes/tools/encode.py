@@ -30,8 +30,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--encoders",
         default="shipped",
-        help="comma-separated encoder folders (made by 'olsplat export-clip'); 'shipped' (default): the two "
-        "compact encoders in the package, fused; 'none': regions only",
+        help="comma-separated encoders: folders made by 'olsplat export-clip' or names of shipped encoders "
+        "(olsplat-cnn64, olsplat-vit48); 'shipped' (default): both shipped encoders fused; 'none': regions only",
     )
     parser.add_argument("--weights", help="comma-separated fusion weights (default: equal; the paper: 0.6,0.4)")
     parser.add_argument("--fusion", choices=["concat", "sum"], default="concat")
@@ -84,7 +84,9 @@ def run(args: argparse.Namespace) -> int:
         weights = tuple(float(w) for w in args.weights.split(",")) if args.weights else DEFAULT_WEIGHTS
         encoder = default_encoder(weights)
     elif args.encoders != "none":
-        members = [OnnxEncoder(Path(p)) for p in args.encoders.split(",")]
+        from ..encoders.shipped import SHIPPED, shipped_encoder
+
+        members = [shipped_encoder(p) if p in SHIPPED else OnnxEncoder(Path(p)) for p in args.encoders.split(",")]
         weights = [float(w) for w in args.weights.split(",")] if args.weights else None
         try:
             encoder = FusedEncoder(members, weights, args.fusion) if len(members) > 1 or weights else members[0]
