@@ -65,7 +65,10 @@ def export_model(model: ClipModel, vocab: str | Path, out: str | Path, name: str
     with torch.no_grad():
         export_tower(_ImageTower(model), torch.zeros(2, 3, c.image_size, c.image_size), out / "image.onnx", "pixels")
         export_tower(_TextTower(model), torch.as_tensor(tokenizer(["a photo", "a map"])), out / "text.onnx", "tokens")
-    shutil.copyfile(vocab, out / "vocab.txt.gz") if str(vocab).endswith(".gz") else _gzip_copy(vocab, out / "vocab.txt.gz")
+    if str(vocab).endswith(".gz"):
+        shutil.copyfile(vocab, out / "vocab.txt.gz")
+    else:
+        _gzip_copy(vocab, out / "vocab.txt.gz")
     manifest = {
         "format": "olsplat-clip-onnx",
         "version": 1,
