@@ -1,0 +1,52 @@
+"""Dense, obviously-correct versions of the aggregation maths: the oracles of the fast ones.
+
+Everything is plain numpy over dense [pixels, K] and [Gaussians, views, D] arrays, straight
+from the paper's equations; use only on small inputs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import AggregationConfig
+
+
+def observe_view_dense(topk_ids, topk_weights, pixel_features, valid, n_gaussians, config: AggregationConfig):
+    """(f [N, D], d [N]) for one view: eq. view_gaussian_feature and d_iv, all Gaussians, dense.
+
+    pixel_features [H, W, D] = f_v(p); valid [H, W] = M_v(p). Rows with d <= tau_d are zeroed.
+    """
+    d_dim = pixel_features.shape[-1]
+    numerator = np.zeros((n_gaussians, d_dim))
+    strength = np.zeros(n_gaussians)
+    height, width, k_max = topk_ids.shape
+    for y in range(height):
+        for x in range(width):
+            w = topk_weights[y, x].astype(np.float64)
+            total = w.sum()
+            pi = w / (total + config.eps)
+            effective = 1.0 / ((pi**2).sum() + config.eps)
+            q = min(max(total, config.q_min), 1.0) * np.exp(-max(effective - config.tau_e, 0.0) / config.kappa)
+            for k in range(k_max):
+                i = topk_ids[y, x, k]
+                if i < 0:
+                    continue
+                w_tilde = w[k] * float(valid[y, x]) * q
+                numerator[i] += w_tilde * pixel_features[y, x]
+                strength[i] += w_tilde
+    features = numerator / (strength[:, None] + config.eps)
+    keep = strength > config.tau_d
+    return np.where(keep[:, None], features, 0.0), np.where(keep, strength, 0.0)
+
+
+def refine_dense(features, strength, config: AggregationConfig):
+    """features [N, V, D] f_iv, strength [N, V] d_iv (0 = no observation) -> F [N, D] after T iterations."""
+    d = strength[..., None]
+    F = (d * features).sum(1) / (strength.sum(1, keepdims=True) + config.eps)  # eq. initial_gaussian_feature
+    for t in range(1, config.iterations + 1):
+        cos = (features * F[:, None, :]).sum(-1) / (
+            np.linalg.norm(features, axis=-1) * np.linalg.norm(F, axis=-1, keepdims=True) + config.eps
+        )
+        rho = strength * np.exp(config.beta_at(t) * cos)  # rho = d exp(beta_t c); 0 where no observation
+        F = (rho[..., None] * features).sum(1) / (rho.sum(1, keepdims=True) + config.eps)  # eq. robust_feature_update
+    return F

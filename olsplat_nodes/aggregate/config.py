@@ -1,0 +1,27 @@
+"""Parameters of the aggregation (paper: "Consistency-aware Gaussian feature aggregation")."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class AggregationConfig:
+    q_min: float = 0.1  # q_sum = clip(sum of a pixel's Top-K weights, q_min, 1); not given by the paper
+    tau_e: float = 12.0  # effective-number threshold of q_eff (paper)
+    kappa: float = 8.0  # decay of q_eff (paper)
+    tau_d: float = 0.05  # a Gaussian's view observation is kept when d_iv > tau_d; not given by the paper
+    level_weights: tuple[float, ...] | None = None  # weight of each region level in a pixel's feature; None = equal
+    iterations: int = 3  # T, consistency iterations; not given by the paper
+    beta: tuple[float, ...] = (2.0, 4.0, 8.0)  # beta_t per iteration (the last repeats); not given by the paper
+    eps: float = 1e-8
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.q_min <= 1.0:
+            raise ValueError(f"q_min must be in (0, 1], got q_min={self.q_min}")
+        if self.kappa <= 0 or self.tau_d < 0 or self.iterations < 0 or not self.beta:
+            raise ValueError(f"need kappa > 0, tau_d >= 0, iterations >= 0 and a beta schedule, got {self}")
+
+    def beta_at(self, t: int) -> float:
+        """beta_t for iteration t = 1..T."""
+        return self.beta[min(t, len(self.beta)) - 1]
