@@ -1,0 +1,120 @@
+"""The observation store: append-only, one segment per view on disk, memory-mapped to read.
+
+Layout of a store folder:
+
+    views/000000/   gaussians.npy strength.npy offsets.npy slots.npy weights.npy bank.npy name.txt
+    views/000001/   ...
+
+A segment is written into a temporary folder and renamed into place, so a crash never leaves
+half a view, and ``append`` returns only once the view is on disk: an accepted view is never
+lost. Sizes: per kept Gaussian and view, 4 (id) + 4 (d) + 8 (offset) bytes plus 8 bytes per
+mixture entry (~1-3 per level); the bank is regions x D float16.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from .config import AggregationConfig
+from .observe import ViewObservations
+from .refine import refine_observations
+
+_ARRAYS = ("gaussians", "strength", "offsets", "slots", "weights", "bank")
+
+
+class ObservationStore:
+    def __init__(self, folder: str | Path, n_gaussians: int):
+        self.folder = Path(folder)
+        self.n_gaussians = n_gaussians
+        (self.folder / "views").mkdir(parents=True, exist_ok=True)
+        for leftover in (self.folder / "views").glob("*.tmp"):  # a crash during an earlier append
+            shutil.rmtree(leftover)
+        self.touched = np.zeros(n_gaussians, bool)  # observed since the last refinement
+
+    def __len__(self) -> int:
+        return len(self.segments())
+
+    def segments(self) -> list[Path]:
+        return sorted(p for p in (self.folder / "views").iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
+
+    def append(self, name: str, observations: ViewObservations, bank: np.ndarray) -> int:
+        """Write one view's observations and its stacked region bank [R, D]; returns the view index."""
+        if len(observations) and observations.gaussians.max() >= self.n_gaussians:
+            raise ValueError(f"view {name!r}: Gaussian {observations.gaussians.max()} is outside the map of {self.n_gaussians}")
+        if len(observations.slots) and observations.slots.max() >= len(bank):
+            raise ValueError(f"view {name!r}: observation slot {observations.slots.max()} is outside its bank of {len(bank)} rows")
+        index = len(self.segments())
+        final = self.folder / "views" / f"{index:06d}"
+        tmp = final.with_name(final.name + ".tmp")
+        tmp.mkdir()
+        arrays = {
+            "gaussians": observations.gaussians.astype(np.int32),
+            "strength": observations.strength.astype(np.float32),
+            "offsets": observations.offsets.astype(np.int64),
+            "slots": observations.slots.astype(np.int32),
+            "weights": observations.weights.astype(np.float32),
+            "bank": bank.astype(np.float16),
+        }
+        for key, value in arrays.items():
+            with open(tmp / f"{key}.npy", "wb") as f:
+                np.save(f, value)
+                f.flush()
+                os.fsync(f.fileno())
+        (tmp / "name.txt").write_text(name)
+        tmp.rename(final)
+        self.touched[observations.gaussians] = True
+        return index
+
+    def load(self, index: int) -> tuple[ViewObservations, np.ndarray]:
+        folder = self.segments()[index]
+        a = {key: np.load(folder / f"{key}.npy", mmap_mode="r") for key in _ARRAYS}
+        obs = ViewObservations(a["gaussians"], a["strength"], a["offsets"], a["slots"], a["weights"])
+        return obs, a["bank"]
+
+    def gather(self, selected: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(owner, strength, dense features) of every observation of the selected Gaussians [N] bool."""
+        owners, strengths, features = [], [], []
+        for index in range(len(self.segments())):
+            obs, bank = self.load(index)
+            rows = np.flatnonzero(selected[obs.gaussians])
+            if not len(rows):
+                continue
+            starts, stops = obs.offsets[rows], obs.offsets[rows + 1]
+            counts = stops - starts
+            entry = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
+            local = np.repeat(np.arange(len(rows)), counts)
+            dense = np.zeros((len(rows), bank.shape[1]), np.float32)
+            np.add.at(dense, local, np.asarray(bank, np.float32)[obs.slots[entry]] * obs.weights[entry][:, None])
+            owners.append(np.asarray(obs.gaussians)[rows])
+            strengths.append(np.asarray(obs.strength)[rows])
+            features.append(dense)
+        if not owners:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 0), np.float32)
+        return np.concatenate(owners), np.concatenate(strengths), np.concatenate(features)
+
+    def refine(self, F: np.ndarray | None, config: AggregationConfig, only_touched: bool = True, chunk: int = 250_000):
+        """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
+        call (all of them when ``only_touched`` is False or F is None); the others keep their
+        rows of F. ``observed`` marks the Gaussians with at least one kept observation among
+        the recomputed ones. Gaussians are processed ``chunk`` at a time to bound memory."""
+        selected = self.touched.copy() if (only_touched and F is not None) else np.ones(self.n_gaussians, bool)
+        observed = np.zeros(self.n_gaussians, bool)
+        out = None if F is None else F.copy()
+        for first in range(0, self.n_gaussians, chunk):
+            part = np.zeros(self.n_gaussians, bool)
+            part[first : first + chunk] = selected[first : first + chunk]
+            owner, strength, features = self.gather(part)
+            if not len(owner):
+                continue
+            if out is None:
+                out = np.zeros((self.n_gaussians, features.shape[1]), np.float32)
+            refined, count = refine_observations(owner, strength, features, self.n_gaussians, config)
+            rows = np.flatnonzero(part)
+            out[rows] = refined[rows]
+            observed[rows] = count[rows] > 0
+        self.touched[:] = False
+        return out, observed
