@@ -15,6 +15,7 @@ class AggregationConfig:
     iterations: int = 3  # T, consistency iterations; not given by the paper
     beta: tuple[float, ...] = (2.0, 4.0, 8.0)  # beta_t per iteration (the last repeats); not given by the paper
     eps: float = 1e-8
+    use_quality: bool = True  # multiply by q_sum * q_eff (off: the "noquality" ablation and the baselines)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.q_min <= 1.0:

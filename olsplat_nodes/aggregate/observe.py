@@ -124,7 +124,8 @@ def observe_view(
         raise ValueError(f"label maps {slot_maps.shape[1:]} do not match the rendered view {(height, width)}")
     q_sum, q_eff, _ = pixel_quality(topk_weights, config)
     valid = (slot_maps >= 0).all(0)  # M_v(p): the pixel has a feature at every level
-    w_tilde = topk_weights * (valid * q_sum * q_eff)[..., None]
+    quality = q_sum * q_eff if config.use_quality else np.float32(1.0)
+    w_tilde = topk_weights * (valid * quality)[..., None]
     ids = topk_ids.reshape(-1)
     w_flat = w_tilde.reshape(-1).astype(np.float32)
     live = (ids >= 0) & (w_flat > 0)

@@ -72,26 +72,13 @@ def run(args: argparse.Namespace) -> int:
     import cv2
     from tqdm import tqdm
 
-    from ..encoders import FusedEncoder, encode_regions
-    from ..encoders.onnx_encoder import OnnxEncoder
+    from ..encoders import encode_regions
     from ..regions import RegionConfig, propose_regions
 
     config = RegionConfig(level_counts=level_counts(args.levels))
-    encoder = None
-    if args.encoders == "shipped":
-        from ..encoders.shipped import DEFAULT_WEIGHTS, default_encoder
+    from ..encoders.spec import encoder_from_spec
 
-        weights = tuple(float(w) for w in args.weights.split(",")) if args.weights else DEFAULT_WEIGHTS
-        encoder = default_encoder(weights)
-    elif args.encoders != "none":
-        from ..encoders.shipped import SHIPPED, shipped_encoder
-
-        members = [shipped_encoder(p) if p in SHIPPED else OnnxEncoder(Path(p)) for p in args.encoders.split(",")]
-        weights = [float(w) for w in args.weights.split(",")] if args.weights else None
-        try:
-            encoder = FusedEncoder(members, weights, args.fusion) if len(members) > 1 or weights else members[0]
-        except ValueError as exc:
-            raise OlsplatInputError(str(exc)) from None
+    encoder = None if args.encoders == "none" else encoder_from_spec(args.encoders, args.weights, args.fusion)
     cache = args.scene / "cache" / "encode"
     cache.mkdir(parents=True, exist_ok=True)
     views = _views(args.scene)[: args.limit]

@@ -1,0 +1,128 @@
+"""The method end to end on a scene folder, offline: aggregate views into a language map, and
+evaluate a map against the scene's annotations. Same inputs for every method, so the
+comparisons are fair: the map, the SfM cameras, the frames and one region/feature cache.
+
+Methods (names as in the design card):
+- ``outlangsplat``: adaptive Top-K, pixel quality q_sum * q_eff, valid mask, tau_d, consistency
+  iterations;
+- ``outlangsplat-noquality`` (no q_sum * q_eff), ``outlangsplat-noconsistency`` (T = 0);
+- ``topk`` (Dr.Splat-style): the same Top-K contributions, no reliability weighting, no tau_d,
+  plain weighted mean;
+- ``projection`` (LUDVIG-style): every contribution of every pixel (Top-K cap 32 and 100 %
+  coverage, which holds all but a sliver of the weight), alpha*T-weighted mean, nothing else.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..aggregate import AggregationConfig, ObservationStore, observe_view, stack_levels
+from ..aggregate.snapshot import LanguageMap
+from ..encoders import encode_regions
+from ..errors import OlsplatInputError
+from ..raster import RasterConfig, rasterize
+from ..regions import RegionConfig, propose_regions
+from ..scene import Camera, read_colmap, read_ply
+
+
+@dataclass(frozen=True)
+class Method:
+    aggregation: AggregationConfig
+    raster: RasterConfig
+
+
+_PLAIN = AggregationConfig(use_quality=False, tau_d=0.0, iterations=0)
+METHODS = {
+    "outlangsplat": Method(AggregationConfig(), RasterConfig()),
+    "outlangsplat-noquality": Method(replace(AggregationConfig(), use_quality=False), RasterConfig()),
+    "outlangsplat-noconsistency": Method(replace(AggregationConfig(), iterations=0), RasterConfig()),
+    "topk": Method(_PLAIN, RasterConfig()),
+    "projection": Method(_PLAIN, RasterConfig(topk_min=32, topk_max=32, topk_coverage=1.0)),
+}
+
+
+def method(name: str) -> Method:
+    if name not in METHODS:
+        raise OlsplatInputError(f"unknown method {name!r}; known: {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+@dataclass
+class Scene:
+    folder: Path
+    ply: Path
+    cameras: list[Camera]
+
+    @staticmethod
+    def open(folder: str | Path) -> "Scene":
+        folder = Path(folder)
+        ply = folder / "map" / "point_cloud.ply"
+        missing = [str(p) for p in (ply, folder / "sparse" / "0", folder / "images") if not p.exists()]
+        if missing:
+            raise OlsplatInputError(f"{folder}: not a scene folder (missing {', '.join(missing)})")
+        return Scene(folder, ply, read_colmap(folder / "sparse" / "0"))
+
+    def image(self, camera: Camera) -> np.ndarray:
+        path = self.folder / "images" / camera.name
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise OlsplatInputError(f"{path}: missing or not an image")
+        if bgr.shape[:2] != (camera.height, camera.width):
+            raise OlsplatInputError(f"{path}: {bgr.shape[1]}x{bgr.shape[0]}, but its camera says {camera.width}x{camera.height}")
+        return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def view_features(scene: Scene, camera: Camera, encoder, region_config: RegionConfig = RegionConfig()):
+    """(label maps [L, H, W], bank per level) of one view, from the scene's cache when it holds
+    this encoder's features (``olsplat encode``), else computed and cached."""
+    cache = scene.folder / "cache" / "encode" / f"{Path(camera.name).stem}.npz"
+    if cache.exists():
+        data = np.load(cache)
+        if "encoder" in data and str(data["encoder"]) == encoder.name:
+            maps = data["label_maps"]
+            return maps, [data[f"features_{i}"].astype(np.float32) for i in range(len(maps))]
+    image = scene.image(camera)
+    levels = propose_regions(image, region_config)
+    bank = encode_regions(image, levels, encoder)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {"label_maps": levels.label_maps, "encoder": np.array(bank.encoder)}
+    arrays.update({f"features_{i}": f.astype(np.float16) for i, f in enumerate(bank.features)})
+    tmp = cache.with_name(cache.stem + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(cache)
+    # through float16 as the cache stores them: computed and cached runs give the same numbers
+    return levels.label_maps, [f.astype(np.float16).astype(np.float32) for f in bank.features]
+
+
+def aggregate_scene(scene: Scene, method_name: str, encoder, out: Path, progress=None) -> dict:
+    """Aggregate every view into a language map at ``out/language_map.npz``; returns timing figures."""
+    chosen = method(method_name)
+    gaussians = read_ply(scene.ply)
+    store = ObservationStore(out / "store", len(gaussians))
+    if len(store):
+        raise OlsplatInputError(f"{out / 'store'} already holds {len(store)} views: choose a new --out")
+    start = time.perf_counter()
+    cameras = progress(scene.cameras) if progress else scene.cameras
+    for camera in cameras:
+        label_maps, bank = view_features(scene, camera, encoder)
+        rendered = rasterize(gaussians, camera, chosen.raster)
+        slots, stacked = stack_levels(label_maps, bank)
+        observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), chosen.aggregation)
+        store.append(camera.name, observations, stacked)
+    features, observed = store.refine(None, chosen.aggregation, only_touched=False)
+    if features is None:
+        raise OlsplatInputError(f"{scene.folder}: no view observed any Gaussian")
+    LanguageMap.from_features(features, observed, encoder.name).save(out / "language_map.npz")
+    seconds = time.perf_counter() - start
+    return {
+        "seconds": seconds,
+        "views_per_second": len(scene.cameras) / seconds,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "observed_gaussians": int(observed.sum()),
+    }
