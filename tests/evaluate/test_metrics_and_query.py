@@ -1,0 +1,68 @@
+"""Metrics on hand-made masks; heatmaps and masks; the language map file."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.aggregate.snapshot import LanguageMap
+from olsplat_nodes.errors import SceneFormatError
+from olsplat_nodes.evaluate import QueryScore, summarize
+from olsplat_nodes.query import argmax_masks, heatmaps, relevancy_mask
+
+
+def test_iou_accuracy_and_localisation():
+    target = np.zeros((10, 10), bool)
+    target[:, :5] = True  # 50 px: instance 1 rows 0-4, instance 2 rows 5-9
+    instances = np.full((10, 10), -1)
+    instances[:5, :5], instances[5:, :5] = 1, 2
+    labelled = np.ones((10, 10), bool)
+    labelled[:, 9] = False  # unlabelled column: predictions there do not count
+    predicted = np.zeros((10, 10), bool)
+    predicted[:3, :5] = True  # 15 px of instance 1 (60 % of it)
+    predicted[:, 8:] = True  # 10 false positives, 10 of them unlabelled
+    score = QueryScore()
+    score.add_view(predicted, target, labelled, np.where(target, instances, -1))
+    assert (score.tp, score.fp, score.fn) == (15, 10, 35)
+    assert score.iou == pytest.approx(100 * 15 / 60) and score.accuracy == pytest.approx(30.0)
+    # 25 px instances are under MIN_INSTANCE_PX = 50: no localisation targets
+    assert score.instances == 0
+    big = QueryScore()
+    big_target = np.zeros((20, 20), bool)
+    big_target[:10] = True  # one 200 px instance, half covered
+    big_pred = np.zeros((20, 20), bool)
+    big_pred[:5] = True
+    big.add_view(big_pred, big_target, np.ones((20, 20), bool), np.where(big_target, 7, -1))
+    summary = summarize({"q": big})
+    assert (summary["loc40"], summary["loc50"], summary["loc60"]) == (100.0, 0.0, 0.0)  # covered 50 %: > 40 % only
+    assert summary["mIoU"] == pytest.approx(50.0)
+
+
+def test_heatmaps_and_masks():
+    features = np.zeros((2, 3, 2), np.float32)
+    features[:, 0] = [1, 0]
+    features[:, 1] = [0, 2]
+    features[:, 2] = [1, 1]
+    texts = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
+    maps = heatmaps(features, texts)
+    assert maps.shape == (2, 2, 3)
+    np.testing.assert_allclose(maps[0, 0], [1.0, 0.0, np.sqrt(0.5)], atol=1e-6)
+    alpha = np.array([[1.0, 1.0, 1.0], [1.0, 1.0, 0.1]])
+    masks = argmax_masks(maps, alpha)
+    assert masks[0, 0].tolist() == [True, False, True] and masks[1, 0].tolist() == [False, True, False]
+    assert not masks[:, 1, 2].any()  # uncovered pixel
+    np.testing.assert_array_equal(relevancy_mask(maps[1], maps[:1], alpha), masks[1] & (maps[1] > maps[0]))
+
+
+def test_language_map_file(tmp_path):
+    features = np.array([[3.0, 4.0], [0.0, 0.0]], np.float32)
+    LanguageMap.from_features(features, np.array([True, False]), "shipped").save(tmp_path / "map.npz")
+    loaded = LanguageMap.load(tmp_path / "map.npz")
+    np.testing.assert_allclose(loaded.features.astype(np.float32), [[0.6, 0.8], [0.0, 0.0]], atol=1e-3)
+    assert loaded.encoder == "shipped" and loaded.observed.tolist() == [True, False]
+    assert not list(tmp_path.glob("*.tmp.npz"))
+    with pytest.raises(SceneFormatError, match="does not exist"):
+        LanguageMap.load(tmp_path / "none.npz")
+    np.savez(tmp_path / "old.npz", features=features, observed=[True, True], encoder="x", version=0)
+    with pytest.raises(SceneFormatError, match="language map version 0"):
+        LanguageMap.load(tmp_path / "old.npz")

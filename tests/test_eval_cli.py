@@ -1,0 +1,30 @@
+"""`olsplat aggregate` and `olsplat eval` end to end on the tiny simulator scene."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+from olsplat_nodes.cli import main
+
+
+def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny[0], scene)
+    args = ["eval", "--scene", str(scene), "--methods", "outlangsplat,projection", "--json", str(tmp_path / "r.json"), "--md", str(tmp_path / "r.md")]
+    assert main(args) == 0
+    results = json.loads((tmp_path / "r.json").read_text())["methods"]
+    assert set(results) == {"outlangsplat", "projection"}
+    for r in results.values():
+        assert {"mIoU", "mAcc", "loc40", "loc50", "loc60", "per_query", "seconds", "peak_rss_mb"} <= set(r)
+        assert 0 < r["mIoU"] <= 100 and "red roof buildings" in r["per_query"]
+        assert set(r["per_query"]["road"]) == {"IoU", "acc"}
+    assert "| outlangsplat |" in (tmp_path / "r.md").read_text()
+    assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 0
+    assert (tmp_path / "m" / "language_map.npz").exists()
+    assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 1  # a used store is not mixed into
+    assert "already holds" in capsys.readouterr().err
+    assert main(["eval", "--scene", str(tmp_path), "--methods", "outlangsplat"]) == 1
+    assert "not a scene folder" in capsys.readouterr().err
+    assert main(["eval", "--scene", str(scene), "--methods", "magic"]) == 1
+    assert "unknown method 'magic'" in capsys.readouterr().err
