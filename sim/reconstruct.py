@@ -44,9 +44,11 @@ class ReconstructedMap:
 
 
 def _merge_pairs(means: np.ndarray, fraction: float, cell: float, rng) -> tuple[np.ndarray, np.ndarray]:
-    """(keep [k] indices, partner [k] indices): pairs of Gaussians sharing a voxel of side ``cell``."""
-    keys = np.floor(means / cell).astype(np.int64)
-    keys = (keys[:, 0] * 73856093) ^ (keys[:, 1] * 19349663) ^ (keys[:, 2] * 83492791)
+    """(keep [k] indices, partner [k] indices): disjoint pairs of Gaussians sharing a voxel of side ``cell``."""
+    voxel = np.floor(means / cell).astype(np.int64)
+    voxel -= voxel.min(0)
+    extent = voxel.max(0) + 1
+    keys = (voxel[:, 0] * extent[1] + voxel[:, 1]) * extent[2] + voxel[:, 2]  # exact: no two voxels share a key
     order = np.argsort(keys, kind="stable")
     same = keys[order[:-1]] == keys[order[1:]]
     starts = np.flatnonzero(same)
@@ -68,7 +70,9 @@ def reconstruct(truth: TruthScene, spec: ReconstructionSpec, rng: np.random.Gene
     keep, partner = _merge_pairs(means, spec.merged, 2.0 * spacing, rng)
     gap = np.linalg.norm(means[keep] - means[partner], axis=1)
     means[keep] = 0.5 * (means[keep] + means[partner])
-    log_scales[keep] = np.log(np.exp(np.maximum(log_scales[keep], log_scales[partner])) + 0.5 * gap[:, None])
+    # the merged blob spans both: it grows along its two long axes, its thin axis stays thin
+    log_scales[keep] = np.maximum(log_scales[keep], log_scales[partner])
+    log_scales[keep, :2] = np.log(np.exp(log_scales[keep, :2]) + 0.5 * gap[:, None])
     colors[keep] = 0.5 * (colors[keep] + colors[partner])
     alive = np.ones(n, bool)
     alive[partner] = False
