@@ -11,7 +11,7 @@ class AggregationConfig:
     tau_e: float = 12.0  # effective-number threshold of q_eff (paper)
     kappa: float = 8.0  # decay of q_eff (paper)
     tau_d: float = 0.05  # a Gaussian's view observation is kept when d_iv > tau_d; not given by the paper
-    level_weights: tuple[float, ...] | None = None  # weight of each region level in a pixel's feature; None = equal
+    level_weights: tuple[float, ...] | None = None  # weight of each region level (coarse to fine); None = finest only
     iterations: int = 3  # T, consistency iterations; not given by the paper
     beta: tuple[float, ...] = (2.0, 4.0, 8.0)  # beta_t per iteration (the last repeats); not given by the paper
     eps: float = 1e-8

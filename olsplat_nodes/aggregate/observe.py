@@ -3,7 +3,12 @@
 The pixel feature is the weighted sum of the features of the regions the pixel lies in, one
 per level: f_v(p) = sum_l a_l phi_l[r_l(p)] (a_l = level weights, summing to 1). Levels are
 fused per pixel, so each Gaussian gets one feature as in the paper; LangSplat's alternative,
-one feature per level, would multiply storage by the number of levels.
+one feature per level, would multiply storage by the number of levels. The default uses the
+finest level only: in a sweep on a training scene (seed 1001, small preset, 30 views) it gave
+mIoU 66.6 / Loc@50 63.1 against 61.5 / 39.8 for equal weights, 64.1 / 48.9 for
+(0.15, 0.35, 0.5) and 65.3 / 53.8 for (0, 0.5, 0.5): coarse regions straddle labels (ASA 0.75
+at level 0) and their features blur small things such as cars and crowns into their
+surroundings.
 
 With w~ = w * M * q_sum * q_eff, a Gaussian's view feature is
 f_iv = sum_{p,k: id = i} w~ f_v(p) / d_iv with d_iv = sum w~, which, f_v being linear in the
@@ -137,7 +142,7 @@ def observe_view(
     entries = entries[kept_of[ids[entries]] >= 0]
     order = entries[np.argsort(kept_of[ids[entries]], kind="stable")]
     levels = slot_maps.shape[0]
-    a = np.full(levels, 1.0 / levels) if config.level_weights is None else np.asarray(config.level_weights, np.float64)
+    a = np.eye(levels)[-1] if config.level_weights is None else np.asarray(config.level_weights, np.float64)
     if len(a) != levels or a.min() < 0 or a.sum() <= 0:
         raise ValueError(f"level_weights must give {levels} non-negative weights, got {config.level_weights}")
     a = a / a.sum()

@@ -51,11 +51,17 @@ class QueryScore:
 
 
 def summarize(scores: dict[str, QueryScore]) -> dict:
-    """{"mIoU", "mAcc", "loc40", "loc50", "loc60", "per_query": {text: {"IoU", "acc"}}} in %."""
+    """{"mIoU", "mAcc", "loc40", "loc50", "loc60", "per_query": {text: {"IoU", "acc"}}} in %.
+
+    A query whose target appears in no annotated view (no blue roof in this town, say) has no
+    IoU: it is left out of the means and of per_query, and listed under "absent".
+    """
+    present = {q: s for q, s in scores.items() if s.tp + s.fn > 0}
     out = {
-        "mIoU": float(np.mean([s.iou for s in scores.values()])),
-        "mAcc": float(np.mean([s.accuracy for s in scores.values()])),
-        "per_query": {q: {"IoU": s.iou, "acc": s.accuracy} for q, s in scores.items()},
+        "mIoU": float(np.mean([s.iou for s in present.values()])) if present else 0.0,
+        "mAcc": float(np.mean([s.accuracy for s in present.values()])) if present else 0.0,
+        "per_query": {q: {"IoU": s.iou, "acc": s.accuracy} for q, s in present.items()},
+        "absent": [q for q in scores if q not in present],
     }
     total = sum(s.instances for s in scores.values())
     for t in THRESHOLDS:

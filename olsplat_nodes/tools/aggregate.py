@@ -44,11 +44,11 @@ def run_aggregate(args: argparse.Namespace) -> int:
 
 
 def markdown(results: dict) -> str:
-    queries = list(next(iter(results.values()))["per_query"])
+    queries = list(dict.fromkeys(q for r in results.values() for q in r["per_query"]))
     lines = ["| method | mIoU | mAcc | Loc@40 | Loc@50 | Loc@60 | " + " | ".join(queries) + " |"]
     lines.append("|" + "---|" * (6 + len(queries)))
     for name, r in results.items():
-        cells = " | ".join(f"{r['per_query'][q]['IoU']:.1f}" for q in queries)
+        cells = " | ".join(f"{r['per_query'][q]['IoU']:.1f}" if q in r["per_query"] else "-" for q in queries)
         lines.append(f"| {name} | {r['mIoU']:.1f} | {r['mAcc']:.1f} | {r['loc40']:.1f} | {r['loc50']:.1f} | {r['loc60']:.1f} | {cells} |")
     return "\n".join(lines) + "\n\n(per-query columns: IoU %)\n"
 

@@ -33,9 +33,11 @@ def test_iou_accuracy_and_localisation():
     big_pred = np.zeros((20, 20), bool)
     big_pred[:5] = True
     big.add_view(big_pred, big_target, np.ones((20, 20), bool), np.where(big_target, 7, -1))
-    summary = summarize({"q": big})
+    nothing = QueryScore()
+    nothing.add_view(big_pred, np.zeros((20, 20), bool), np.ones((20, 20), bool), None)  # no target in this town
+    summary = summarize({"q": big, "absent one": nothing})
     assert (summary["loc40"], summary["loc50"], summary["loc60"]) == (100.0, 0.0, 0.0)  # covered 50 %: > 40 % only
-    assert summary["mIoU"] == pytest.approx(50.0)
+    assert summary["mIoU"] == pytest.approx(50.0) and summary["absent"] == ["absent one"]
 
 
 def test_heatmaps_and_masks():
