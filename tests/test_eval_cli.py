@@ -24,6 +24,13 @@ def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
     assert (tmp_path / "m" / "language_map.npz").exists()
     assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 1  # a used store is not mixed into
     assert "already holds" in capsys.readouterr().err
+    query = ["query", "--map", str(tmp_path / "m" / "language_map.npz"), "--scene", str(scene), "--view", "3", "--out", str(tmp_path / "q")]
+    assert main([*query, "red roof buildings"]) == 0
+    printed = capsys.readouterr().out
+    assert '"red roof buildings":' in printed and "view frame_0003.jpg" in printed
+    assert (tmp_path / "q" / "frame_0003_red_roof_buildings_mask.png").exists()
+    assert main([*query, "   "]) == 1
+    assert "the query text is empty" in capsys.readouterr().err
     assert main(["eval", "--scene", str(tmp_path), "--methods", "outlangsplat"]) == 1
     assert "not a scene folder" in capsys.readouterr().err
     assert main(["eval", "--scene", str(scene), "--methods", "magic"]) == 1
