@@ -30,7 +30,7 @@ from torch import nn
 
 from olsplat_nodes.encoders import CropConfig
 from olsplat_nodes.encoders.clip_model import Transformer
-from olsplat_nodes.encoders.export import export_tower
+from olsplat_nodes.encoders.export import export_tower, write_manifest
 from olsplat_nodes.encoders.tokenizer import WordTokenizer
 
 from .labels import LABELS, QUERIES
@@ -168,24 +168,11 @@ def export_design(design: Design, image_tower, text_tower, vocab: list[str], out
     with torch.no_grad():
         export_tower(image_tower, torch.zeros(2, 3, design.image_size, design.image_size), folder / "image.onnx", "pixels")
         export_tower(text_tower, torch.from_numpy(tokenizer(["a red roof", "a road"])), folder / "text.onnx", "tokens")
-    manifest = {
-        "format": "olsplat-clip-onnx",
-        "version": 1,
-        "name": design.name,
-        "embed_dim": EMBED_DIM,
-        "image_size": design.image_size,
-        "context_length": CONTEXT,
-        "vocab_size": tokenizer.vocab_size,
-        "mean": list(MEAN),
-        "std": list(STD),
-        "image": "image.onnx",
-        "text": "text.onnx",
-        "vocab": "vocab.json",
-        "tokenizer": "words",
-        "crop": {"context": design.crop.context, "fade": design.crop.fade, "min_box_px": design.crop.min_box_px},
-        "trained_on": "olsplat simulator renders, seeds >= 1000 (never the evaluation seeds)",
-    }
-    (folder / "encoder.json").write_text(json.dumps(manifest, indent=2))
+    write_manifest(
+        folder, design.name, EMBED_DIM, design.image_size, CONTEXT, tokenizer.vocab_size, MEAN, STD, "vocab.json", "words",
+        crop={"context": design.crop.context, "fade": design.crop.fade, "min_box_px": design.crop.min_box_px},
+        trained_on="olsplat simulator renders, seeds >= 1000 (never the evaluation seeds)",
+    )  # fmt: skip
     return folder
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -47,3 +48,27 @@ def encode_regions(
             chunks.append(encoder.encode_crops(part) if isinstance(encoder, FusedEncoder) else encoder.encode_images(part[0]))
         features.append(np.concatenate(chunks).astype(np.float32))
     return FeatureBank(features, encoder.name)
+
+
+def save_bank(path: Path, label_maps: np.ndarray, bank: FeatureBank | None) -> None:
+    """One view's regions (and features) as the scene cache keeps them: ``label_maps`` [L, H, W]
+    int32, ``features_<l>`` [R_l, D] float16, ``encoder``; written to a temp file, then renamed."""
+    arrays = {"label_maps": label_maps}
+    if bank is not None:
+        arrays.update({f"features_{i}": f.astype(np.float16) for i, f in enumerate(bank.features)})
+        arrays["encoder"] = np.array(bank.encoder)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+
+
+def load_bank(path: Path, encoder_name: str) -> tuple[np.ndarray, list[np.ndarray]] | None:
+    """(label maps, float32 features per level) from a cache file made for ``encoder_name``, else None."""
+    if not path.exists():
+        return None
+    data = np.load(path)
+    if "encoder" not in data or str(data["encoder"]) != encoder_name:
+        return None
+    maps = data["label_maps"]
+    return maps, [data[f"features_{i}"].astype(np.float32) for i in range(len(maps))]

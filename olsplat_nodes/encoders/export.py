@@ -69,23 +69,30 @@ def export_model(model: ClipModel, vocab: str | Path, out: str | Path, name: str
         shutil.copyfile(vocab, out / "vocab.txt.gz")
     else:
         _gzip_copy(vocab, out / "vocab.txt.gz")
+    write_manifest(out, name, c.embed_dim, c.image_size, c.context_length, c.vocab_size, mean, std, "vocab.txt.gz", "clip-bpe")
+    return out
+
+
+def write_manifest(folder: Path, name: str, embed_dim: int, image_size: int, context_length: int, vocab_size: int,
+                   mean, std, vocab: str, tokenizer: str, **extra) -> None:  # fmt: skip
+    """The ``encoder.json`` that ``OnnxEncoder`` reads (``extra``: e.g. ``crop``, provenance)."""
     manifest = {
         "format": "olsplat-clip-onnx",
         "version": 1,
         "name": name,
-        "embed_dim": c.embed_dim,
-        "image_size": c.image_size,
-        "context_length": c.context_length,
-        "vocab_size": c.vocab_size,
+        "embed_dim": embed_dim,
+        "image_size": image_size,
+        "context_length": context_length,
+        "vocab_size": vocab_size,
         "mean": list(mean),
         "std": list(std),
         "image": "image.onnx",
         "text": "text.onnx",
-        "vocab": "vocab.txt.gz",
-        "tokenizer": "clip-bpe",
+        "vocab": vocab,
+        "tokenizer": tokenizer,
+        **extra,
     }
-    (out / MANIFEST).write_text(json.dumps(manifest, indent=2))
-    return out
+    (folder / MANIFEST).write_text(json.dumps(manifest, indent=2))
 
 
 def _gzip_copy(src, dst) -> None:

@@ -25,6 +25,7 @@ import numpy as np
 from ..aggregate import AggregationConfig, ObservationStore, observe_view, stack_levels
 from ..aggregate.snapshot import LanguageMap
 from ..encoders import encode_regions
+from ..encoders.bank import load_bank, save_bank
 from ..errors import OlsplatInputError
 from ..raster import RasterConfig, rasterize
 from ..regions import RegionConfig, propose_regions
@@ -82,20 +83,13 @@ def view_features(scene: Scene, camera: Camera, encoder, region_config: RegionCo
     """(label maps [L, H, W], bank per level) of one view, from the scene's cache when it holds
     this encoder's features (``olsplat encode``), else computed and cached."""
     cache = scene.folder / "cache" / "encode" / f"{Path(camera.name).stem}.npz"
-    if cache.exists():
-        data = np.load(cache)
-        if "encoder" in data and str(data["encoder"]) == encoder.name:
-            maps = data["label_maps"]
-            return maps, [data[f"features_{i}"].astype(np.float32) for i in range(len(maps))]
+    cached = load_bank(cache, encoder.name)
+    if cached is not None:
+        return cached
     image = scene.image(camera)
     levels = propose_regions(image, region_config)
     bank = encode_regions(image, levels, encoder)
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {"label_maps": levels.label_maps, "encoder": np.array(bank.encoder)}
-    arrays.update({f"features_{i}": f.astype(np.float16) for i, f in enumerate(bank.features)})
-    tmp = cache.with_name(cache.stem + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(cache)
+    save_bank(cache, levels.label_maps, bank)
     # through float16 as the cache stores them: computed and cached runs give the same numbers
     return levels.label_maps, [f.astype(np.float16).astype(np.float32) for f in bank.features]
 

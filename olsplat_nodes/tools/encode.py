@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..encoders import encode_regions
+    from ..encoders.bank import save_bank
     from ..regions import RegionConfig, propose_regions
 
     config = RegionConfig(level_counts=level_counts(args.levels))
@@ -91,14 +92,7 @@ def run(args: argparse.Namespace) -> int:
             raise OlsplatInputError(f"{path}: not a readable image")
         image = np.ascontiguousarray(bgr[..., ::-1])
         levels = propose_regions(image, config)
-        arrays = {"label_maps": levels.label_maps}
-        if encoder is not None:
-            bank = encode_regions(image, levels, encoder)
-            arrays.update({f"features_{i}": f.astype(np.float16) for i, f in enumerate(bank.features)})
-            arrays["encoder"] = np.array(bank.encoder)
-        tmp = target.with_name(target.stem + ".tmp.npz")
-        np.savez_compressed(tmp, **arrays)
-        tmp.replace(target)
+        save_bank(target, levels.label_maps, encode_regions(image, levels, encoder) if encoder is not None else None)
         if args.png:
             cv2.imwrite(str(cache / f"{path.stem}_regions.png"), _overlay(image, levels.label_maps))
     print(f"{len(views)} views -> {cache}")
