@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -16,6 +17,8 @@ class AggregationConfig:
     beta: tuple[float, ...] = (2.0, 4.0, 8.0)  # beta_t per iteration (the last repeats); not given by the paper
     eps: float = 1e-8
     use_quality: bool = True  # multiply by q_sum * q_eff (off: the "noquality" ablation and the baselines)
+    mass_gate: float | None = None  # VALA-style: per view keep the fewest Gaussians holding this share of all d
+    combine: Literal["consistency", "streaming_cosine"] = "consistency"  # how views are combined
 
     def __post_init__(self) -> None:
         if not 0.0 < self.q_min <= 1.0:

@@ -137,6 +137,11 @@ def observe_view(
     entries = np.flatnonzero(live)
     strength = np.bincount(ids[entries], weights=w_flat[entries], minlength=n_gaussians)
     kept = np.flatnonzero(strength > config.tau_d).astype(np.int32)
+    if config.mass_gate is not None:  # the fewest, strongest Gaussians holding mass_gate of the view's d
+        ranked = kept[np.argsort(-strength[kept], kind="stable")]
+        cumulative = np.cumsum(strength[ranked])
+        count = int(np.searchsorted(cumulative, config.mass_gate * cumulative[-1])) + 1 if len(ranked) else 0
+        kept = np.sort(ranked[:count]).astype(np.int32)
     kept_of = np.full(n_gaussians, -1, np.int64)
     kept_of[kept] = np.arange(len(kept))
     entries = entries[kept_of[ids[entries]] >= 0]

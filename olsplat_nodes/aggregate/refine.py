@@ -39,3 +39,30 @@ def refine_observations(
         rho = strength * np.exp(config.beta_at(t) * cos)
         F = _weighted_mean(owner, rho, features, n, config.eps)
     return F.astype(np.float32), np.bincount(owner, minlength=n)
+
+
+def streaming_cosine(
+    owner: np.ndarray,  # [O] Gaussian index
+    view: np.ndarray,  # [O] view index (arrival order)
+    strength: np.ndarray,  # [O] d_iv
+    features: np.ndarray,  # [O, D] f_iv
+    n: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """VALA-style streaming update, view by view in arrival order: a new observation enters the
+    running weighted mean with weight d * (1 + cos(f, F)) / 2 (its agreement with the current
+    feature; the first observation of a Gaussian enters with weight d). Returns (F, count)."""
+    total = np.zeros((n, features.shape[1]), np.float64)
+    weight = np.zeros(n, np.float64)
+    order = np.argsort(view, kind="stable")
+    owner, view, strength, features = owner[order], view[order], strength[order], features[order].astype(np.float64)
+    bounds = np.flatnonzero(np.r_[True, view[1:] != view[:-1], True])
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        g, f, d = owner[start:stop], features[start:stop], strength[start:stop]
+        current = total[g] / np.maximum(weight[g], 1e-12)[:, None]
+        norm = np.linalg.norm(f, axis=1) * np.linalg.norm(current, axis=1)
+        cos = np.where(norm > 0, (f * current).sum(1) / np.maximum(norm, 1e-12), 1.0)
+        w = d * np.where(weight[g] > 0, (1.0 + cos) / 2.0, 1.0)
+        np.add.at(total, g, w[:, None] * f)
+        np.add.at(weight, g, w)
+    F = total / np.maximum(weight, 1e-12)[:, None]
+    return F.astype(np.float32), np.bincount(owner, minlength=n)

@@ -21,7 +21,7 @@ import numpy as np
 
 from .config import AggregationConfig
 from .observe import ViewObservations
-from .refine import refine_observations
+from .refine import refine_observations, streaming_cosine
 
 _ARRAYS = ("gaussians", "strength", "offsets", "slots", "weights", "bank")
 
@@ -75,9 +75,9 @@ class ObservationStore:
         obs = ViewObservations(a["gaussians"], a["strength"], a["offsets"], a["slots"], a["weights"])
         return obs, a["bank"]
 
-    def gather(self, selected: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(owner, strength, dense features) of every observation of the selected Gaussians [N] bool."""
-        owners, strengths, features = [], [], []
+    def gather(self, selected: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(owner, view, strength, dense features) of every observation of the selected Gaussians [N] bool."""
+        owners, views, strengths, features = [], [], [], []
         for index in range(len(self.segments())):
             obs, bank = self.load(index)
             rows = np.flatnonzero(selected[obs.gaussians])
@@ -90,11 +90,12 @@ class ObservationStore:
             dense = np.zeros((len(rows), bank.shape[1]), np.float32)
             np.add.at(dense, local, np.asarray(bank, np.float32)[obs.slots[entry]] * obs.weights[entry][:, None])
             owners.append(np.asarray(obs.gaussians)[rows])
+            views.append(np.full(len(rows), index))
             strengths.append(np.asarray(obs.strength)[rows])
             features.append(dense)
         if not owners:
-            return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 0), np.float32)
-        return np.concatenate(owners), np.concatenate(strengths), np.concatenate(features)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 0), np.float32)
+        return np.concatenate(owners), np.concatenate(views), np.concatenate(strengths), np.concatenate(features)
 
     def refine(self, F: np.ndarray | None, config: AggregationConfig, only_touched: bool = True, chunk: int = 250_000):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
@@ -107,12 +108,15 @@ class ObservationStore:
         for first in range(0, self.n_gaussians, chunk):
             part = np.zeros(self.n_gaussians, bool)
             part[first : first + chunk] = selected[first : first + chunk]
-            owner, strength, features = self.gather(part)
+            owner, view, strength, features = self.gather(part)
             if not len(owner):
                 continue
             if out is None:
                 out = np.zeros((self.n_gaussians, features.shape[1]), np.float32)
-            refined, count = refine_observations(owner, strength, features, self.n_gaussians, config)
+            if config.combine == "streaming_cosine":
+                refined, count = streaming_cosine(owner, view, strength, features, self.n_gaussians)
+            else:
+                refined, count = refine_observations(owner, strength, features, self.n_gaussians, config)
             rows = np.flatnonzero(part)
             out[rows] = refined[rows]
             observed[rows] = count[rows] > 0

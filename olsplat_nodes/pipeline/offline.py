@@ -9,7 +9,10 @@ Methods (names as in the design card):
 - ``topk`` (Dr.Splat-style): the same Top-K contributions, no reliability weighting, no tau_d,
   plain weighted mean;
 - ``projection`` (LUDVIG-style): every contribution of every pixel (Top-K cap 32 and 100 %
-  coverage, which holds all but a sliver of the weight), alpha*T-weighted mean, nothing else.
+  coverage, which holds all but a sliver of the weight), alpha*T-weighted mean, nothing else;
+- ``vala`` (VALA-style): the same contributions, a per-view mass gate (the fewest Gaussians
+  holding 95 % of the view's contribution; VALA's own threshold is not published here) and a
+  streaming update weighted by each observation's cosine agreement, in flight order.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ METHODS = {
     "outlangsplat-noconsistency": Method(replace(AggregationConfig(), iterations=0), RasterConfig()),
     "topk": Method(_PLAIN, RasterConfig()),
     "projection": Method(_PLAIN, RasterConfig(topk_min=32, topk_max=32, topk_coverage=1.0)),
+    "vala": Method(replace(_PLAIN, mass_gate=0.95, combine="streaming_cosine"), RasterConfig()),
 }
 
 
