@@ -20,7 +20,7 @@ def add_parser(subparsers) -> None:
 
     ev = subparsers.add_parser("eval", help="aggregate with several methods and score them on the annotations")
     ev.add_argument("--scene", required=True, type=Path)
-    ev.add_argument("--methods", default="outlangsplat,projection,topk", help=f"comma-separated, from: {', '.join(METHODS)}")
+    ev.add_argument("--methods", default="outlangsplat,projection,topk,vala", help=f"comma-separated, from: {', '.join(METHODS)}")
     ev.add_argument("--encoders", default="shipped")
     ev.add_argument("--weights")
     ev.add_argument("--work", type=Path, help="folder for the per-method maps (default: SCENE/eval)")
