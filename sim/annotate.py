@@ -4,19 +4,21 @@ From the truth render's Top-K lists, each pixel gets the label holding most of i
 (unlabelled where less than half the pixel is covered) and, for instance labels, the
 instance of its strongest Gaussian of that label. Each (label, instance) region becomes
 polygons: outer boundaries, and holes marked ``"flags": {"hole": true}`` (a lawn around a
-tree's crown, say). The format is described in sim/README.md; ``rasterize_annotation``
-turns a file back into label and instance maps, whoever wrote it.
+tree's crown, say). The format is described in sim/README.md; the core's
+``olsplat_nodes.evaluate.annotations.read_annotation`` turns a file back into label and instance
+maps, whoever wrote it (``rasterize_annotation`` here: with the simulator's labels).
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .labels import LABEL, LABELS
+from olsplat_nodes.evaluate.annotations import read_annotation
+
+from .labels import LABELS
 
 MIN_REGION_PX = 12  # smaller specks are not annotated (a person would not draw them)
 SIMPLIFY_PX = 0.7  # polygon simplification tolerance (Douglas-Peucker), pixels
@@ -90,28 +92,6 @@ def annotate_view(labels: np.ndarray, instances: np.ndarray, image_path: str) ->
 
 
 def rasterize_annotation(doc: dict | str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(labels [H, W] int16 index into LABELS or -1, instances [H, W] int32) of a LabelMe file.
-
-    Shapes are grouped by (label, group_id); a group's region is its outer polygons minus its
-    holes; groups are painted in file order. Unknown labels raise ValueError naming them.
-    """
-    if not isinstance(doc, dict):
-        doc = json.loads(Path(doc).read_text())
-    h, w = int(doc["imageHeight"]), int(doc["imageWidth"])
-    groups: dict[tuple[str, int], list[list]] = {}
-    for shape in doc["shapes"]:
-        if shape["label"] not in LABEL:
-            raise ValueError(f"unknown annotation label {shape['label']!r}; known: {', '.join(LABELS)}")
-        key = (shape["label"], -1 if shape.get("group_id") is None else int(shape["group_id"]))
-        groups.setdefault(key, [[], []])[bool(shape.get("flags", {}).get("hole"))].append(shape["points"])
-    labels = np.full((h, w), -1, np.int16)
-    instances = np.full((h, w), -1, np.int32)
-    for (label, instance), (outers, holes) in groups.items():
-        mask = np.zeros((h, w), np.uint8)
-        to_px = lambda pts: [np.round(np.asarray(p) - 0.5).astype(np.int32) for p in pts]  # noqa: E731
-        cv2.fillPoly(mask, to_px(outers), 1)
-        if holes:
-            cv2.fillPoly(mask, to_px(holes), 0)
-        labels[mask > 0] = LABEL[label]
-        instances[mask > 0] = instance
-    return labels, instances
+    """(labels [H, W] int16 index into LABELS or -1, instances [H, W] int32) of a LabelMe file
+    with the simulator's label vocabulary (the reader itself lives in the core)."""
+    return read_annotation(doc, LABELS)

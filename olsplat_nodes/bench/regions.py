@@ -28,8 +28,8 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
-    from olsplat_sim.annotate import rasterize_annotation
-
+    from ..evaluate.annotations import read_annotation
+    from ..evaluate.scene_eval import load_queries
     from ..regions import RegionConfig, propose_regions
 
     files = sorted((args.scene / "annotations").glob("*.json"))[:: args.every]
@@ -37,12 +37,13 @@ def run(args: argparse.Namespace) -> int:
         from ..errors import OlsplatInputError
 
         raise OlsplatInputError(f"{args.scene / 'annotations'}: no annotation files")
+    names, _ = load_queries(args.scene)
     config = RegionConfig()
     asa, best_iou, counts, seconds = None, [], None, []
     for path in files:
         doc = json.loads(path.read_text())
         image = cv2.imread(str((path.parent / doc["imagePath"]).resolve()))[..., ::-1].copy()
-        labels, instances = rasterize_annotation(doc)
+        labels, instances = read_annotation(doc, names)
         start = time.perf_counter()
         levels = propose_regions(image, config)
         seconds.append(time.perf_counter() - start)

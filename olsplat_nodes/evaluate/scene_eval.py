@@ -18,6 +18,7 @@ from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..query import argmax_masks, heatmaps, render_feature_map
 from ..scene import read_ply
+from .annotations import read_annotation
 from .metrics import QueryScore, summarize
 
 
@@ -38,8 +39,6 @@ def label_texts(labels: list[str], queries: list[dict]) -> list[str]:
 
 
 def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = None) -> dict:
-    from olsplat_sim.annotate import rasterize_annotation
-
     labels, queries = load_queries(scene.folder)
     gaussians = read_ply(scene.ply)
     if len(language_map.features) != len(gaussians):
@@ -52,7 +51,7 @@ def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = 
         raise OlsplatInputError(f"{scene.folder / 'annotations'}: no annotation for any view of sparse/0")
     features = language_map.features.astype(np.float32)
     for camera in cameras:
-        truth, instances = rasterize_annotation(scene.folder / "annotations" / f"{Path(camera.name).stem}.json")
+        truth, instances = read_annotation(scene.folder / "annotations" / f"{Path(camera.name).stem}.json", labels)
         feature_map, alpha = render_feature_map(gaussians, features, camera)
         winners = argmax_masks(heatmaps(feature_map, texts), alpha)
         labelled = truth >= 0
