@@ -12,14 +12,18 @@ def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(tiny[0], scene)
     args = ["eval", "--scene", str(scene), "--methods", "outlangsplat,projection", "--json", str(tmp_path / "r.json"), "--md", str(tmp_path / "r.md")]
-    assert main(args) == 0
+    assert main([*args, "--figures", str(tmp_path / "fig"), "--figure-views", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "(paper Table 2)" in printed and "| scene | " in printed  # the tables, one row for the scene
+    figures = sorted((tmp_path / "fig").glob("*.png"))
+    assert len(figures) == 10 and figures[0].name.startswith("frame_0000_")  # one per query of the first annotated view
     results = json.loads((tmp_path / "r.json").read_text())["methods"]
     assert set(results) == {"outlangsplat", "projection"}
     for r in results.values():
         assert {"mIoU", "mAcc", "loc40", "loc50", "loc60", "per_query", "seconds", "peak_rss_mb"} <= set(r)
         assert 0 < r["mIoU"] <= 100 and "red roof buildings" in r["per_query"]
         assert set(r["per_query"]["road"]) == {"IoU", "acc"}
-    assert "| outlangsplat |" in (tmp_path / "r.md").read_text()
+    assert "| outlangsplat |" in (tmp_path / "r.md").read_text()  # the category table
     assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 0
     assert (tmp_path / "m" / "language_map.npz").exists()
     assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 1  # a used store is not mixed into
@@ -35,3 +39,16 @@ def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
     assert "not a scene folder" in capsys.readouterr().err
     assert main(["eval", "--scene", str(scene), "--methods", "magic"]) == 1
     assert "unknown method 'magic'" in capsys.readouterr().err
+
+
+def test_eval_over_several_scenes_reports_each_and_the_mean(tiny, tmp_path):
+    for name in ("a", "b"):
+        shutil.copytree(tiny[0], tmp_path / name)
+    args = ["eval", "--scene", str(tmp_path / "a"), "--scene", str(tmp_path / "b"), "--methods", "topk", "--json", str(tmp_path / "r.json"), "--md", str(tmp_path / "r.md")]
+    assert main(args) == 0
+    document = json.loads((tmp_path / "r.json").read_text())
+    assert set(document["scenes"]) == {"a", "b"}
+    a, b = (document["scenes"][s]["methods"]["topk"]["mIoU"] for s in "ab")
+    assert abs(document["methods"]["topk"]["mIoU"] - (a + b) / 2) < 1e-9
+    table = (tmp_path / "r.md").read_text()
+    assert "| a | " in table and "| b | " in table and "| Overall | " in table

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import encode, raster, regions
+from . import aggregate, compression, encode, query, raster, regions
 
 
 def add_parser(subparsers) -> None:
@@ -11,3 +11,6 @@ def add_parser(subparsers) -> None:
     raster.add_parser(targets)
     regions.add_parser(targets)
     encode.add_parser(targets)
+    aggregate.add_parser(targets)
+    query.add_parser(targets)
+    compression.add_parser(targets)

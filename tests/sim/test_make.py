@@ -52,7 +52,7 @@ def test_map_and_cameras_read_back(tiny):
     truth = np.load(out / "truth" / "map_labels.npz")
     assert len(truth["label"]) == len(gaussians)
     assert (truth["label"][truth["category"] == CATEGORY["floater"]] == -1).all()
-    assert 0.9 < summary["map_gaussians"] / summary["ground_truth_gaussians"] < 1.05
+    assert 1.25 < summary["map_gaussians"] / summary["ground_truth_gaussians"] < 1.45  # + 40 % translucent layers
     cameras = read_colmap(out / "sparse" / "0")
     true_cameras = read_colmap(out / "truth" / "true_poses")
     assert [c.name for c in cameras] == sorted(p.name for p in (out / "images").glob("*.jpg"))

@@ -1,0 +1,64 @@
+"""``olsplat bench query``: query latency against a language map.
+
+Two figures, p50/p95 over ``--repeats`` queries (texts cycled from the scene's queries):
+- relevance: text -> embedding (the encoders' text towers) -> cosine with every Gaussian's feature;
+- heatmap: the same plus rendering the feature map of one view and its cosine heatmap.
+The map's features are converted to float32 once, at load, as the query server does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("query", help="query latency: relevance for all Gaussians, heatmap of one view")
+    parser.add_argument("--map", required=True, type=Path, help="language_map.npz")
+    parser.add_argument("--scene", required=True, type=Path)
+    parser.add_argument("--repeats", type=int, default=100)
+    parser.add_argument("--heatmap-repeats", type=int, default=20)
+    parser.set_defaults(run=run)
+
+
+def _line(name: str, seconds: list[float]) -> str:
+    ms = 1000 * np.asarray(seconds)
+    return f"  {name:10s} p50 {np.percentile(ms, 50):7.1f} ms  p95 {np.percentile(ms, 95):7.1f} ms  ({len(ms)} queries)"
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..aggregate.snapshot import LanguageMap
+    from ..encoders.spec import encoder_from_spec
+    from ..evaluate.scene_eval import load_queries
+    from ..pipeline import Scene
+    from ..query import heatmaps, render_feature_map
+    from ..scene import read_ply
+
+    scene = Scene.open(args.scene)
+    language_map = LanguageMap.load(args.map)
+    encoder = encoder_from_spec()
+    gaussians = read_ply(scene.ply)
+    features = language_map.features.astype(np.float32)
+    texts = [q["text"] for q in load_queries(scene.folder)[1]]
+    camera = scene.cameras[len(scene.cameras) // 2]
+    render_feature_map(gaussians, features, camera)  # warm-up
+    relevance, heat = [], []
+    for i in range(args.repeats):
+        t0 = time.perf_counter()
+        embedding = encoder.encode_text([texts[i % len(texts)]])
+        scores = features @ embedding[0]
+        relevance.append(time.perf_counter() - t0)
+        assert scores.shape == (len(features),)
+    for i in range(args.heatmap_repeats):
+        t0 = time.perf_counter()
+        embedding = encoder.encode_text([texts[i % len(texts)]])
+        feature_map, _ = render_feature_map(gaussians, features, camera)
+        heatmaps(feature_map, embedding)
+        heat.append(time.perf_counter() - t0)
+    print(f"map {args.map}: {len(features):,} Gaussians x {features.shape[1]} dims; view {camera.name} {camera.width}x{camera.height}")
+    print(_line("relevance", relevance))
+    print(_line("heatmap", heat))
+    return 0

@@ -1,0 +1,105 @@
+"""The paper's result tables, in Markdown, from ``olsplat eval`` results.
+
+``results`` maps scene name -> method name -> the scores of ``evaluate_map`` (plus timing).
+Layouts follow the paper: Table 2 (localisation, one cell "Loc@40/50/60" per method and
+scene), Table 3 (mIoU and mAcc per method and scene), Table 4 (category-level IoU per query,
+one row per method), Table 5 (aggregation strategies, one column per method) and the
+component ablation (the full method against each component switched off). With several scenes
+an "Overall" row averages the scenes (every scene counts the same, as in the paper). The best
+value of each row is in bold.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ABLATIONS = ("outlangsplat", "outlangsplat-noquality", "outlangsplat-noconsistency")
+
+
+def overall(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
+    """Per method, the mean over scenes of every figure (per-query IoU over the scenes that have it)."""
+    methods = list(dict.fromkeys(m for scene in results.values() for m in scene))
+    out = {}
+    for name in methods:
+        runs = [scene[name] for scene in results.values() if name in scene]
+        merged = {key: float(np.mean([r[key] for r in runs])) for key in ("mIoU", "mAcc", "loc40", "loc50", "loc60", "seconds", "peak_rss_mb")}
+        queries = dict.fromkeys(q for r in runs for q in r["per_query"])
+        merged["per_query"] = {
+            q: {k: float(np.mean([r["per_query"][q][k] for r in runs if q in r["per_query"]])) for k in ("IoU", "acc")}
+            for q in queries
+        }
+        merged["scenes"] = len(runs)
+        out[name] = merged
+    return out
+
+
+def _bold_best(values: list[float]) -> list[str]:
+    """One-decimal cells; every cell equal to the best (as printed) in bold."""
+    cells = [f"{v:.1f}" for v in values]
+    best = max(values) if values else None
+    return [f"**{c}**" if best is not None and c == f"{best:.1f}" else c for c in cells]
+
+
+def _row(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _rows_by_scene(results, methods):
+    rows = list(results.items())
+    if len(results) > 1:
+        rows.append(("Overall", overall(results)))
+    return rows
+
+
+def localisation_table(results: dict, methods: list[str]) -> list[str]:
+    lines = ["**Localisation accuracy, Loc@40/50/60 (%)** (paper Table 2)", ""]
+    lines += [_row(["Scenes", *methods]), _row(["---"] * (1 + len(methods)))]
+    for scene, runs in _rows_by_scene(results, methods):
+        columns = [_bold_best([runs[m][k] for m in methods]) for k in ("loc40", "loc50", "loc60")]
+        lines.append(_row([scene, *("/".join(c[i] for c in columns) for i in range(len(methods)))]))
+    return lines
+
+
+def segmentation_table(results: dict, methods: list[str]) -> list[str]:
+    lines = ["**Semantic segmentation, mIoU / mAcc (%)** (paper Table 3)", ""]
+    lines += [_row(["Scenes", *(f"{m} {k}" for m in methods for k in ("mIoU", "mAcc"))]), _row(["---"] * (1 + 2 * len(methods)))]
+    for scene, runs in _rows_by_scene(results, methods):
+        miou, macc = _bold_best([runs[m]["mIoU"] for m in methods]), _bold_best([runs[m]["mAcc"] for m in methods])
+        lines.append(_row([scene, *(c for pair in zip(miou, macc) for c in pair)]))
+    return lines
+
+
+def category_table(results: dict, methods: list[str]) -> list[str]:
+    runs = overall(results) if len(results) > 1 else next(iter(results.values()))
+    queries = list(dict.fromkeys(q for m in methods for q in runs[m]["per_query"]))
+    where = "mean over the scenes" if len(results) > 1 else next(iter(results))
+    lines = [f"**Category-level IoU (%)** ({where}; paper Table 4)", ""]
+    lines += [_row(["Methods", *queries]), _row(["---"] * (1 + len(queries)))]
+    columns = [_bold_best([runs[m]["per_query"].get(q, {"IoU": float("nan")})["IoU"] for m in methods]) for q in queries]
+    for i, name in enumerate(methods):
+        lines.append(_row([name, *(c[i] for c in columns)]))
+    return lines
+
+
+def strategy_table(results: dict, methods: list[str], title: str) -> list[str]:
+    runs = overall(results) if len(results) > 1 else next(iter(results.values()))
+    lines = [title, ""]
+    lines += [_row(["Metrics", *methods]), _row(["---"] * (1 + len(methods)))]
+    for key, label in (("mIoU", "mIoU ↑"), ("mAcc", "mAcc ↑"), ("loc50", "Loc@50 ↑")):
+        lines.append(_row([label, *_bold_best([runs[m][key] for m in methods])]))
+    lines.append(_row(["seconds", *(f"{runs[m]['seconds']:.0f}" for m in methods)]))
+    return lines
+
+
+def paper_tables(results: dict[str, dict[str, dict]]) -> str:
+    """All tables the methods in ``results`` allow, as one Markdown document."""
+    methods = list(dict.fromkeys(m for scene in results.values() for m in scene))
+    methods = [m for m in methods if all(m in scene for scene in results.values())]
+    baselines = [m for m in methods if m not in ABLATIONS[1:]]
+    sections = [localisation_table(results, baselines), segmentation_table(results, baselines), category_table(results, baselines)]
+    where = "mean over the scenes" if len(results) > 1 else next(iter(results))
+    sections.append(strategy_table(results, baselines, f"**Aggregation strategies** ({where}; paper Table 5)"))
+    ablations = [m for m in ABLATIONS if m in methods]
+    if len(ablations) > 1:
+        sections.append(strategy_table(results, ablations, f"**Component ablation** ({where}; paper Tables 5-7, components off)"))
+    return "\n\n".join("\n".join(s) for s in sections) + "\n"

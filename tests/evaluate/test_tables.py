@@ -1,0 +1,31 @@
+"""The paper-layout tables of `olsplat eval`."""
+
+from __future__ import annotations
+
+from olsplat_nodes.evaluate.tables import overall, paper_tables
+
+
+def _scores(miou, loc50, road):
+    return {"mIoU": miou, "mAcc": miou + 5, "loc40": loc50 + 3, "loc50": loc50, "loc60": loc50 - 3,
+            "per_query": {"road": {"IoU": road, "acc": road + 1}}, "seconds": 10.0, "peak_rss_mb": 100.0}  # fmt: skip
+
+
+def test_overall_is_the_mean_over_scenes():
+    results = {"a": {"m": _scores(60, 50, 70)}, "b": {"m": _scores(70, 40, 80)}}
+    merged = overall(results)["m"]
+    assert merged["mIoU"] == 65 and merged["loc50"] == 45 and merged["per_query"]["road"]["IoU"] == 75
+
+
+def test_tables_bold_the_best_and_list_every_scene():
+    results = {
+        "a": {"outlangsplat": _scores(60, 50, 70), "projection": _scores(55, 52, 70), "outlangsplat-noquality": _scores(58, 49, 60)},
+        "b": {"outlangsplat": _scores(70, 40, 80), "projection": _scores(65, 41, 79), "outlangsplat-noquality": _scores(66, 39, 75)},
+    }
+    text = paper_tables(results)
+    assert "| a | **53.0**/50.0/**47.0** | 55.0/**52.0**/49.0 |" not in text  # loc40 = loc50 + 3: 53 vs 55
+    assert "| a | 53.0/50.0/47.0 | **55.0**/**52.0**/**49.0** |" in text
+    assert "| Overall | **65.0** | **70.0** | 60.0 | 65.0 |" in text
+    assert "| road | " not in text and "| Methods | road |" in text
+    assert "| outlangsplat | **75.0** |" in text and "| projection | 74.5 |" in text
+    assert "Component ablation" in text and "outlangsplat-noquality" in text.split("Component ablation")[1]
+    assert "outlangsplat-noquality" not in text.split("Component ablation")[0]  # ablations stay out of the comparison
