@@ -24,8 +24,8 @@ def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
         assert 0 < r["mIoU"] <= 100 and "red roof buildings" in r["per_query"]
         assert set(r["per_query"]["road"]) == {"IoU", "acc"}
     assert "| outlangsplat |" in (tmp_path / "r.md").read_text()  # the category table
-    assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 0
-    assert (tmp_path / "m" / "language_map.npz").exists()
+    assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m"), "--codebook", "64"]) == 0
+    assert (tmp_path / "m" / "language_map.npz").exists()  # the codebook form: queried below like any map
     assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 1  # a used store is not mixed into
     assert "already holds" in capsys.readouterr().err
     query = ["query", "--map", str(tmp_path / "m" / "language_map.npz"), "--scene", str(scene), "--view", "3", "--out", str(tmp_path / "q")]

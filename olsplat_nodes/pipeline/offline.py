@@ -98,8 +98,9 @@ def view_features(scene: Scene, camera: Camera, encoder, region_config: RegionCo
     return levels.label_maps, [f.astype(np.float16).astype(np.float32) for f in bank.features]
 
 
-def aggregate_scene(scene: Scene, method_name: str, encoder, out: Path, progress=None) -> dict:
-    """Aggregate every view into a language map at ``out/language_map.npz``; returns timing figures."""
+def aggregate_scene(scene: Scene, method_name: str, encoder, out: Path, progress=None, codebook: int | None = None) -> dict:
+    """Aggregate every view into a language map at ``out/language_map.npz`` (in the codebook
+    form with ``codebook`` centres when given); returns timing figures."""
     chosen = method(method_name)
     gaussians = read_ply(scene.ply)
     store = ObservationStore(out / "store", len(gaussians))
@@ -116,7 +117,7 @@ def aggregate_scene(scene: Scene, method_name: str, encoder, out: Path, progress
     features, observed = store.refine(None, chosen.aggregation, only_touched=False)
     if features is None:
         raise OlsplatInputError(f"{scene.folder}: no view observed any Gaussian")
-    LanguageMap.from_features(features, observed, encoder.name).save(out / "language_map.npz")
+    LanguageMap.from_features(features, observed, encoder.name).save(out / "language_map.npz", codebook)
     seconds = time.perf_counter() - start
     return {
         "seconds": seconds,

@@ -16,6 +16,7 @@ def add_parser(subparsers) -> None:
     agg.add_argument("--encoders", default="shipped", help="'shipped' (default), shipped names or exported folders")
     agg.add_argument("--weights", help="fusion weights, e.g. 0.6,0.4")
     agg.add_argument("--out", required=True, type=Path, help="output folder (store + language_map.npz)")
+    agg.add_argument("--codebook", type=int, metavar="K", help="store the map as K-centre codebook codes (~100x smaller; K=1024 is a good choice)")
     agg.set_defaults(run=run_aggregate)
 
     ev = subparsers.add_parser("eval", help="aggregate with several methods and score them on the annotations")
@@ -35,11 +36,14 @@ def run_aggregate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..encoders.spec import encoder_from_spec
+    from ..errors import OlsplatInputError
     from ..pipeline import Scene, aggregate_scene
 
     scene = Scene.open(args.scene)
     encoder = encoder_from_spec(args.encoders, args.weights)
-    stats = aggregate_scene(scene, args.method, encoder, args.out, progress=lambda xs: tqdm(xs, desc=args.method, unit="view"))
+    if args.codebook is not None and not 2 <= args.codebook <= 65_534:
+        raise OlsplatInputError(f"--codebook must be between 2 and 65534 centres, got {args.codebook}")
+    stats = aggregate_scene(scene, args.method, encoder, args.out, lambda xs: tqdm(xs, desc=args.method, unit="view"), args.codebook)
     print(f"{args.method}: {len(scene.cameras)} views in {stats['seconds']:.1f} s ({stats['views_per_second']:.2f} views/s), "
           f"peak memory {stats['peak_rss_mb']:.0f} MB, {stats['observed_gaussians']:,} Gaussians observed -> {args.out}")  # fmt: skip
     return 0

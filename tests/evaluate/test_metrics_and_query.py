@@ -68,3 +68,22 @@ def test_language_map_file(tmp_path):
     np.savez(tmp_path / "old.npz", features=features, observed=[True, True], encoder="x", version=0)
     with pytest.raises(SceneFormatError, match="language map version 0"):
         LanguageMap.load(tmp_path / "old.npz")
+    np.savez(tmp_path / "v1.npz", features=features.astype(np.float16), observed=[True, True], encoder="x", version=1)
+    assert LanguageMap.load(tmp_path / "v1.npz").form == "float16"  # maps of the first format still load
+
+
+def test_language_map_codebook_form(tmp_path):
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(6, 16))
+    features = np.repeat(directions, 50, axis=0) + 0.01 * rng.normal(size=(300, 16))
+    features[7] = 0.0  # never observed
+    original = LanguageMap.from_features(features, features.any(1), "shipped")
+    original.save(tmp_path / "map.npz", codebook=6)
+    loaded = LanguageMap.load(tmp_path / "map.npz")
+    assert loaded.form == "codebook" and loaded.features.shape == (300, 16)
+    cos = (loaded.features.astype(np.float32) * original.features.astype(np.float32)).sum(1)
+    assert (np.delete(cos, 7) > 0.99).all() and not loaded.features[7].any()
+    assert (tmp_path / "map.npz").stat().st_size < 0.5 * 300 * 16 * 2  # far below the float16 form
+    np.savez(tmp_path / "bad.npz", form="zip", observed=[True], encoder="x", version=2)
+    with pytest.raises(SceneFormatError, match="unknown language map form 'zip'"):
+        LanguageMap.load(tmp_path / "bad.npz")
