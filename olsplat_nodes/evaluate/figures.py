@@ -1,9 +1,11 @@
 """Qualitative figures like the paper's: per view and query, the methods' heatmaps side by side.
 
 One PNG per (view, query): the photo with the annotated target tinted, then one panel per
-method: its heatmap H_q (cosine of the rendered feature with the query text, turbo colours,
-one colour scale shared by all panels of the figure so they compare) over the photo, with the
-method's predicted mask (the evaluation's argmax rule) outlined in white.
+method: its relevancy for the query over the photo (turbo colours, 0..1), with the method's
+predicted mask (the evaluation's argmax rule) outlined in white. Relevancy, not the raw
+cosine H_q: with compact encoders every text has a high cosine almost everywhere (roads light
+up for "trees"), which hides what the evaluation sees; relevancy is the softmax share of the
+query's labels among all the scene's label texts, softmax(RELEVANCY_SCALE * H), per pixel.
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ from ..scene import read_ply
 from ..viz import colorize, write_png
 from .annotations import read_annotation
 from .scene_eval import label_texts, load_queries
+
+
+RELEVANCY_SCALE = 50.0  # inverse softmax temperature over cosines
 
 
 def _caption(cv2, panel: np.ndarray, text: str) -> None:
@@ -38,7 +43,6 @@ def qualitative_figures(scene, maps: dict, encoder, out: Path, n_views: int = 2)
     labels, queries = load_queries(scene.folder)
     gaussians = read_ply(scene.ply)
     label_embeddings = encoder.encode_text(label_texts(labels, queries))
-    query_embeddings = encoder.encode_text([q["text"] for q in queries])
     label_index = {name: i for i, name in enumerate(labels)}
     views = annotated_views(scene)
     views = [views[i] for i in sorted(set(np.linspace(0, len(views) - 1, min(n_views, len(views))).astype(int)))]
@@ -50,20 +54,19 @@ def qualitative_figures(scene, maps: dict, encoder, out: Path, n_views: int = 2)
         rendered = {}
         for name, language_map in maps.items():
             feature_map, alpha = render_feature_map(gaussians, language_map.features.astype(np.float32), camera)
-            winners = argmax_masks(heatmaps(feature_map, label_embeddings), alpha)
-            rendered[name] = (heatmaps(feature_map, query_embeddings), winners, alpha)
-        for qi, query in enumerate(queries):
+            maps_ = heatmaps(feature_map, label_embeddings)  # [L, H, W]
+            share = np.exp(RELEVANCY_SCALE * (maps_ - maps_.max(0)))
+            rendered[name] = (share / share.sum(0), argmax_masks(maps_, alpha), alpha)
+        for query in queries:
             ids = [label_index[n] for n in query["labels"]]
             target = np.isin(truth, ids)
             first = photo.copy()
             first[target] = 0.4 * first[target] + 0.6 * np.array([0, 220, 255])
             first = first.astype(np.uint8)
             _caption(cv2, first, f"annotated: {query['text']}")
-            values = np.stack([maps_[qi] for maps_, _, _ in rendered.values()])
-            lo, hi = np.percentile(values, [2, 98])
             panels = [first]
-            for name, (maps_, winners, alpha) in rendered.items():
-                heat = colorize(maps_[qi], alpha > 0.5, lo, hi).astype(np.float32)
+            for name, (share, winners, alpha) in rendered.items():
+                heat = colorize(share[ids].sum(0), alpha > 0.5, 0.0, 1.0).astype(np.float32)
                 panel = (0.35 * photo + 0.65 * heat).astype(np.uint8)
                 predicted = winners[ids].any(0).astype(np.uint8)
                 contours, _ = cv2.findContours(predicted, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
