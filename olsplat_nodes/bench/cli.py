@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import aggregate, compression, encode, query, raster, regions
+from . import aggregate, compression, encode, query, raster, regions, robustness
 
 
 def add_parser(subparsers) -> None:
@@ -14,3 +14,4 @@ def add_parser(subparsers) -> None:
     aggregate.add_parser(targets)
     query.add_parser(targets)
     compression.add_parser(targets)
+    robustness.add_parser(targets)

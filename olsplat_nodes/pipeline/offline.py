@@ -21,6 +21,7 @@ import resource
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -98,9 +99,18 @@ def view_features(scene: Scene, camera: Camera, encoder, region_config: RegionCo
     return levels.label_maps, [f.astype(np.float16).astype(np.float32) for f in bank.features]
 
 
-def aggregate_scene(scene: Scene, method_name: str, encoder, out: Path, progress=None, codebook: int | None = None) -> dict:
+def aggregate_scene(
+    scene: Scene,
+    method_name: str,
+    encoder,
+    out: Path,
+    progress=None,
+    codebook: int | None = None,
+    features_of: Callable[[Camera], tuple] | None = None,
+) -> dict:
     """Aggregate every view into a language map at ``out/language_map.npz`` (in the codebook
-    form with ``codebook`` centres when given); returns timing figures."""
+    form with ``codebook`` centres when given); returns timing figures. ``features_of(camera)``
+    gives a view's (label maps, bank per level); default: ``view_features`` with ``encoder``."""
     chosen = method(method_name)
     gaussians = read_ply(scene.ply)
     store = ObservationStore(out / "store", len(gaussians))
@@ -109,7 +119,7 @@ def aggregate_scene(scene: Scene, method_name: str, encoder, out: Path, progress
     start = time.perf_counter()
     cameras = progress(scene.cameras) if progress else scene.cameras
     for camera in cameras:
-        label_maps, bank = view_features(scene, camera, encoder)
+        label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
         rendered = rasterize(gaussians, camera, chosen.raster)
         slots, stacked = stack_levels(label_maps, bank)
         observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), chosen.aggregation)
