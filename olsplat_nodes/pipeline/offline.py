@@ -34,6 +34,7 @@ from ..errors import OlsplatInputError
 from ..raster import RasterConfig, rasterize
 from ..regions import RegionConfig, propose_regions
 from ..scene import Camera, read_colmap, read_ply
+from ..structure.branch import StructuralBranch, StructureConfig
 
 
 @dataclass(frozen=True)
@@ -107,20 +108,25 @@ def aggregate_scene(
     progress=None,
     codebook: int | None = None,
     features_of: Callable[[Camera], tuple] | None = None,
+    structure: StructureConfig | None = None,
 ) -> dict:
     """Aggregate every view into a language map at ``out/language_map.npz`` (in the codebook
     form with ``codebook`` centres when given); returns timing figures. ``features_of(camera)``
-    gives a view's (label maps, bank per level); default: ``view_features`` with ``encoder``."""
+    gives a view's (label maps, bank per level); default: ``view_features`` with ``encoder``.
+    With ``structure``, region banks are fused with the 3D branch before aggregation."""
     chosen = method(method_name)
     gaussians = read_ply(scene.ply)
     store = ObservationStore(out / "store", len(gaussians))
     if len(store):
         raise OlsplatInputError(f"{out / 'store'} already holds {len(store)} views: choose a new --out")
     start = time.perf_counter()
+    branch = StructuralBranch(gaussians, np.array([c.center for c in scene.cameras]), structure) if structure else None
     cameras = progress(scene.cameras) if progress else scene.cameras
     for camera in cameras:
         label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
         rendered = rasterize(gaussians, camera, chosen.raster)
+        if branch is not None:
+            bank = branch.fuse_view(camera, rendered.depth, label_maps, bank)
         slots, stacked = stack_levels(label_maps, bank)
         observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), chosen.aggregation)
         store.append(camera.name, observations, stacked)

@@ -1,0 +1,52 @@
+"""The 3D branch as one object the aggregation calls per view: built once per map (points and
+their structural features), then, per view, region pooling with visibility, an online h_theta
+update and the lambda_f fusion of the view's region bank.
+
+Streaming: view t is fused with h_theta as trained on views 1..t. Until h has seen
+``DistillConfig.warmup_regions`` regions, views keep their 2D bank (an untrained h would only
+add noise); they are not revisited, so a map built from a stream is a little more 2D than one
+built with a trained h. Fusion applies to every region level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..scene import Camera, Gaussians
+from .descriptors import geometric_descriptors
+from .distill import DistillConfig, OnlineDistiller, fuse_regions
+from .pooling import Visibility, pool_regions, visible_pixels
+from .points import structural_points
+
+
+@dataclass(frozen=True)
+class StructureConfig:
+    tau_o: float = 0.1  # opacity threshold of the point set (paper's tau_o; value not given there)
+    voxel: float | None = None  # voxel side in map units; None = auto (about 150k points on the ground footprint)
+    lambda_f: float = 0.7  # weight of the 2D feature in the fusion (paper)
+    visibility: Visibility = Visibility()
+    distill: DistillConfig = field(default_factory=DistillConfig)
+
+
+class StructuralBranch:
+    def __init__(self, gaussians: Gaussians, camera_centres: np.ndarray, config: StructureConfig = StructureConfig()):
+        self.config = config
+        self.points = structural_points(gaussians, config.tau_o, config.voxel)
+        self.features = geometric_descriptors(self.points, np.asarray(camera_centres, np.float64))
+        self.distiller: OnlineDistiller | None = None
+        self.losses: list[float] = []
+
+    def fuse_view(self, camera: Camera, depth: np.ndarray, label_maps: np.ndarray, bank: list[np.ndarray]) -> list[np.ndarray]:
+        """The view's fused region bank (one [R_l, D] array per level), training h on the way."""
+        visible = visible_pixels(self.points.positions, camera, depth, self.points.voxel, self.config.visibility)
+        pooled, counts = pool_regions(self.features, visible, label_maps, [len(b) for b in bank])
+        if self.distiller is None:
+            self.distiller = OnlineDistiller(self.features.shape[1], bank[0].shape[1], self.config.distill)
+        f3d = np.concatenate([p[c > 0] for p, c in zip(pooled, counts)])
+        f2d = np.concatenate([b[c > 0] for b, c in zip(bank, counts)])
+        self.losses.append(self.distiller.update(f3d, f2d))
+        if not self.distiller.ready:
+            return bank
+        return [fuse_regions(b, self.distiller.project(p), c, self.config.lambda_f) for b, p, c in zip(bank, pooled, counts)]
