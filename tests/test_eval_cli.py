@@ -52,3 +52,19 @@ def test_eval_over_several_scenes_reports_each_and_the_mean(tiny, tmp_path):
     assert abs(document["methods"]["topk"]["mIoU"] - (a + b) / 2) < 1e-9
     table = (tmp_path / "r.md").read_text()
     assert "| a | " in table and "| b | " in table and "| Overall | " in table
+
+
+def test_eval_feature_ablation_runs_the_3d_branch(tiny, tmp_path, capsys):
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny[0], scene)
+    args = ["eval", "--scene", str(scene), "--methods", "outlangsplat", "--features", "2d3d", "--feature-ablation", "--json", str(tmp_path / "r.json")]
+    assert main(args) == 0
+    document = json.loads((tmp_path / "r.json").read_text())
+    assert document["methods"]["outlangsplat"]["run"]["features"] == "2d3d"
+    features = document["features"]
+    assert list(features) == ["olsplat-cnn64", "olsplat-vit48", "w/o 3D fusion", "2D-3D fusion"]
+    assert features["2D-3D fusion"]["mIoU"] == document["methods"]["outlangsplat"]["mIoU"]  # the same run, aggregated once
+    assert features["w/o 3D fusion"]["mIoU"] != features["2D-3D fusion"]["mIoU"]  # the 3D branch changed the features
+    assert "paper Table 6)" in capsys.readouterr().out
+    assert main(["eval", "--scene", str(scene), "--lambda-f", "1.5"]) == 1
+    assert "--lambda-f must be in [0, 1]" in capsys.readouterr().err

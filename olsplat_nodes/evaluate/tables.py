@@ -3,8 +3,10 @@
 ``results`` maps scene name -> method name -> the scores of ``evaluate_map`` (plus timing).
 Layouts follow the paper: Table 2 (localisation, one cell "Loc@40/50/60" per method and
 scene), Table 3 (mIoU and mAcc per method and scene), Table 4 (category-level IoU per query,
-one row per method), Table 5 (aggregation strategies, one column per method) and the
-component ablation (the full method against each component switched off). With several scenes
+one row per method), Table 5 (aggregation strategies, one column per method), the component
+ablation (the full method against each component switched off), Table 6 (feature
+configurations) and Table 7 (lambda_2D x lambda_f). Each result may say which kind of run it
+came from (``result["run"]["kind"]``: "method", "feature", "sweep"; "method" when absent). With several scenes
 an "Overall" row averages the scenes (every scene counts the same, as in the paper). The best
 value of each row is in bold.
 """
@@ -91,15 +93,46 @@ def strategy_table(results: dict, methods: list[str], title: str) -> list[str]:
     return lines
 
 
+def _kind(result: dict) -> str:
+    return result.get("run", {}).get("kind", "method")
+
+
+def sweep_table(results: dict, labels: list[str], title: str) -> list[str]:
+    runs = overall(results) if len(results) > 1 else next(iter(results.values()))
+    first = next(iter(results.values()))
+    grid: dict[float, dict[float, dict]] = {}
+    for label in labels:
+        run = first[label]["run"]
+        grid.setdefault(run["weights"][0], {})[run["lambda_f"]] = runs[label]
+    lambdas_f = sorted({lf for row in grid.values() for lf in row})
+    best = {k: max(r[k] for row in grid.values() for r in row.values()) for k in ("mIoU", "mAcc", "loc50")}
+    lines = [title, ""]
+    lines += [_row(["λ2D", "λf", "mIoU ↑", "mAcc ↑", "Loc@50 ↑"]), _row(["---"] * 5)]
+    for l2d in sorted(grid):
+        cells = []
+        for key in ("mIoU", "mAcc", "loc50"):
+            values = [grid[l2d][lf][key] if lf in grid[l2d] else float("nan") for lf in lambdas_f]
+            cells.append("/".join(f"**{v:.1f}**" if f"{v:.1f}" == f"{best[key]:.1f}" else f"{v:.1f}" for v in values))
+        lines.append(_row([f"{l2d:g}", "/".join(f"{lf:g}" for lf in lambdas_f), *cells]))
+    return lines
+
+
 def paper_tables(results: dict[str, dict[str, dict]]) -> str:
-    """All tables the methods in ``results`` allow, as one Markdown document."""
-    methods = list(dict.fromkeys(m for scene in results.values() for m in scene))
-    methods = [m for m in methods if all(m in scene for scene in results.values())]
+    """All tables the runs in ``results`` allow, as one Markdown document."""
+    first = next(iter(results.values()))
+    labels = [m for m in first if all(m in scene for scene in results.values())]
+    methods = [m for m in labels if _kind(first[m]) == "method"]
     baselines = [m for m in methods if m not in ABLATIONS[1:]]
     sections = [localisation_table(results, baselines), segmentation_table(results, baselines), category_table(results, baselines)]
     where = "mean over the scenes" if len(results) > 1 else next(iter(results))
     sections.append(strategy_table(results, baselines, f"**Aggregation strategies** ({where}; paper Table 5)"))
     ablations = [m for m in ABLATIONS if m in methods]
     if len(ablations) > 1:
-        sections.append(strategy_table(results, ablations, f"**Component ablation** ({where}; paper Tables 5-7, components off)"))
+        sections.append(strategy_table(results, ablations, f"**Component ablation** ({where}; components off)"))
+    features = [m for m in labels if _kind(first[m]) == "feature"]
+    if features:
+        sections.append(strategy_table(results, features, f"**Feature configurations** ({where}; paper Table 6)"))
+    sweep = [m for m in labels if _kind(first[m]) == "sweep"]
+    if sweep:
+        sections.append(sweep_table(results, sweep, f"**Fusion weights λ2D x λf** ({where}; paper Table 7)"))
     return "\n\n".join("\n".join(s) for s in sections) + "\n"

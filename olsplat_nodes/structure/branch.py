@@ -11,12 +11,14 @@ built with a trained h. Fusion applies to every region level.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from ..scene import Camera, Gaussians
 from .descriptors import geometric_descriptors
 from .distill import DistillConfig, OnlineDistiller, fuse_regions
+from .minkunet import load_minkunet, minkunet_point_features
 from .pooling import Visibility, pool_regions, visible_pixels
 from .points import structural_points
 
@@ -28,13 +30,18 @@ class StructureConfig:
     lambda_f: float = 0.7  # weight of the 2D feature in the fusion (paper)
     visibility: Visibility = Visibility()
     distill: DistillConfig = field(default_factory=DistillConfig)
+    minkunet: Path | None = None  # a MinkUNet checkpoint for the point features; None = geometric descriptors
 
 
 class StructuralBranch:
     def __init__(self, gaussians: Gaussians, camera_centres: np.ndarray, config: StructureConfig = StructureConfig()):
         self.config = config
         self.points = structural_points(gaussians, config.tau_o, config.voxel)
-        self.features = geometric_descriptors(self.points, np.asarray(camera_centres, np.float64))
+        if config.minkunet is not None:
+            model = load_minkunet(config.minkunet)
+            self.features = minkunet_point_features(model, self.points.positions, self.points.opacity, self.points.voxel)
+        else:
+            self.features = geometric_descriptors(self.points, np.asarray(camera_centres, np.float64))
         self.distiller: OnlineDistiller | None = None
         self.losses: list[float] = []
 

@@ -24,7 +24,7 @@ class DistillConfig:
     steps_per_view: int = 30
     batch: int = 512
     reservoir: int = 20_000  # earlier (f3D, f2D) pairs kept for replay
-    warmup_regions: int = 2_000  # fuse only once h has been trained on this many regions
+    warmup_regions: int = 500  # fuse only once h has been trained on this many regions (2-6 views)
     seed: int = 0
 
 

@@ -137,15 +137,18 @@ def load_minkunet(path: str | Path, in_channels: int = 4, cr: float = 1.0) -> Mi
 
 
 def minkunet_point_features(model: MinkUNet, positions: np.ndarray, opacity: np.ndarray, voxel: float) -> np.ndarray:
-    """[P, 96] float32 features of points (one per voxel of side ``voxel``) from
-    [normalised xyz, opacity] inputs (xyz centred and divided by their largest spread)."""
+    """[P, 96] float32 features of points voxelised at side ``voxel``, from [normalised xyz,
+    opacity] inputs (xyz centred and divided by their largest spread). Points sharing a voxel
+    share its input (their mean) and its output."""
     coords = np.floor(positions / voxel).astype(np.int64)
     centred = positions - positions.mean(0)
-    inputs = np.c_[centred / max(np.abs(centred).max(), 1e-12), opacity].astype(np.float32)
-    unique, first = np.unique(coords, axis=0, return_index=True)
-    if len(unique) != len(coords):
-        raise ValueError("minkunet_point_features needs one point per voxel (use structural_points' voxel)")
+    inputs = np.c_[centred / max(np.abs(centred).max(), 1e-12), opacity].astype(np.float64)
+    unique, inverse = np.unique(coords, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((len(unique), inputs.shape[1]))
+    np.add.at(sums, inverse, inputs)
+    voxel_inputs = (sums / np.bincount(inverse, minlength=len(unique))[:, None]).astype(np.float32)
     with torch.no_grad():
-        out = model(SparseTensor(torch.from_numpy(coords), torch.from_numpy(inputs), 1))
-    # the network keeps the input coordinates at stride 1, in the same row order
-    return out.feats.numpy().astype(np.float32)
+        out = model(SparseTensor(torch.from_numpy(unique), torch.from_numpy(voxel_inputs), 1))
+    # the network returns to the input coordinates at stride 1, in the same row order
+    return out.feats.numpy().astype(np.float32)[inverse]

@@ -29,3 +29,20 @@ def test_tables_bold_the_best_and_list_every_scene():
     assert "| outlangsplat | **75.0** |" in text and "| projection | 74.5 |" in text
     assert "Component ablation" in text and "outlangsplat-noquality" in text.split("Component ablation")[1]
     assert "outlangsplat-noquality" not in text.split("Component ablation")[0]  # ablations stay out of the comparison
+
+
+def test_feature_and_sweep_tables():
+    runs = {}
+    for l2d in (0.5, 0.6):
+        for lf in (0.6, 0.7):
+            scores = _scores(50 + 10 * l2d + 10 * lf, 40, 60)
+            scores["run"] = {"kind": "sweep", "weights": [l2d, 1 - l2d], "lambda_f": lf}
+            runs[f"lambda_2D={l2d} lambda_f={lf}"] = scores
+    runs["olsplat-cnn64"] = {**_scores(50, 40, 60), "run": {"kind": "feature"}}
+    runs["2D-3D fusion"] = {**_scores(58, 45, 60), "run": {"kind": "feature"}}
+    runs["outlangsplat"] = {**_scores(58, 45, 60), "run": {"kind": "method"}}
+    text = paper_tables({"s": runs})
+    assert "| 0.5 | 0.6/0.7 | 61.0/62.0 | " in text and "| 0.6 | 0.6/0.7 | 62.0/**63.0** | " in text
+    feature_table = text.split("paper Table 6")[1]
+    assert "| Metrics | olsplat-cnn64 | 2D-3D fusion |" in feature_table and "| mIoU ↑ | 50.0 | **58.0** |" in feature_table
+    assert "lambda_2D" not in text.split("paper Table 6")[0]  # sweep runs stay out of the method tables

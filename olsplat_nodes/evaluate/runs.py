@@ -1,0 +1,72 @@
+"""What ``olsplat eval`` runs: one aggregation per (method, encoders, fusion weights, 3D branch).
+
+Three kinds, one per group of the paper's tables:
+- ``method``: the aggregation methods on the chosen features (Tables 2-5 and the component
+  ablation);
+- ``feature``: the full method on each 2D encoder alone, the 2D fusion without the 3D branch
+  and the 2D-3D fusion (Table 6);
+- ``sweep``: the full method with the 3D branch over lambda_2D x lambda_f (Table 7).
+Runs with identical settings are aggregated once and reported under every label they carry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from ..structure.branch import StructureConfig
+
+LAMBDA_2D = (0.5, 0.6, 0.7)
+LAMBDA_F = (0.6, 0.7, 0.8)
+
+
+@dataclass(frozen=True)
+class Run:
+    label: str
+    kind: str  # "method", "feature" or "sweep"
+    method: str
+    encoders: str  # encoder spec ("shipped", names or folders)
+    weights: tuple[float, ...] | None  # lambda_2D fusion weights; None = the spec's default
+    structure: StructureConfig | None  # the 3D branch, or None for 2D features only
+
+    @property
+    def settings(self) -> tuple:
+        return (self.method, self.encoders, self.weights, self.structure)
+
+    def describe(self) -> dict:
+        return {
+            "kind": self.kind,
+            "method": self.method,
+            "encoders": self.encoders,
+            "weights": list(self.weights) if self.weights else None,
+            "features": "2d3d" if self.structure else "2d",
+            "lambda_f": self.structure.lambda_f if self.structure else None,
+        }
+
+
+def plan_runs(
+    methods: list[str],
+    encoders: str = "shipped",
+    weights: tuple[float, ...] | None = None,
+    with_3d: bool = False,
+    feature_ablation: bool = False,
+    fusion_sweep: bool = False,
+    structure: StructureConfig = StructureConfig(),
+) -> list[Run]:
+    main_structure = structure if with_3d else None
+    runs = [Run(m, "method", m, encoders, weights, main_structure) for m in methods]
+    if feature_ablation:
+        if encoders != "shipped":
+            members = encoders.split(",")
+        else:
+            from ..encoders.shipped import SHIPPED
+
+            members = list(SHIPPED)
+        runs += [Run(name, "feature", "outlangsplat", name, None, None) for name in members]
+        runs.append(Run("w/o 3D fusion", "feature", "outlangsplat", encoders, weights, None))
+        runs.append(Run("2D-3D fusion", "feature", "outlangsplat", encoders, weights, structure))
+    if fusion_sweep:
+        for l2d in LAMBDA_2D:
+            for lf in LAMBDA_F:
+                label = f"lambda_2D={l2d} lambda_f={lf}"
+                runs.append(Run(label, "sweep", "outlangsplat", encoders, (l2d, round(1 - l2d, 6)), replace(structure, lambda_f=lf)))
+    return runs

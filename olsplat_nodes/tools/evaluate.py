@@ -1,0 +1,122 @@
+"""``olsplat eval``: aggregate a scene with several methods (and feature settings), score every
+language map on the scene's annotations, print and write the paper's tables."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    from ..pipeline import METHODS
+
+    ev = subparsers.add_parser("eval", help="aggregate with several methods and score them on the annotations")
+    ev.add_argument("--scene", required=True, type=Path, action="append", help="a scene folder; repeat for several scenes")
+    ev.add_argument("--methods", default="outlangsplat,projection,topk,vala", help=f"comma-separated, from: {', '.join(METHODS)}")
+    ev.add_argument("--encoders", default="shipped")
+    ev.add_argument("--weights", help="lambda_2D fusion weights, e.g. 0.6,0.4")
+    ev.add_argument("--features", choices=("2d", "2d3d"), default="2d", help="the methods' input: 2D region features, or fused with the 3D branch")
+    ev.add_argument("--lambda-f", type=float, default=0.7, help="2D share of the 2D-3D fusion (paper: 0.7)")
+    ev.add_argument("--minkunet", type=Path, help="3D branch: a MinkUNet checkpoint (SegContrast layout) instead of geometric descriptors")
+    ev.add_argument("--feature-ablation", action="store_true", help="also run the paper's Table 6 (each encoder, 2D fusion, 2D-3D fusion)")
+    ev.add_argument("--fusion-sweep", action="store_true", help="also run the paper's Table 7 (lambda_2D x lambda_f, 9 runs)")
+    ev.add_argument("--work", type=Path, help="folder for the per-run maps (default: SCENE/eval)")
+    ev.add_argument("--json", type=Path, help="write the results here")
+    ev.add_argument("--md", type=Path, help="write the paper's tables (Markdown) here")
+    ev.add_argument("--figures", type=Path, help="write side-by-side heatmaps per view and query here")
+    ev.add_argument("--figure-views", type=int, default=2, help="annotated views per scene in --figures (default 2)")
+    ev.set_defaults(run=run)
+
+
+def _folder_name(label: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
+
+
+def run(args: argparse.Namespace) -> int:
+    import shutil
+
+    from tqdm import tqdm
+
+    from ..aggregate.snapshot import LanguageMap
+    from ..encoders.spec import encoder_from_spec
+    from ..errors import OlsplatInputError
+    from ..evaluate import evaluate_map
+    from ..evaluate.figures import qualitative_figures
+    from ..evaluate.runs import plan_runs
+    from ..evaluate.tables import overall, paper_tables
+    from ..pipeline import Scene, aggregate_scene
+    from ..pipeline.offline import method
+    from ..structure.branch import StructureConfig
+
+    scenes = [Scene.open(folder) for folder in args.scene]  # every folder is checked before any work
+    names = [m.strip() for m in args.methods.split(",") if m.strip()]
+    for name in names:
+        method(name)  # unknown names fail before any work
+    if not 0.0 <= args.lambda_f <= 1.0:
+        raise OlsplatInputError(f"--lambda-f must be in [0, 1], got {args.lambda_f}")
+    if args.minkunet and not args.minkunet.is_file():
+        raise OlsplatInputError(f"{args.minkunet}: no such MinkUNet checkpoint")
+    weights = tuple(float(w) for w in args.weights.split(",")) if args.weights else None
+    structure = StructureConfig(lambda_f=args.lambda_f, minkunet=args.minkunet)
+    runs = plan_runs(names, args.encoders, weights, args.features == "2d3d", args.feature_ablation, args.fusion_sweep, structure)
+    encoders = {}
+    for r in runs:  # every encoder is loaded before any work
+        encoders[r.encoders, r.weights] = encoders.get((r.encoders, r.weights)) or encoder_from_spec(r.encoders, ",".join(map(str, r.weights)) if r.weights else None)
+    titles = [s.folder.name for s in scenes]
+    if len(set(titles)) < len(titles):
+        titles = [str(s.folder) for s in scenes]
+    results: dict[str, dict] = {}
+    for title, scene in zip(titles, scenes):
+        work = (args.work / title if len(scenes) > 1 else args.work) if args.work else scene.folder / "eval"
+        results[title], maps, done = {}, {}, {}
+        for r in runs:
+            encoder = encoders[r.encoders, r.weights]
+            key = (r.method, encoder.name, r.structure)
+            if key not in done:
+                out = work / _folder_name(r.label)
+                shutil.rmtree(out, ignore_errors=True)
+                stats = aggregate_scene(scene, r.method, encoder, out, lambda xs, n=r.label: tqdm(xs, desc=n, unit="view"), structure=r.structure)
+                language_map = LanguageMap.load(out / "language_map.npz")
+                scores = evaluate_map(scene, language_map, encoder)
+                done[key] = ({**scores, "seconds": stats["seconds"], "peak_rss_mb": stats["peak_rss_mb"]}, language_map)
+            scores, language_map = done[key]
+            results[title][r.label] = {**scores, "run": r.describe()}
+            if r.kind == "method":
+                maps[r.label] = language_map
+            print(f"{title}: {r.label:28s} mIoU {scores['mIoU']:5.1f}  mAcc {scores['mAcc']:5.1f}  Loc@40/50/60 "
+                  f"{scores['loc40']:5.1f} {scores['loc50']:5.1f} {scores['loc60']:5.1f}  ({scores['seconds']:.0f} s)")  # fmt: skip
+        if args.figures:
+            folder = args.figures / title if len(scenes) > 1 else args.figures
+            files = qualitative_figures(scene, maps, encoders[runs[0].encoders, runs[0].weights], folder, args.figure_views)
+            print(f"{title}: {len(files)} figures -> {folder}")
+    tables = paper_tables(results)
+    print()
+    print(tables)
+    if args.json:
+        args.json.write_text(json.dumps(_document(results, overall), indent=2))
+    if args.md:
+        args.md.write_text(tables)
+    return 0
+
+
+def _document(results: dict, overall) -> dict:
+    """{"methods": {...}} as the issue specifies (the mean over scenes when there are several),
+    plus "features" and "fusion_sweep" when those ran, and "scenes" with each scene's own."""
+
+    def split(runs: dict) -> dict:
+        out = {"methods": {k: v for k, v in runs.items() if v["run"]["kind"] == "method"}}
+        for kind, key in (("feature", "features"), ("sweep", "fusion_sweep")):
+            chosen = {k: v for k, v in runs.items() if v["run"]["kind"] == kind}
+            if chosen:
+                out[key] = chosen
+        return out
+
+    if len(results) == 1:
+        return split(next(iter(results.values())))
+    merged = overall(results)
+    for label, value in merged.items():
+        value["run"] = next(iter(results.values()))[label]["run"]
+    document = split(merged)
+    document["scenes"] = {title: split(runs) for title, runs in results.items()}
+    return document
