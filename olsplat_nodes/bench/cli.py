@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import aggregate, compression, encode, query, raster, regions, robustness
+from . import aggregate, compression, encode, query, raster, regions, robustness, structure
 
 
 def add_parser(subparsers) -> None:
@@ -15,3 +15,4 @@ def add_parser(subparsers) -> None:
     query.add_parser(targets)
     compression.add_parser(targets)
     robustness.add_parser(targets)
+    structure.add_parser(targets)

@@ -120,7 +120,7 @@ def aggregate_scene(
     if len(store):
         raise OlsplatInputError(f"{out / 'store'} already holds {len(store)} views: choose a new --out")
     start = time.perf_counter()
-    branch = StructuralBranch(gaussians, np.array([c.center for c in scene.cameras]), structure) if structure else None
+    branch = StructuralBranch.build(gaussians, np.array([c.center for c in scene.cameras]), structure) if structure else None
     cameras = progress(scene.cameras) if progress else scene.cameras
     for camera in cameras:
         label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)

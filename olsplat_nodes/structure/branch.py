@@ -20,7 +20,7 @@ from .descriptors import geometric_descriptors
 from .distill import DistillConfig, OnlineDistiller, fuse_regions
 from .minkunet import load_minkunet, minkunet_point_features
 from .pooling import Visibility, pool_regions, visible_pixels
-from .points import structural_points
+from .points import StructuralPoints, structural_points
 
 
 @dataclass(frozen=True)
@@ -34,16 +34,21 @@ class StructureConfig:
 
 
 class StructuralBranch:
-    def __init__(self, gaussians: Gaussians, camera_centres: np.ndarray, config: StructureConfig = StructureConfig()):
-        self.config = config
-        self.points = structural_points(gaussians, config.tau_o, config.voxel)
-        if config.minkunet is not None:
-            model = load_minkunet(config.minkunet)
-            self.features = minkunet_point_features(model, self.points.positions, self.points.opacity, self.points.voxel)
-        else:
-            self.features = geometric_descriptors(self.points, np.asarray(camera_centres, np.float64))
+    def __init__(self, points: StructuralPoints, features: np.ndarray, config: StructureConfig = StructureConfig()):
+        """``features`` [P, D3]: one structural feature per point of ``points``."""
+        self.config, self.points, self.features = config, points, features
         self.distiller: OnlineDistiller | None = None
-        self.losses: list[float] = []
+        self.losses: list[float] = []  # mean distillation loss per view
+
+    @staticmethod
+    def build(gaussians: Gaussians, camera_centres: np.ndarray, config: StructureConfig = StructureConfig()) -> "StructuralBranch":
+        """Point set and point features of a map (once per map); camera centres [V, 3] give "up"."""
+        points = structural_points(gaussians, config.tau_o, config.voxel)
+        if config.minkunet is not None:
+            features = minkunet_point_features(load_minkunet(config.minkunet), points.positions, points.opacity, points.voxel)
+        else:
+            features = geometric_descriptors(points, np.asarray(camera_centres, np.float64))
+        return StructuralBranch(points, features, config)
 
     def fuse_view(self, camera: Camera, depth: np.ndarray, label_maps: np.ndarray, bank: list[np.ndarray]) -> list[np.ndarray]:
         """The view's fused region bank (one [R_l, D] array per level), training h on the way."""

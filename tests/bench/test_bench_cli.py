@@ -55,3 +55,12 @@ def test_robustness_benchmark_runs(tiny, tmp_path, capsys):
     shutil.copytree(tiny[0], scene)
     assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5"]) == 0
     assert re.search(r"p 0\.50\s+topk\s+mIoU\s+\d+\.\d", capsys.readouterr().out)
+
+
+def test_structure_benchmark_runs(tiny, tmp_path, capsys):
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny[0], scene)
+    assert main(["bench", "structure", "--scene", str(scene), "--views", "3", "--minkunet"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"geometric descriptors \d+\.\d s \(75 dims\)", out) and re.search(r"MinkUNet \(random weights\) \d+\.\d s \(96 dims\)", out), out
+    assert re.search(r"per view: \d+\.\d+ s", out)
