@@ -97,28 +97,46 @@ class ObservationStore:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 0), np.float32)
         return np.concatenate(owners), np.concatenate(views), np.concatenate(strengths), np.concatenate(features)
 
-    def refine(self, F: np.ndarray | None, config: AggregationConfig, only_touched: bool = True, chunk: int = 250_000):
+    def observation_counts(self) -> np.ndarray:
+        """[N] int64: in how many views each Gaussian has a kept observation."""
+        counts = np.zeros(self.n_gaussians, np.int64)
+        for index in range(len(self.segments())):
+            counts[np.asarray(self.load(index)[0].gaussians)] += 1  # a Gaussian appears once per view
+        return counts
+
+    def refine(self, F: np.ndarray | None, config: AggregationConfig, only_touched: bool = True, max_observations: int = 400_000):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
         rows of F. ``observed`` marks the Gaussians with at least one kept observation among
-        the recomputed ones. Gaussians are processed ``chunk`` at a time to bound memory."""
+        the recomputed ones. Gaussians are processed in index ranges holding at most
+        ``max_observations`` observations (~1 GB of working memory at D = 128), so memory does
+        not grow with the map or the flight."""
         selected = self.touched.copy() if (only_touched and F is not None) else np.ones(self.n_gaussians, bool)
         observed = np.zeros(self.n_gaussians, bool)
         out = None if F is None else F.copy()
-        for first in range(0, self.n_gaussians, chunk):
+        cumulative = np.cumsum(self.observation_counts() * selected)
+        first = 0
+        while first < self.n_gaussians:
+            done_before = cumulative[first - 1] if first else 0
+            stop = max(int(np.searchsorted(cumulative, done_before + max_observations, side="right")), first + 1)
             part = np.zeros(self.n_gaussians, bool)
-            part[first : first + chunk] = selected[first : first + chunk]
+            part[first:stop] = selected[first:stop]
+            first = stop
+            if not part.any():
+                continue
             owner, view, strength, features = self.gather(part)
             if not len(owner):
                 continue
             if out is None:
                 out = np.zeros((self.n_gaussians, features.shape[1]), np.float32)
+            rows, local = np.unique(owner, return_inverse=True)  # work on this range's Gaussians only
+            local = local.reshape(-1)
             if config.combine == "streaming_cosine":
-                refined, count = streaming_cosine(owner, view, strength, features, self.n_gaussians)
+                refined, count = streaming_cosine(local, view, strength, features, len(rows))
             else:
-                refined, count = refine_observations(owner, strength, features, self.n_gaussians, config)
-            rows = np.flatnonzero(part)
-            out[rows] = refined[rows]
-            observed[rows] = count[rows] > 0
+                refined, count = refine_observations(local, strength, features, len(rows), config)
+            out[part] = 0.0  # recomputed; those with observations are set next
+            out[rows] = refined
+            observed[rows] = count > 0
         self.touched[:] = False
         return out, observed

@@ -62,7 +62,7 @@ def test_streaming_views_equal_the_batch(tmp_path):
     batch = ObservationStore(tmp_path / "batch", n)
     for name, obs, bank in _views(5, n):
         batch.append(name, obs, bank)
-    F_batch, observed = batch.refine(None, config, chunk=37)  # small chunks: the chunking is exercised
+    F_batch, observed = batch.refine(None, config, max_observations=37)  # small ranges: the chunking is exercised
     assert observed.sum() > 50
     np.testing.assert_allclose(F, F_batch, rtol=1e-5, atol=1e-6)
 
