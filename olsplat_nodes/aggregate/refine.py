@@ -10,15 +10,24 @@ observation keep F = 0 and count 0.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .config import AggregationConfig
 
 
+@njit(cache=True)
 def _weighted_mean(owner: np.ndarray, weights: np.ndarray, features: np.ndarray, n: int, eps: float) -> np.ndarray:
+    """[n, D] float64: per Gaussian, sum w f / (sum w + eps) over its observations."""
     total = np.zeros((n, features.shape[1]), np.float64)
-    np.add.at(total, owner, weights[:, None] * features)
-    norm = np.bincount(owner, weights=weights, minlength=n)
-    return total / (norm[:, None] + eps)
+    norm = np.zeros(n, np.float64)
+    for o in range(owner.shape[0]):
+        g, w = owner[o], weights[o]
+        norm[g] += w
+        for d in range(features.shape[1]):
+            total[g, d] += w * features[o, d]
+    for g in range(n):
+        total[g] /= norm[g] + eps
+    return total
 
 
 def refine_observations(
@@ -29,8 +38,9 @@ def refine_observations(
     config: AggregationConfig = AggregationConfig(),
 ) -> tuple[np.ndarray, np.ndarray]:
     """(F [n, D] float32, observation count [n] int) after config.iterations iterations."""
-    features = features.astype(np.float64)
-    strength = strength.astype(np.float64)
+    owner = np.ascontiguousarray(owner, np.int64)
+    features = np.ascontiguousarray(features, np.float64)
+    strength = np.ascontiguousarray(strength, np.float64)
     F = _weighted_mean(owner, strength, features, n, config.eps)
     feature_norm = np.linalg.norm(features, axis=1)
     for t in range(1, config.iterations + 1):

@@ -18,12 +18,26 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from .config import AggregationConfig
 from .observe import ViewObservations
 from .refine import refine_observations, streaming_cosine
 
 _ARRAYS = ("gaussians", "strength", "offsets", "slots", "weights", "bank")
+
+
+@njit(cache=True)
+def _mix_rows(bank, slots, weights, offsets, rows):
+    """[len(rows), D] float32: for each chosen row j, sum_e weights[e] * bank[slots[e]] over its entries."""
+    out = np.zeros((rows.shape[0], bank.shape[1]), np.float32)
+    for i in range(rows.shape[0]):
+        for e in range(offsets[rows[i]], offsets[rows[i] + 1]):
+            w = weights[e]
+            row = bank[slots[e]]
+            for d in range(bank.shape[1]):
+                out[i, d] += w * row[d]
+    return out
 
 
 class ObservationStore:
@@ -83,12 +97,7 @@ class ObservationStore:
             rows = np.flatnonzero(selected[obs.gaussians])
             if not len(rows):
                 continue
-            starts, stops = obs.offsets[rows], obs.offsets[rows + 1]
-            counts = stops - starts
-            entry = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
-            local = np.repeat(np.arange(len(rows)), counts)
-            dense = np.zeros((len(rows), bank.shape[1]), np.float32)
-            np.add.at(dense, local, np.asarray(bank, np.float32)[obs.slots[entry]] * obs.weights[entry][:, None])
+            dense = _mix_rows(np.asarray(bank, np.float32), np.asarray(obs.slots), np.asarray(obs.weights), np.asarray(obs.offsets), rows)
             owners.append(np.asarray(obs.gaussians)[rows])
             views.append(np.full(len(rows), index))
             strengths.append(np.asarray(obs.strength)[rows])
