@@ -116,6 +116,21 @@ def _mixtures(order, k, weight_of, kept_of, n_kept, slot_maps, level_weights, st
     return offsets, out_slots[:n_out].copy(), out_weights[:n_out].copy()
 
 
+@njit(cache=True)
+def _stable_group(keys, n_groups):
+    """Indices that order ``keys`` (ints in [0, n_groups)) stably: a counting sort, O(n)."""
+    start = np.zeros(n_groups + 1, np.int64)
+    for k in keys:
+        start[k + 1] += 1
+    for g in range(n_groups):
+        start[g + 1] += start[g]
+    order = np.empty(keys.shape[0], np.int64)
+    for i in range(keys.shape[0]):
+        order[start[keys[i]]] = i
+        start[keys[i]] += 1
+    return order
+
+
 def observe_view(
     topk_ids: np.ndarray,  # [H, W, K] int32, -1 padded
     topk_weights: np.ndarray,  # [H, W, K] float32 alpha*T
@@ -145,7 +160,7 @@ def observe_view(
     kept_of = np.full(n_gaussians, -1, np.int64)
     kept_of[kept] = np.arange(len(kept))
     entries = entries[kept_of[ids[entries]] >= 0]
-    order = entries[np.argsort(kept_of[ids[entries]], kind="stable")]
+    order = entries[_stable_group(kept_of[ids[entries]], len(kept))]
     levels = slot_maps.shape[0]
     a = np.eye(levels)[-1] if config.level_weights is None else np.asarray(config.level_weights, np.float64)
     if len(a) != levels or a.min() < 0 or a.sum() <= 0:
