@@ -34,11 +34,11 @@ def _size_mb(folder: Path) -> float:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from ..aggregate import ObservationStore, observe_view, stack_levels
+    from ..aggregate import ObservationStore
     from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
     from ..pipeline import Scene
-    from ..pipeline.offline import method, view_features
+    from ..pipeline.offline import add_view, method, view_features
     from ..raster import rasterize
     from ..scene import read_ply
 
@@ -54,17 +54,10 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         store = ObservationStore(Path(tmp) / "store", len(gaussians))
         for camera, (label_maps, bank) in zip(cameras, features):
-            t0 = time.perf_counter()
-            rendered = rasterize(gaussians, camera, chosen.raster)
-            t1 = time.perf_counter()
-            slots, stacked = stack_levels(label_maps, bank)
-            observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), chosen.aggregation)
-            t2 = time.perf_counter()
-            store.append(camera.name, observations, stacked)
-            t3 = time.perf_counter()
-            for key, seconds in zip(times, (t1 - t0, t2 - t1, t3 - t2)):
-                times[key].append(seconds)
-            kept.append(len(observations))
+            stages = add_view(gaussians, camera, label_maps, bank, chosen, store)
+            for key in times:
+                times[key].append(stages[key])
+            kept.append(stages["kept"])
         t0 = time.perf_counter()
         refined, observed = store.refine(None, chosen.aggregation, only_touched=False)
         refine_seconds = time.perf_counter() - t0

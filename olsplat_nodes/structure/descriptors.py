@@ -32,6 +32,7 @@ def estimate_up(positions: np.ndarray, camera_centres: np.ndarray, voxel: float)
     """[3] unit vector: the ground plane's normal (RANSAC), pointing to the cameras' side."""
     import open3d as o3d
 
+    o3d.utility.random.seed(0)  # RANSAC: the same map gives the same "up" every run
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(positions))
     plane, _ = cloud.segment_plane(distance_threshold=2.0 * voxel, ransac_n=3, num_iterations=500, probability=1.0)
     normal = np.asarray(plane[:3], np.float64)

@@ -62,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     runs = plan_runs(names, args.encoders, weights, args.features == "2d3d", args.feature_ablation, args.fusion_sweep, structure)
     encoders = {}
     for r in runs:  # every encoder is loaded before any work
-        encoders[r.encoders, r.weights] = encoders.get((r.encoders, r.weights)) or encoder_from_spec(r.encoders, ",".join(map(str, r.weights)) if r.weights else None)
+        if (r.encoders, r.weights) not in encoders:
+            encoders[r.encoders, r.weights] = encoder_from_spec(r.encoders, ",".join(map(str, r.weights)) if r.weights else None)
     titles = [s.folder.name for s in scenes]
     if len(set(titles)) < len(titles):
         titles = [str(s.folder) for s in scenes]
