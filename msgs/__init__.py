@@ -1,7 +1,48 @@
-"""olsplat_msgs: the wire schema of the node graph (the single source; see the design card).
+"""olsplat_msgs: the wire schema of the node graph and its codec (no zmq here).
 
-The message definitions arrive with the node-graph issue; this package exists now so that the
-import name and the layout are fixed from the start.
+``schema.yaml`` is the single source; ``msgs/README.md`` is the wire specification for writing
+a client in another language. ``encode(msg, topic)`` gives ``[topic, msgpack header, *array
+buffers]``; ``decode(frames, max_bytes)`` gives ``(topic, msg)`` or raises a ``WireError``.
+Decoded arrays are read-only zero-copy views of the received frames.
 """
 
-__all__: list[str] = []
+from .codec import DEFAULT_MAX_BYTES, VERSION, decode, encode
+from .errors import MalformedMessage, MessageTooLarge, UnknownSchema, UnsupportedVersion, WireError
+from .messages import (
+    MESSAGES,
+    DiagnosticStatus,
+    EndOfStream,
+    ImageFrame,
+    MapUpdated,
+    ObservationsAdded,
+    QueryReply,
+    QueryRequest,
+    RegionFeatures,
+    StatusReply,
+    StatusRequest,
+)
+from .schema import load_schema
+
+__all__ = [
+    "ImageFrame",
+    "EndOfStream",
+    "RegionFeatures",
+    "ObservationsAdded",
+    "MapUpdated",
+    "QueryRequest",
+    "QueryReply",
+    "StatusRequest",
+    "StatusReply",
+    "DiagnosticStatus",
+    "encode",
+    "decode",
+    "WireError",
+    "UnknownSchema",
+    "UnsupportedVersion",
+    "MalformedMessage",
+    "MessageTooLarge",
+    "MESSAGES",
+    "VERSION",
+    "DEFAULT_MAX_BYTES",
+    "load_schema",
+]

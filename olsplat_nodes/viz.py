@@ -62,3 +62,34 @@ def write_png(path, image: np.ndarray) -> None:
     """Write an 8-bit image; raises OSError naming the path when it cannot."""
     if not _cv2().imwrite(str(path), image):
         raise OSError(f"{path}: cannot write the image (bad folder or extension?)")
+
+
+def query_pictures(image_rgb: np.ndarray, heatmap: np.ndarray, valid: np.ndarray, mask: np.ndarray, boxes) -> tuple[np.ndarray, np.ndarray]:
+    """(heatmap overlay, mask overlay) as [H, W, 3] uint8 BGR: the view's photo [H, W, 3] RGB
+    blended with the cosine heatmap [H, W] (turbo, -1..1; black where ``valid`` is False), and
+    with the mask [H, W] bool in yellow plus each (x0, y0, x1, y1) box (exclusive end) in green."""
+    cv2 = _cv2()
+    photo = image_rgb[..., ::-1].astype(np.float32)
+    heat = colorize(heatmap, valid, -1.0, 1.0).astype(np.float32)
+    overlay = photo.copy()
+    overlay[mask] = 0.4 * overlay[mask] + 0.6 * np.array([0, 220, 255])
+    overlay = overlay.astype(np.uint8)
+    for x0, y0, x1, y1 in boxes:
+        cv2.rectangle(overlay, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), (0, 255, 0), 1)
+    return (0.45 * photo + 0.55 * heat).astype(np.uint8), overlay
+
+
+def write_query_pictures(folder, view: str, text: str, image_rgb, heatmap, alpha, mask, regions) -> list:
+    """Write VIEW_TEXT_heatmap.png and VIEW_TEXT_mask.png into ``folder``; returns their paths.
+    ``regions``: objects with a ``box`` or plain (x0, y0, x1, y1) tuples."""
+    from pathlib import Path
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    boxes = [getattr(r, "box", r) for r in regions]
+    heat, masked = query_pictures(image_rgb, heatmap, alpha > 0.5, mask.astype(bool), boxes)
+    stem = f"{Path(view).stem}_{'_'.join(text.split())}"
+    paths = [folder / f"{stem}_heatmap.png", folder / f"{stem}_mask.png"]
+    write_png(paths[0], heat)
+    write_png(paths[1], masked)
+    return paths

@@ -96,3 +96,14 @@ def plan_flight(size_m: float, spec: FlightSpec, rng: np.random.Generator) -> li
         stamp = EPOCH_NS + int(round(i * 1e9 / spec.rate_hz))
         frames.append(FlightFrame(Camera(name, spec.width, spec.height, K, pose), stamp, kind))
     return frames
+
+
+def overview_cameras(size_m: float, altitude_m: float = 80.0, width: int = 960, height: int = 720) -> list[Camera]:
+    """A nadir view over the centre and four oblique (45 degree) views from the sides."""
+    focal = 0.5 * width / np.tan(np.radians(35.0))  # 70 degree horizontal field of view
+    K = intrinsics(focal, focal, width / 2, height / 2)
+    cameras = [Camera("nadir.png", width, height, K, look_at([0, 0, altitude_m], [0, 0, 0], (0, 1, 0)))]
+    for i, azimuth in enumerate(np.radians([270, 0, 90, 180])):
+        eye = np.array([np.cos(azimuth) * altitude_m, np.sin(azimuth) * altitude_m, altitude_m])
+        cameras.append(Camera(f"oblique_{i}.png", width, height, K, look_at(eye, [0, 0, 0], (0, 0, 1))))
+    return cameras

@@ -106,6 +106,18 @@ class ObservationStore:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 0), np.float32)
         return np.concatenate(owners), np.concatenate(views), np.concatenate(strengths), np.concatenate(features)
 
+    def names(self) -> list[str]:
+        """The view names in store order (a node uses them to accept each view once)."""
+        return [(segment / "name.txt").read_text() for segment in self.segments()]
+
+    def touch_views(self, first: int) -> int:
+        """Mark the Gaussians of views ``first``.. as touched (a refiner in another process
+        than the writer learns of new views from the disk); returns the number of views."""
+        segments = self.segments()
+        for index in range(first, len(segments)):
+            self.touched[np.asarray(self.load(index)[0].gaussians)] = True
+        return len(segments)
+
     def observation_counts(self) -> np.ndarray:
         """[N] int64: in how many views each Gaussian has a kept observation."""
         counts = np.zeros(self.n_gaussians, np.int64)

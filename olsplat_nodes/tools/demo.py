@@ -1,67 +1,178 @@
-"""``olsplat demo``: the main job of ``make demo``.
+"""``olsplat demo``: the main job of ``make demo``, end to end through the node graph.
 
-For now: generate a town, save it as a user would have it (INRIA PLY + COLMAP model), read
-both back through the same readers ``olsplat render`` uses, render a small UAV flight and
-write RGB, depth and Top-K pictures. Later issues re-point it at the full pipeline.
+1. make (or reuse) a simulated UAV flight: prior Gaussian map, replay log, annotated queries;
+2. launch the replay graph (``launch/replay.yaml``: ingest -> region encoder -> accumulator ->
+   refiner -> query server, one process each, over ZeroMQ);
+3. while the flight streams, ask the ground-station queries each time a new map version is out;
+4. after the final map, ask them again over a view, write heatmap and mask PNGs, and a summary
+   (frames, drops, answers, timings) to ``OUT/summary.json`` and ``OUT/summary.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
+import threading
 import time
+import uuid
 from pathlib import Path
 
-import numpy as np
-
-from ..raster import rasterize
-from ..scene import Camera, intrinsics, look_at, read_cameras, read_ply, write_colmap, write_ply
-from ..viz import colorize, rgb_to_bgr8, topk_panel, write_png
-
-
-def flight_cameras(size_m: float, altitude_m: float = 80.0, width: int = 960, height: int = 720) -> list[Camera]:
-    """A nadir view over the centre and four oblique (45 degree) views from the sides."""
-    focal = 0.5 * width / np.tan(np.radians(35.0))  # 70 degree horizontal field of view
-    K = intrinsics(focal, focal, width / 2, height / 2)
-    cameras = [Camera("nadir.png", width, height, K, look_at([0, 0, altitude_m], [0, 0, 0], (0, 1, 0)))]
-    for i, azimuth in enumerate(np.radians([270, 0, 90, 180])):
-        eye = np.array([np.cos(azimuth) * altitude_m, np.sin(azimuth) * altitude_m, altitude_m])
-        cameras.append(Camera(f"oblique_{i}.png", width, height, K, look_at(eye, [0, 0, 0], (0, 0, 1))))
-    return cameras
+DEMO_QUERIES = ("red roof buildings", "road", "trees", "cars")
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("demo", help="generate a town, render a flight, write pictures")
+    parser = subparsers.add_parser("demo", help="simulated flight streamed through the node graph, queried from the ground")
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default: out)")
-    parser.add_argument("--gaussians", type=int, default=300_000, help="size of the generated map")
+    parser.add_argument("--preset", default="small", help="simulator preset of the flight (default: small, 60 frames)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"), help="the launch file of the graph")
+    parser.add_argument("--port", type=int, default=5600, help="TCP port of the query server on 127.0.0.1")
+    parser.add_argument("--timeout", type=float, default=1800.0, help="give up after this many seconds")
     parser.set_defaults(run=run)
 
 
+def ensure_flight(folder: Path, preset: str, seed: int) -> dict:
+    """The flight in ``folder`` when it was made with this preset and seed, else a new one."""
+    from olsplat_sim.make import make_dataset
+    from olsplat_sim.presets import PRESETS
+
+    from ..errors import OlsplatInputError
+
+    summary = folder / "scene.json"
+    if summary.exists():
+        made = json.loads(summary.read_text())
+        if made.get("preset", {}).get("name") == preset and made.get("seed") == seed and (folder / "replay.mcap").exists():
+            print(f"flight: reusing {folder} ({preset}, seed {seed})")
+            return made
+    if preset not in PRESETS:
+        raise OlsplatInputError(f"unknown preset {preset!r}; known: {', '.join(PRESETS)}")
+    shutil.rmtree(folder, ignore_errors=True)
+    print(f"flight: simulating {preset} (seed {seed}) -> {folder}")
+    return make_dataset(PRESETS[preset], seed, folder)
+
+
+class Ground:
+    """The ground station's side of the demo: queries over the real ZeroMQ link."""
+
+    def __init__(self, endpoint: str, texts: list[str], timeout_s: float = 60.0):
+        import zmq
+
+        from ..transport import QueryClient
+
+        self.client = QueryClient(zmq.Context.instance(), endpoint, timeout_s=timeout_s)
+        self.texts = texts
+        self.log: list[dict] = []
+
+    def ask(self, text: str, view: str = "", phase: str = "streaming"):
+        from olsplat_msgs import QueryRequest
+
+        negatives = [t for t in self.texts if t != text]
+        start = time.perf_counter()
+        reply = self.client.request(QueryRequest(request_id=uuid.uuid4().hex[:12], text=text, view=view, heatmap=bool(view), threshold=float("nan"), negatives=negatives))
+        found = [i for i in reply.instances if i["kind"] == "3d"]
+        self.log.append({
+            "phase": phase, "text": text, "view": view, "status": reply.status, "map_version": reply.map_version,
+            "instances_3d": len(found), "regions_2d": len(reply.instances) - len(found),
+            "round_trip_s": round(time.perf_counter() - start, 3), "server_s": round(reply.seconds, 3),
+        })
+        print(f"  ground: {text!r:22} map v{reply.map_version:<3d} {reply.status:6s} {len(found):3d} instances in 3D  ({self.log[-1]['round_trip_s']:.2f} s)")
+        return reply
+
+    def status(self):
+        from olsplat_msgs import StatusRequest
+
+        return self.client.request(StatusRequest(request_id=uuid.uuid4().hex[:12]))
+
+
 def run(args: argparse.Namespace) -> int:
-    from olsplat_sim import generate_scene
+    from ..errors import OlsplatInputError
+    from ..evaluate.scene_eval import label_texts, load_queries
+    from ..launcher import Supervisor, load_launch
+    from ..nodes.refiner import latest_map
+    from ..viz import write_query_pictures
+    from .ground import print_status
 
     out: Path = args.out
-    (out / "scene").mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    town = generate_scene(args.gaussians, size_m=150.0, seed=args.seed)
-    write_ply(out / "scene" / "town.ply", town.gaussians)
-    write_colmap(out / "scene" / "sparse" / "0", flight_cameras(town.size_m))
-    print(f"generated {len(town.gaussians):,} Gaussians in {time.perf_counter() - start:.1f} s -> {out / 'scene'}")
-
-    gaussians = read_ply(out / "scene" / "town.ply")
-    cameras = read_cameras(out / "scene")
-    rasterize(gaussians, cameras[0])  # compile (or load the cache) before timing
-    for camera in cameras:
-        start = time.perf_counter()
-        result = rasterize(gaussians, camera)
-        seconds = time.perf_counter() - start
-        stem = out / Path(camera.name).stem
-        write_png(f"{stem}_rgb.png", rgb_to_bgr8(result.rgb))
-        write_png(f"{stem}_depth.png", colorize(result.depth, result.alpha > 0.5))
-        write_png(f"{stem}_topk.png", topk_panel(result.topk_ids, result.topk_weights))
-        print(
-            f"{camera.name:15s} {camera.width}x{camera.height}  {seconds:.3f} s  "
-            f"{result.n_visible:,} Gaussians in view  mean K {np.mean((result.topk_ids >= 0).sum(-1)):.1f}"
-        )
-    print(f"pictures in {out}/ (*_rgb.png, *_depth.png, *_topk.png)")
+    if not args.launch.exists():
+        raise OlsplatInputError(f"{args.launch}: launch file not found (run the demo from the repository root, or give --launch)")
+    started = time.perf_counter()
+    flight = out / "flight"
+    made = ensure_flight(flight, args.preset, args.seed)
+    labels, queries = load_queries(flight)
+    texts = label_texts(labels, queries)
+    run_dir = out / "run"
+    shutil.rmtree(run_dir, ignore_errors=True)  # a fresh store: the demo aggregates every frame itself
+    endpoint = f"tcp://127.0.0.1:{args.port}"
+    ply = str((flight / "map" / "point_cloud.ply").resolve())
+    overrides = [
+        f"ingest.source={(flight / 'replay.mcap').resolve()}", f"query_server.map={ply}", f"accumulator.map={ply}",
+        f"refiner.map={ply}", f"query_server.query_endpoint={endpoint}",
+        "refiner.exit_on_final=false", "launch.exit_when=[]",  # the demo asks its last queries, then stops the graph
+    ]
+    config = load_launch(args.launch, overrides=overrides, run_dir=str(run_dir))
+    supervisor = Supervisor(config)
+    exit_code: list[int] = []
+    thread = threading.Thread(target=lambda: exit_code.append(supervisor.run()), daemon=True)
+    thread.start()
+    print(f"graph: {len(config.nodes)} nodes launched (logs in {run_dir / 'logs'}); streaming {made.get('views', '?')} frames")
+    ground = Ground(endpoint, texts)
+    asked_version = 0
+    record = None
+    try:
+        while time.perf_counter() - started < args.timeout:
+            if exit_code:
+                raise OlsplatInputError(f"the graph stopped early (exit {exit_code[0]}); see {run_dir / 'logs'}")
+            record = latest_map(run_dir / "map")
+            if record and record["version"] > asked_version and not record["final"]:
+                print(f"map version {record['version']}: {record['views']} views aggregated so far")
+                for text in DEMO_QUERIES[:2]:
+                    ground.ask(text, phase="streaming")
+                asked_version = record["version"]
+            if record and record["final"]:
+                break
+            time.sleep(1.0)
+        else:
+            raise OlsplatInputError(f"the flight was not processed within {args.timeout:.0f} s; see {run_dir / 'logs'}")
+        stream_seconds = time.perf_counter() - started
+        print(f"final map: version {record['version']}, {record['views']} views, {record['observed_gaussians']:,} Gaussians observed")
+        view = sorted((flight / "annotations").glob("*.json"))[0].stem  # an annotated view
+        pictures = out / "ground"
+        for text in DEMO_QUERIES:
+            reply = ground.ask(text, view=view, phase="final")
+            if reply.status == "ok" and reply.heatmap is not None:
+                boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]
+                write_query_pictures(pictures, reply.view or view, text, reply.image, reply.heatmap, (reply.heatmap != 0).astype("float32"), reply.mask, boxes)
+        status = ground.status()
+        print_status(status, as_json=False)
+    finally:
+        supervisor.request_stop(0)
+        thread.join(30)
+    nodes = {n["node"]: n["values"] for n in status.nodes}
+    summary = {
+        "flight": {"preset": args.preset, "seed": args.seed, "frames": made.get("views")},
+        "frames_aggregated": record["views"], "map_version": record["version"],
+        "drops": {name: int(v.get("dropped", 0)) + int(v.get("gaps", 0)) for name, v in nodes.items()},
+        "bad_messages": {name: int(v.get("bad_messages", 0)) for name, v in nodes.items()},
+        "node_latency_ms": {name: v.get("latency_ms") for name, v in nodes.items()},
+        "stream_seconds": round(stream_seconds, 1), "total_seconds": round(time.perf_counter() - started, 1),
+        "queries": ground.log,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    write_summary_md(out / "summary.md", summary)
+    print(f"summary -> {out / 'summary.json'}, {out / 'summary.md'}; pictures -> {pictures}/")
     return 0
+
+
+def write_summary_md(path: Path, s: dict) -> None:
+    lines = [
+        "# olsplat demo", "",
+        f"Flight: {s['flight']['preset']} preset, seed {s['flight']['seed']}, {s['flight']['frames']} frames; "
+        f"{s['frames_aggregated']} aggregated into map version {s['map_version']} in {s['stream_seconds']} s "
+        f"(total {s['total_seconds']} s).", "",
+        "| node | drops | bad messages | latency ms |", "|---|---|---|---|",
+        *[f"| {n} | {s['drops'][n]} | {s['bad_messages'][n]} | {s['node_latency_ms'][n]} |" for n in s["drops"]], "",
+        "| phase | query | view | map version | status | 3D instances | 2D regions | round trip s |", "|---|---|---|---|---|---|---|---|",
+        *[f"| {q['phase']} | {q['text']} | {q['view']} | {q['map_version']} | {q['status']} | {q['instances_3d']} | {q['regions_2d']} | {q['round_trip_s']} |" for q in s["queries"]],
+    ]
+    path.write_text("\n".join(lines) + "\n")

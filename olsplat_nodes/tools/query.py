@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("query", help="ask a language map for a text: heatmap, mask, instances")
@@ -20,28 +18,21 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import cv2
-
     from ..aggregate.snapshot import LanguageMap
-    from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import label_texts, load_queries
     from ..pipeline import Scene
+    from ..query import CANONICAL_NEGATIVES
+    from ..query.answer import answer_query, encoder_for_map
     from ..scene import read_ply, select_view
-    from ..viz import colorize, write_png
-    from ..query import CANONICAL_NEGATIVES, heatmaps, relevancy_mask, render_feature_map
-    from ..query.localize import instances_in_3d, regions_in_view
+    from ..viz import write_query_pictures
 
     text = args.text.strip()
     if not text:
         raise OlsplatInputError("the query text is empty")
     scene = Scene.open(args.scene)
     language_map = LanguageMap.load(args.map)
-    spec = language_map.encoder
-    encoder = encoder_from_spec("shipped" if spec.startswith("olsplat-cnn64:") else spec)
     gaussians = read_ply(scene.ply)
-    if len(gaussians) != len(language_map.features):
-        raise OlsplatInputError(f"{args.map}: {len(language_map.features)} Gaussians, the scene's map has {len(gaussians)}")
     if args.negatives:
         negatives = [t.strip() for t in args.negatives.split(",") if t.strip()]
     elif (scene.folder / "queries.json").exists():
@@ -49,34 +40,17 @@ def run(args: argparse.Namespace) -> int:
         negatives = [t for t in label_texts(labels, queries) if t != text]
     else:
         negatives = list(CANONICAL_NEGATIVES)
-    embeddings = encoder.encode_text([text, *negatives])
-    features = language_map.features.astype(np.float32)
-    relevance = features @ embeddings.T  # [N, 1 + negatives]
-    chosen = (relevance.argmax(1) == 0) & language_map.observed
-    instances = instances_in_3d(gaussians.means, chosen)
-    print(f'"{text}": {int(chosen.sum()):,} Gaussians pick it over {len(negatives)} negatives; {len(instances)} instances in 3D')
-    for i, inst in enumerate(instances[:20]):
+    camera = select_view(scene.cameras, args.view if args.view is not None else 0)
+    answer = answer_query(language_map, gaussians, encoder_for_map(language_map), text, negatives, camera)
+    print(f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; {len(answer.instances)} instances in 3D')
+    for i, inst in enumerate(answer.instances[:20]):
         c, lo, hi = inst.centre, inst.box_min, inst.box_max
         print(f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians")
-    camera = select_view(scene.cameras, args.view if args.view is not None else 0)
-    feature_map, alpha = render_feature_map(gaussians, features, camera)
-    maps = heatmaps(feature_map, embeddings)
-    mask = relevancy_mask(maps[0], maps[1:], alpha)
-    regions = regions_in_view(mask)
-    print(f"view {camera.name}: {int(mask.sum()):,} pixels, {len(regions)} regions")
-    for i, region in enumerate(regions[:20]):
+    print(f"view {camera.name}: {int(answer.mask.sum()):,} pixels, {len(answer.regions)} regions")
+    for i, region in enumerate(answer.regions[:20]):
         print(f"  2D #{i}: box {region.box}, {region.pixels} px")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-        image = scene.image(camera)[..., ::-1].astype(np.float32)
-        heat = colorize(maps[0], alpha > 0.5, -1.0, 1.0).astype(np.float32)
-        stem = f"{Path(camera.name).stem}_{'_'.join(text.split())}"
-        write_png(args.out / f"{stem}_heatmap.png", (0.45 * image + 0.55 * heat).astype(np.uint8))
-        overlay = image.copy()
-        overlay[mask] = 0.4 * overlay[mask] + 0.6 * np.array([0, 220, 255])
-        for region in regions:
-            x0, y0, x1, y1 = region.box
-            cv2.rectangle(overlay, (x0, y0), (x1 - 1, y1 - 1), (0, 255, 0), 1)
-        write_png(args.out / f"{stem}_mask.png", overlay.astype(np.uint8))
-        print(f"pictures -> {args.out}")
+        paths = write_query_pictures(args.out, camera.name, text, scene.image(camera), answer.heatmap, answer.alpha, answer.mask, answer.regions)
+        print(f"pictures -> {', '.join(str(p) for p in paths)}")
     return 0

@@ -3,8 +3,8 @@
 import numpy as np
 
 from olsplat_nodes.raster import rasterize
-from olsplat_nodes.tools.demo import flight_cameras
 from olsplat_sim import generate_scene
+from olsplat_sim.flight import overview_cameras
 from olsplat_sim.reconstruct import ReconstructionSpec, reconstruct
 
 
@@ -20,7 +20,7 @@ def test_scene_is_deterministic_and_sized():
 
 def test_scene_fills_the_nadir_view():
     town = generate_scene(30_000, 150.0, seed=0)
-    camera = flight_cameras(town.size_m, width=160, height=120)[0]
+    camera = overview_cameras(town.size_m, width=160, height=120)[0]
     out = rasterize(town.gaussians, camera)
     assert out.alpha.mean() > 0.95
     assert np.median(out.depth[out.alpha > 0.5]) > 50.0  # metres: 80 m altitude minus buildings

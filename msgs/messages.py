@@ -1,0 +1,207 @@
+"""The messages of the node graph as dataclasses, one per entry of ``schema.yaml``.
+
+Written by hand for readable code and editor help; ``check_against_schema`` (run at import and
+by tests/msgs) fails when a name, order, type or default differs from ``schema.yaml``, so the two
+cannot drift. Field descriptions live in the schema (and the README tables generated from it);
+the comments here give shapes and units.
+
+Every message starts with ``stamp_ns`` (ns since the Unix epoch), ``seq`` (+1 per message of a
+stream, set by the sender) and ``frame_id`` (stream name). Array fields default to ``None``
+(a dataclass needs defaults after the defaulted common fields); a required array left ``None``
+is refused by ``encode``. Arrays from ``decode`` are read-only views
+of the received buffers: copy before modifying.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import MISSING, dataclass, field, fields
+from typing import ClassVar
+
+import numpy as np
+
+from .schema import load_schema
+
+
+@dataclass
+class ImageFrame:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    name: str = ""
+    image: np.ndarray = None  # [H, W, 3] uint8 RGB
+    K: np.ndarray = None  # [3, 3] float64, pixels
+    D: np.ndarray = None  # [n] float64, may be empty
+    distortion_model: str = "none"  # "plumb_bob" | "none"
+    world_from_camera: np.ndarray = None  # [4, 4] float64, OpenCV axes, metres
+    width: int = 0
+    height: int = 0
+
+
+@dataclass
+class EndOfStream:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    source: str = ""
+    frames: int = 0
+    names: list[str] = field(default_factory=list)
+
+
+@dataclass
+class RegionFeatures:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    name: str = ""
+    source_seq: int = 0
+    encoder: str = ""
+    label_maps: np.ndarray = None  # [L, H, W] int32, -1 = no region
+    level_sizes: np.ndarray = None  # [L] int32
+    features: np.ndarray = None  # [R, D] float16 | float32, R = level_sizes.sum()
+    image: np.ndarray = None  # [H, W, 3] uint8 RGB
+    K: np.ndarray = None  # [3, 3] float64
+    D: np.ndarray = None  # [n] float64
+    distortion_model: str = "none"
+    world_from_camera: np.ndarray = None  # [4, 4] float64
+    width: int = 0
+    height: int = 0
+
+
+@dataclass
+class ObservationsAdded:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    name: str = ""
+    source_seq: int = 0
+    observations: int = 0
+    gaussians: int = 0
+    views_in_store: int = 0
+    duplicate: bool = False
+
+
+@dataclass
+class MapUpdated:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    version: int = 0
+    path: str = ""
+    views: int = 0
+    observed_gaussians: int = 0
+    encoder: str = ""
+    final: bool = False
+
+
+@dataclass
+class QueryRequest:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+    text: str = ""
+    view: str = ""  # "" = 3D only
+    heatmap: bool = True
+    threshold: float = math.nan  # NaN = the server's default rule
+    negatives: list[str] = field(default_factory=list)
+
+
+@dataclass
+class QueryReply:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+    status: str = "ok"  # "ok" | "no_map" | "bad_request" | "error"
+    message: str = ""
+    text: str = ""
+    view: str = ""
+    map_version: int = 0
+    instances: list[dict] = field(default_factory=list)
+    heatmap: np.ndarray | None = None  # [H, W] float32 in [0, 1]
+    mask: np.ndarray | None = None  # [H, W] uint8, 0 | 1
+    image: np.ndarray | None = None  # [H, W, 3] uint8 RGB overlay
+    seconds: float = 0.0
+
+
+@dataclass
+class StatusRequest:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+
+
+@dataclass
+class StatusReply:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+    nodes: list[dict] = field(default_factory=list)
+    map_version: int = 0
+
+
+@dataclass
+class DiagnosticStatus:
+    OK: ClassVar[int] = 0
+    WARN: ClassVar[int] = 1
+    ERROR: ClassVar[int] = 2
+    STALE: ClassVar[int] = 3
+
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    node: str = ""
+    level: int = 0
+    message: str = ""
+    values: dict = field(default_factory=dict)  # str -> int | float | str
+
+
+MESSAGE_CLASSES = (ImageFrame, EndOfStream, RegionFeatures, ObservationsAdded, MapUpdated,
+                   QueryRequest, QueryReply, StatusRequest, StatusReply, DiagnosticStatus)
+MESSAGES: dict[str, type] = {f"olsplat_msgs/{cls.__name__}": cls for cls in MESSAGE_CLASSES}
+
+_ANNOTATIONS = {"str": "str", "int": "int", "float": "float", "bool": "bool",
+                "list[str]": "list[str]", "list[dict]": "list[dict]", "dict": "dict"}
+
+
+def _same_default(a, b) -> bool:
+    return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
+
+
+def check_against_schema() -> list[str]:
+    """Every difference between these classes and ``schema.yaml`` (empty when they agree):
+    message set, field names and order, annotations, defaults."""
+    schema = load_schema()
+    problems = []
+    if list(MESSAGES) != [m.schema_name for m in schema.messages.values()]:
+        problems.append(f"messages differ: classes {list(MESSAGES)}, schema {[m.schema_name for m in schema.messages.values()]}")
+    for cls in MESSAGE_CLASSES:
+        spec = schema.messages.get(cls.__name__)
+        if spec is None:
+            continue
+        specs = [*schema.common, *spec.fields]
+        got = fields(cls)
+        if [f.name for f in got] != [s.name for s in specs]:
+            problems.append(f"{cls.__name__}: fields {[f.name for f in got]} != schema {[s.name for s in specs]}")
+            continue
+        for f, s in zip(got, specs):
+            if s.is_array:
+                want_type = "np.ndarray | None" if s.optional else "np.ndarray"
+                want_default = None
+            else:
+                want_type = _ANNOTATIONS[s.type] + (" | None" if s.optional else "")
+                want_default = {"list[str]": [], "list[dict]": [], "dict": {}}.get(s.type, s.default)
+            default = f.default_factory() if f.default_factory is not MISSING else f.default
+            if f.type != want_type:
+                problems.append(f"{cls.__name__}.{f.name}: annotation {f.type!r}, schema wants {want_type!r}")
+            if not _same_default(default, want_default):
+                problems.append(f"{cls.__name__}.{f.name}: default {default!r}, schema says {want_default!r}")
+    return problems
+
+
+_problems = check_against_schema()
+if _problems:  # a broken schema must stop the process, not produce silently wrong bytes
+    raise ImportError("olsplat_msgs classes disagree with schema.yaml: " + "; ".join(_problems))

@@ -1,0 +1,11 @@
+"""The five nodes of the graph, each a thin wrapper over the core: decode a message, call a pure
+function, encode the answer. ``NODES`` maps an executable name (as launch files write it) to
+its class; ``python -m olsplat_nodes.nodes EXEC`` runs one node in its own process."""
+
+NODES = {
+    "ingest": "olsplat_nodes.nodes.ingest:IngestNode",
+    "region_encoder": "olsplat_nodes.nodes.region_encoder:RegionEncoderNode",
+    "accumulator": "olsplat_nodes.nodes.accumulator:AccumulatorNode",
+    "refiner": "olsplat_nodes.nodes.refiner:RefinerNode",
+    "query_server": "olsplat_nodes.nodes.query_server:QueryServerNode",
+}

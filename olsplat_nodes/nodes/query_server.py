@@ -1,0 +1,179 @@
+"""query_server: the ground station's endpoint. ``QueryRequest`` -> ``QueryReply``; ``StatusRequest``
+-> ``StatusReply`` with every node's latest ``DiagnosticStatus``.
+
+It loads the newest language map snapshot at start (late joiner: from ``MAP_DIR/latest.json``)
+and again whenever the refiner announces a newer version. Before any map exists a query gets
+``status: "no_map"`` at once. It owns the diagnostics collector (a bound SUB socket every
+node's heartbeat connects to); a node silent for ``stale_after_s`` is reported STALE. The
+query link may require CURVE with an allow-list of client keys (``server_secret`` +
+``allow_dir``): other clients get no answer at all.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+
+import numpy as np
+
+from olsplat_msgs import DiagnosticStatus, MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest
+
+from ..aggregate.snapshot import LanguageMap
+from ..errors import OlsplatInputError
+from ..pipeline.views import load_views
+from ..query import CANONICAL_NEGATIVES
+from ..query.answer import answer_query, encoder_for_map
+from ..scene import read_ply, select_view
+from ..query.localize import regions_in_view
+from ..transport import QueryServer, Subscriber, curve
+from .base import Node, NodeStats
+from .refiner import latest_map
+
+log = logging.getLogger(__name__)
+STALE = 3
+
+
+def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray | None, seconds: float) -> QueryReply:
+    """The wire answer of a core QueryAnswer: 3D instances (and 2D regions in the view)."""
+    instances = [
+        {"id": i, "kind": "3d", "n_gaussians": inst.gaussians, "centroid": list(inst.centre), "box_min": list(inst.box_min), "box_max": list(inst.box_max)}
+        for i, inst in enumerate(answer.instances)
+    ]
+    instances += [
+        {"id": i, "kind": "2d", "box2d": list(r.box), "centre_px": list(r.centre), "area_px": r.pixels}
+        for i, r in enumerate(answer.regions)
+    ]
+    return QueryReply(
+        stamp_ns=time.time_ns(), frame_id="map", request_id=request.request_id, status="ok",
+        message=f"{int(answer.chosen.sum())} Gaussians pick it over {len(answer.negatives)} negatives",
+        text=answer.text, view=request.view, map_version=map_version, instances=instances,
+        heatmap=None if answer.heatmap is None else answer.heatmap.astype(np.float32),
+        mask=None if answer.mask is None else answer.mask.astype(np.uint8),
+        image=image, seconds=seconds,
+    )
+
+
+class QueryServerNode(Node):
+    DEFAULTS = {
+        "map": "",  # the prior Gaussian map (INRIA PLY)
+        "map_dir": "{run_dir}/map",
+        "views": "{run_dir}/views",
+        "negatives": ["object", "things", "stuff", "texture"],  # query.CANONICAL_NEGATIVES  # texts a query must beat, unless the request names its own
+        "query_endpoint": "tcp://127.0.0.1:5600",
+        "diagnostics_bind": "ipc://{run_dir}/diagnostics.sock",
+        "map_in": "ipc://{run_dir}/map.sock",
+        "topic_map": "map",
+        "topic_diagnostics": "diagnostics",
+        "stale_after_s": 5.0,
+        "server_secret": "",  # CURVE: this server's secret key file ("" = no encryption)
+        "allow_dir": "",  # CURVE: folder of allowed client public keys
+        "max_text_chars": 200,
+    }
+
+    def run(self, stop: threading.Event) -> int:
+        from ..scene import read_ply  # heavy imports here and below: the launcher imports node classes
+
+        p = self.params
+        self.gaussians = read_ply(p["map"])
+        self.language_map, self.version, self.encoders = None, 0, {}
+        self.stats = NodeStats()
+        self.nodes: dict[str, tuple[float, dict]] = {}  # node -> (monotonic arrival, status dict)
+        keys = curve.ServerKeys(p["server_secret"], p["allow_dir"]) if p["server_secret"] else None
+        server = QueryServer(self.context, p["query_endpoint"], keys=keys)
+        collector = Subscriber(self.context, [p["diagnostics_bind"]], [p["topic_diagnostics"]], hwm=1000, bind=True)
+        maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
+        self._load_latest()
+        last_check = time.monotonic()
+        try:
+            while not stop.is_set():
+                request = server.poll(100)
+                if request is not None:
+                    identity, message = request
+                    server.reply(identity, self._answer(message))
+                for _, status in collector.drain(0):
+                    if isinstance(status, DiagnosticStatus):
+                        self.nodes[status.node] = (time.monotonic(), status)
+                announced = [m.version for _, m in maps.drain(0) if isinstance(m, MapUpdated)]
+                if (announced and max(announced) > self.version) or time.monotonic() - last_check > 2.0:
+                    self._load_latest()
+                    last_check = time.monotonic()
+            return 130
+        finally:
+            for socket in (server, collector, maps):
+                socket.close()
+
+    def _load_latest(self) -> None:
+        from ..aggregate.snapshot import LanguageMap
+
+        record = latest_map(self.params["map_dir"])
+        if record is None or record["version"] <= self.version:
+            return
+        try:
+            language_map = LanguageMap.load(record["path"])
+        except OlsplatInputError as exc:  # replaced between reading latest.json and the file: next time
+            log.warning("map version %d not loaded: %s", record["version"], exc)
+            return
+        if len(language_map.features) != len(self.gaussians):
+            log.error("map version %d has %d Gaussians, the prior map %d: ignored", record["version"], len(language_map.features), len(self.gaussians))
+            return
+        self.language_map, self.version = language_map, record["version"]
+        log.info("map version %d loaded (%d views)", self.version, record["views"])
+
+    def _answer(self, message):
+        start = time.perf_counter()
+        self.stats.count("received")
+        if isinstance(message, StatusRequest):
+            return StatusReply(stamp_ns=time.time_ns(), request_id=message.request_id, nodes=self._statuses(), map_version=self.version)
+        if not isinstance(message, QueryRequest):  # a well-formed message of another kind
+            self.stats.count("bad_messages")
+            return QueryReply(stamp_ns=time.time_ns(), request_id=getattr(message, "request_id", ""), status="bad_request", message=f"{type(message).__name__} is not a request")
+        reply = self._query(message)
+        reply.seconds = time.perf_counter() - start
+        self.stats.handled(0, reply.seconds)
+        return reply
+
+    def _query(self, request: QueryRequest) -> QueryReply:
+        from ..pipeline.views import load_views
+        from ..query.answer import answer_query, encoder_for_map
+        from ..query.localize import regions_in_view
+        from ..scene import select_view
+
+        def refuse(status: str, text: str) -> QueryReply:
+            return QueryReply(stamp_ns=time.time_ns(), request_id=request.request_id, status=status, message=text, text=request.text, view=request.view, map_version=self.version)
+
+        text = request.text.strip()
+        if not text:
+            return refuse("bad_request", "the query text is empty")
+        if len(text) > self.params["max_text_chars"]:
+            return refuse("bad_request", f"the query text is longer than {self.params['max_text_chars']} characters")
+        if self.language_map is None:
+            return refuse("no_map", "no map yet: no view has been aggregated and refined")
+        try:
+            views = load_views(self.params["views"])
+            camera = select_view([v.camera for v in views], request.view) if request.view else None
+            image = views[[v.camera for v in views].index(camera)].image() if camera is not None else None
+            encoder_name = self.language_map.encoder
+            if encoder_name not in self.encoders:
+                self.encoders[encoder_name] = encoder_for_map(self.language_map)
+            negatives = request.negatives or self.params["negatives"]
+            answer = answer_query(self.language_map, self.gaussians, self.encoders[encoder_name], text, negatives, camera)
+        except OlsplatInputError as exc:
+            return refuse("bad_request", str(exc))
+        if answer.mask is not None and math.isfinite(request.threshold):  # the caller's own cut on H_q
+            answer.mask = (answer.heatmap > request.threshold) & (answer.alpha > 0.5)
+            answer.regions = regions_in_view(answer.mask)
+        if not request.heatmap:
+            answer.heatmap = answer.mask = None
+            image = None
+        return reply_for(answer, request, self.version, image, 0.0)
+
+    def _statuses(self) -> list[dict]:
+        now = time.monotonic()
+        out = [{"node": self.name, "level": 0, "message": f"map version {self.version}", "values": self.stats.values(), "age_s": 0.0}]
+        for name, (arrived, status) in sorted(self.nodes.items()):
+            age = now - arrived
+            level = STALE if age > self.params["stale_after_s"] else status.level
+            out.append({"node": name, "level": level, "message": status.message, "values": status.values, "age_s": round(age, 2)})
+        return out

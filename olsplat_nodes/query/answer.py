@@ -1,0 +1,72 @@
+"""One text query against a language map, as a pure function: what ``olsplat query`` prints and
+what the query server sends back to the ground station.
+
+Rule (documented in README "Queries"): a Gaussian is chosen when it is observed and its cosine
+with the query beats its cosine with every negative text; chosen Gaussians are clustered into
+3D instances. In a view, the rendered heatmap H_q must beat every negative's heatmap
+(LERF-style relevancy mask); the mask's connected components are the 2D instances.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..aggregate.snapshot import LanguageMap
+from ..errors import OlsplatInputError
+from ..scene import Camera, Gaussians
+from .heatmap import CANONICAL_NEGATIVES, heatmaps, relevancy_mask, render_feature_map
+from .localize import Instance3D, Region2D, instances_in_3d, regions_in_view
+
+
+@dataclass
+class QueryAnswer:
+    text: str
+    negatives: list[str]
+    chosen: np.ndarray  # [N] bool: Gaussians that pick the query over every negative
+    instances: list[Instance3D]  # world metres, largest first
+    heatmap: np.ndarray | None = None  # [H, W] float32 cosine H_q in [-1, 1], when a view was given
+    negative_heatmaps: np.ndarray | None = None  # [negatives, H, W] float32
+    alpha: np.ndarray | None = None  # [H, W] float32 rendered opacity
+    mask: np.ndarray | None = None  # [H, W] bool
+    regions: list[Region2D] = field(default_factory=list)  # mask components, largest first
+
+
+def encoder_for_map(language_map: LanguageMap):
+    """The text encoder that embeds queries into the map's feature space."""
+    from ..encoders.spec import encoder_from_spec
+
+    spec = language_map.encoder
+    return encoder_from_spec("shipped" if spec.startswith("olsplat-cnn64:") else spec)
+
+
+def answer_query(
+    language_map: LanguageMap,
+    gaussians: Gaussians,
+    encoder,
+    text: str,
+    negatives: list[str] | tuple[str, ...] = CANONICAL_NEGATIVES,
+    camera: Camera | None = None,
+) -> QueryAnswer:
+    """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
+    mask and 2D regions of that view. Raises OlsplatInputError on an empty text or a map that
+    does not match the Gaussians."""
+    text = text.strip()
+    if not text:
+        raise OlsplatInputError("the query text is empty")
+    if len(gaussians) != len(language_map.features):
+        raise OlsplatInputError(f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}")
+    negatives = [n for n in (t.strip() for t in negatives) if n and n != text]
+    embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
+    features = language_map.features.astype(np.float32)
+    relevance = features @ embeddings.T
+    chosen = (relevance.argmax(1) == 0) & language_map.observed
+    answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen))
+    if camera is not None:
+        feature_map, alpha = render_feature_map(gaussians, features, camera)
+        maps = heatmaps(feature_map, embeddings)
+        answer.heatmap, answer.negative_heatmaps, answer.alpha = maps[0], maps[1:], alpha
+        answer.mask = relevancy_mask(maps[0], maps[1:], alpha)
+        answer.regions = regions_in_view(answer.mask)
+    return answer

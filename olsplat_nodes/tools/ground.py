@@ -1,0 +1,110 @@
+"""``olsplat ground``: the ground station's client. ``query`` asks the drone's query server for a
+text and prints the located instances (writing heatmap and mask PNGs over the view with
+``--view`` and ``--out``); ``status`` prints every node's latest diagnostics."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import uuid
+from pathlib import Path
+
+LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("ground", help="ground station: query the drone, show node status")
+    commands = parser.add_subparsers(dest="ground_command", required=True, metavar="COMMAND")
+    query = commands.add_parser("query", help="ask the query server for a text")
+    query.add_argument("text", help='what to find, e.g. "red roof buildings"')
+    query.add_argument("--view", default="", help="answer with a heatmap and mask over this view (name or index)")
+    query.add_argument("--out", type=Path, help="write the heatmap and mask PNGs here (needs --view)")
+    query.add_argument("--negatives", help="comma-separated texts to beat (default: the server's)")
+    query.add_argument("--threshold", type=float, default=math.nan, help="mask = heatmap above this cosine (default: beat every negative)")
+    query.add_argument("--json", action="store_true", help="print the answer as JSON")
+    status = commands.add_parser("status", help="print every node's latest diagnostics")
+    status.add_argument("--json", action="store_true", help="print the statuses as JSON")
+    for sub in (query, status):
+        sub.add_argument("--connect", default="tcp://127.0.0.1:5600", help="the query server's endpoint")
+        sub.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the answer")
+        sub.add_argument("--client-key", type=Path, help="CURVE: this client's secret key file (olsplat keys generate)")
+        sub.add_argument("--server-key", type=Path, help="CURVE: the server's public key file")
+        sub.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import zmq
+
+    from olsplat_msgs import QueryRequest, StatusRequest
+
+    from ..errors import OlsplatInputError
+    from ..transport import NoReply, QueryClient, curve
+
+    if bool(args.client_key) != bool(args.server_key):
+        raise OlsplatInputError("CURVE needs both --client-key and --server-key")
+    keys = curve.ClientKeys(args.client_key, args.server_key) if args.client_key else None
+    client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
+    request_id = uuid.uuid4().hex[:12]
+    try:
+        if args.ground_command == "status":
+            reply = client.request(StatusRequest(request_id=request_id))
+            return print_status(reply, args.json)
+        if args.out and not args.view:
+            raise OlsplatInputError("--out writes pictures over a view: give --view too")
+        negatives = [t.strip() for t in args.negatives.split(",") if t.strip()] if args.negatives else []
+        reply = client.request(QueryRequest(request_id=request_id, text=args.text, view=args.view, heatmap=bool(args.view), threshold=args.threshold, negatives=negatives))
+        return print_answer(reply, args.json, args.out)
+    except NoReply as exc:
+        print(f"olsplat ground {args.ground_command}: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        client.close()
+
+
+def print_status(reply, as_json: bool) -> int:
+    if as_json:
+        print(json.dumps({"map_version": reply.map_version, "nodes": reply.nodes}, indent=1, default=str))
+        return 0
+    print(f"map version {reply.map_version}")
+    for node in reply.nodes:
+        v = node.get("values", {})
+        print(
+            f"  {node['node']:16s} {LEVELS.get(node['level'], node['level']):5s} age {node['age_s']:5.1f} s  "
+            f"rate {v.get('rate_hz', 0):5.2f} Hz  latency {v.get('latency_ms', 0):8.1f} ms  "
+            f"handled {v.get('handled', 0):5d}  drops {v.get('dropped', 0) + v.get('gaps', 0):4d}  bad {v.get('bad_messages', 0):3d}  {node['message']}"
+        )
+    return 0
+
+
+def print_answer(reply, as_json: bool, out: Path | None) -> int:
+    if as_json:
+        print(json.dumps({
+            "status": reply.status, "message": reply.message, "text": reply.text, "view": reply.view,
+            "map_version": reply.map_version, "instances": reply.instances, "seconds": reply.seconds,
+        }, indent=1))
+    if reply.status != "ok":
+        if not as_json:
+            print(f'"{reply.text}": {reply.status}: {reply.message}')
+        return 0 if reply.status == "no_map" else 1
+    if not as_json:
+        found3d = [i for i in reply.instances if i["kind"] == "3d"]
+        found2d = [i for i in reply.instances if i["kind"] == "2d"]
+        print(f'"{reply.text}" (map version {reply.map_version}, {reply.seconds:.2f} s): {reply.message}; {len(found3d)} instances in 3D')
+        for inst in found3d[:20]:
+            c, lo, hi = inst["centroid"], inst["box_min"], inst["box_max"]
+            print(f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst['n_gaussians']} Gaussians")
+        if reply.view:
+            print(f"view {reply.view}: {len(found2d)} regions")
+            for inst in found2d[:20]:
+                print(f"  2D #{inst['id']}: box {tuple(inst['box2d'])}, {inst['area_px']} px")
+    if out is not None and reply.heatmap is not None and reply.image is not None:
+        from ..viz import write_query_pictures
+
+        alpha = (reply.heatmap != 0).astype("float32")  # the server sends 0 where nothing was rendered
+        boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]
+        paths = write_query_pictures(out, reply.view, reply.text, reply.image, reply.heatmap, alpha, reply.mask, boxes)
+        if not as_json:
+            print(f"pictures -> {', '.join(str(p) for p in paths)}")
+    return 0

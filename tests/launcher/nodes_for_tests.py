@@ -1,0 +1,109 @@
+"""Small nodes for the launcher tests, run for real in child processes and threads
+(``exec: tests.launcher.nodes_for_tests:Ticker``). Each one is driven by files in the run
+directory, so a test waits on conditions, never on sleeps."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+
+import zmq
+
+from olsplat_nodes.nodes.base import Node
+
+log = logging.getLogger(__name__)
+
+
+class Ticker(Node):
+    """Logs ``NAME tick i`` ``ticks`` times, then returns ``exit_code``. With ``crash_once``
+    (a path), the first run creates that file and fails (``crash_how``: "exit" returns 3,
+    "raise" raises), later runs go on normally."""
+
+    DEFAULTS = {"ticks": 3, "period_s": 0.01, "exit_code": 0, "crash_once": "", "crash_how": "exit", "topic": "ticks", "note": ""}
+
+    def run(self, stop: threading.Event) -> int:
+        p = self.params
+        log.info("%s starting: topic=%s note=%s", self.name, p["topic"], p["note"])
+        if p["crash_once"] and not os.path.exists(p["crash_once"]):
+            Path(p["crash_once"]).touch()
+            if p["crash_how"] == "raise":
+                raise RuntimeError(f"{self.name} crashes on purpose")
+            log.info("%s crashing on purpose", self.name)
+            return 3
+        for i in range(p["ticks"]):
+            if stop.wait(p["period_s"]):
+                return 0
+            log.info("%s tick %d", self.name, i)
+        return int(p["exit_code"])
+
+
+class Waiter(Node):
+    """Writes its pid to ``pid_file``, then runs until ``release_file`` exists (returns 0) or
+    it is stopped (returns 0). With ``ignore_stop`` it keeps running after stop (to be killed)."""
+
+    DEFAULTS = {"pid_file": "", "release_file": "", "ignore_stop": False}
+
+    def run(self, stop: threading.Event) -> int:
+        p = self.params
+        if p["pid_file"]:
+            tmp = Path(p["pid_file"] + ".tmp")
+            tmp.write_text(str(os.getpid()))
+            tmp.replace(p["pid_file"])  # atomic: a reader never sees an empty file
+        log.info("%s waiting (pid %d)", self.name, os.getpid())
+        while p["ignore_stop"] or not stop.is_set():
+            if p["release_file"] and os.path.exists(p["release_file"]):
+                log.info("%s released", self.name)
+                return 0
+            time.sleep(0.02)
+        log.info("%s stopped", self.name)
+        return 0
+
+
+class Talker(Node):
+    """PUB bound to ``endpoint``; sends ``TOPIC i`` every ``period_s`` until stopped."""
+
+    DEFAULTS = {"endpoint": "ipc://{run_dir}/talk.sock", "topic_out": "chatter", "period_s": 0.02}
+
+    def run(self, stop: threading.Event) -> int:
+        sock = self.context.socket(zmq.PUB)
+        sock.linger = 0
+        try:
+            sock.bind(self.params["endpoint"])
+            log.info("%s publishing %s on %s", self.name, self.params["topic_out"], self.params["endpoint"])
+            i = 0
+            while not stop.wait(self.params["period_s"]):
+                sock.send_string(f"{self.params['topic_out']} {i}")
+                i += 1
+        finally:
+            sock.close()
+        return 0
+
+
+class Listener(Node):
+    """SUB connected to ``endpoint``; returns 0 after ``count`` messages on ``topic_in``, 2 if
+    none arrive within ``timeout_s``."""
+
+    DEFAULTS = {"endpoint": "ipc://{run_dir}/talk.sock", "topic_in": "chatter", "count": 3, "timeout_s": 10.0}
+
+    def run(self, stop: threading.Event) -> int:
+        sock = self.context.socket(zmq.SUB)
+        sock.linger = 0
+        try:
+            sock.connect(self.params["endpoint"])
+            sock.subscribe(self.params["topic_in"] + " ")
+            log.info("%s listening to %s on %s", self.name, self.params["topic_in"], self.params["endpoint"])
+            got = 0
+            deadline = time.monotonic() + self.params["timeout_s"]
+            while got < self.params["count"] and not stop.is_set():
+                if time.monotonic() > deadline:
+                    log.error("%s: nothing heard within %s s", self.name, self.params["timeout_s"])
+                    return 2
+                if sock.poll(50):
+                    log.info("%s heard %s", self.name, sock.recv_string())
+                    got += 1
+        finally:
+            sock.close()
+        return 0

@@ -1,0 +1,69 @@
+"""``olsplat launch`` as a user runs it: a real launcher process, signals, exit codes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from olsplat_nodes.cli import main
+
+from .conftest import NODES, REPO, wait_for, write_launch
+
+OLSPLAT = Path(sys.executable).with_name("olsplat")
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_to_the_launcher_stops_every_child_and_sets_the_exit_code(tmp_path, sig, code):
+    names = ["a", "b", "stubborn"]
+    path = write_launch(tmp_path, [
+        {"name": name, "exec": f"{NODES}:Waiter",
+         "params": {"pid_file": "{run_dir}/{name}.pid", "ignore_stop": name == "stubborn"}} for name in names
+    ], stop_timeout_s=0.5)  # fmt: skip
+    run = tmp_path / "elsewhere"  # --run-dir replaces the file's run_dir
+    launcher = subprocess.Popen([str(OLSPLAT), "launch", str(path), "--run-dir", str(run)], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    try:
+        pid_files = [run / f"{name}.pid" for name in names]
+        pids = wait_for(lambda: all(p.exists() for p in pid_files) and [int(p.read_text()) for p in pid_files], what="three nodes")
+        launcher.send_signal(sig)
+        out, _ = launcher.communicate(timeout=15)
+    finally:
+        launcher.kill()
+    assert launcher.returncode == code, out
+    assert [pid for pid in pids if alive(pid)] == []
+    assert f"stopping all nodes (received {sig.name})" in out
+    assert "stubborn: did not stop within 0.5 s; killed (SIGKILL)" in out
+    assert "a: stopped (exited with code 0)" in out and "b: stopped (exited with code 0)" in out
+    assert (run / "logs" / "launch.log").read_text() == out
+
+
+def test_launch_runs_a_file_to_its_end_with_overrides(tmp_path, capsys):
+    path = write_launch(tmp_path, [{"name": "ticker", "exec": f"{NODES}:Ticker", "params": {"ticks": 50}}], exit_when=["ticker"])
+    assert main(["launch", str(path), "--set", "ticker.ticks=2", "--set", "ticker.note=from-cli"]) == 0
+    assert "ticker: exited with code 0" in capsys.readouterr().out
+    log = (tmp_path / "run" / "logs" / "ticker.log").read_text()
+    assert "note=from-cli" in log and "ticker tick 1" in log and "ticker tick 2" not in log
+
+
+def test_launch_errors_are_one_line_and_exit_1(tmp_path):
+    path = write_launch(tmp_path, [{"name": "ticker", "exec": f"{NODES}:Ticker"}])
+    result = subprocess.run([str(OLSPLAT), "launch", str(path), "--set", "tocker.ticks=2"], capture_output=True, text=True,
+                            cwd=REPO, timeout=60)  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        f"olsplat launch: error: {path}: --set 'tocker.ticks=2': no node named 'tocker'; nodes: ticker (or 'launch' for a top-level key)"
+    ]
+    assert not (tmp_path / "run").exists()  # nothing started, nothing written

@@ -1,0 +1,130 @@
+"""The whole graph on the tiny preset, as separate processes over real ZeroMQ sockets:
+every frame is aggregated exactly once (also when a node is killed with SIGKILL mid-flight),
+the launch ends by itself once the final map is written, and the query server answers."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+
+from olsplat_msgs import QueryRequest, StatusRequest
+from olsplat_nodes.aggregate import ObservationStore
+from olsplat_nodes.launcher import Supervisor, load_launch
+from olsplat_nodes.nodes.refiner import latest_map
+from olsplat_nodes.transport import NoReply, QueryClient
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    socket = zmq.Context.instance().socket(zmq.ROUTER)
+    port = socket.bind_to_random_port("tcp://127.0.0.1")
+    socket.close(0)
+    return port
+
+
+def launch_tiny(scene: Path, run_dir: Path, port: int, *extra: str):
+    ply = scene / "map" / "point_cloud.ply"
+    overrides = [
+        f"ingest.source={scene / 'replay.mcap'}", f"query_server.map={ply}", f"accumulator.map={ply}", f"refiner.map={ply}",
+        f"query_server.query_endpoint=tcp://127.0.0.1:{port}", "refiner.period_s=2", "ingest.ack_timeout_s=10", *extra,
+    ]
+    return load_launch(REPO / "launch" / "replay.yaml", overrides=overrides, run_dir=str(run_dir))
+
+
+class Background:
+    def __init__(self, supervisor: Supervisor):
+        self.supervisor, self.code = supervisor, None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        self.code = self.supervisor.run()
+
+
+def wait_for(condition, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.2)
+    pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def pid_of(supervisor: Supervisor, node: str) -> int | None:
+    return supervisor.pids.get(node) if isinstance(supervisor.pids, dict) else None
+
+
+def _try(client, request):
+    try:
+        return client.request(request)
+    except NoReply:
+        return None
+
+
+@pytest.mark.timeout(600)
+def test_graph_aggregates_every_frame_once_survives_kill9_and_answers(tiny, tmp_path):
+    scene, summary = tiny
+    port = free_port()
+    run_dir = tmp_path / "run"
+    supervisor = Supervisor(launch_tiny(scene, run_dir, port))
+    running = Background(supervisor)
+    client = QueryClient(zmq.Context.instance(), f"tcp://127.0.0.1:{port}", timeout_s=20.0)
+    try:
+        # before any map: an explicit answer, not a hang
+        early = wait_for(lambda: _try(client, QueryRequest(request_id="early", text="road")), 60, "the query server")
+        assert early.status in ("no_map", "ok")
+        # kill -9 the accumulator once it has stored a view or two
+        store = run_dir / "store" / "views"
+        wait_for(lambda: store.is_dir() and len(list(store.iterdir())) >= 2, 240, "two stored views")
+        victim = pid_of(supervisor, "accumulator")
+        assert victim, "the supervisor reports the accumulator's pid"
+        os.kill(victim, signal.SIGKILL)
+        wait_for(lambda: running.code is not None, 480, "the launch to end after the final map")
+    finally:
+        client.close()
+        supervisor.request_stop()
+        running.thread.join(30)
+    assert running.code == 0
+    log = (run_dir / "logs" / "launch.log").read_text()
+    assert "accumulator" in log and "restarting" in log  # the kill was seen and the node restarted
+    names = ObservationStore(run_dir / "store", 1).names()
+    assert sorted(names) == sorted(set(names)) and len(names) == summary["views"]  # every frame, once
+    record = latest_map(run_dir / "map")
+    assert record["final"] and record["views"] == summary["views"]
+
+
+    # a query server started after the flight (late joiner) answers from the snapshot on disk
+    from olsplat_nodes.nodes.query_server import QueryServerNode
+
+    port2 = free_port()
+    node = QueryServerNode("late", {
+        "map": str(scene / "map" / "point_cloud.ply"), "map_dir": str(run_dir / "map"), "views": str(run_dir / "views"),
+        "query_endpoint": f"tcp://127.0.0.1:{port2}", "diagnostics_bind": f"ipc://{tmp_path}/d.sock", "map_in": f"ipc://{tmp_path}/m.sock",
+    })
+    stop = threading.Event()
+    thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
+    thread.start()
+    late = QueryClient(zmq.Context.instance(), f"tcp://127.0.0.1:{port2}", timeout_s=60.0)
+    try:
+        reply = late.request(QueryRequest(request_id="q1", text="red roof buildings", view="frame_0003.jpg", heatmap=True, threshold=float("nan"), negatives=["road", "trees", "lawn"]))
+        assert reply.status == "ok", reply.message
+        assert reply.map_version == record["version"] and reply.request_id == "q1"
+        assert reply.heatmap.shape == reply.mask.shape == (240, 320) and reply.image.shape == (240, 320, 3)
+        assert reply.mask.any() and any(i["kind"] == "3d" for i in reply.instances)
+        empty = late.request(QueryRequest(request_id="q2", text="   "))
+        assert empty.status == "bad_request" and "empty" in empty.message
+        status = late.request(StatusRequest(request_id="s"))
+        assert status.map_version == record["version"] and status.nodes[0]["node"] == "late"
+    finally:
+        late.close()
+        stop.set()
+        thread.join(10)

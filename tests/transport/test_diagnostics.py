@@ -1,0 +1,78 @@
+"""Heartbeats reach a bound collector; beats are rate-limited; silent nodes turn STALE; and the
+``olsplat keys generate`` command."""
+
+from __future__ import annotations
+
+import stat
+import time
+
+import pytest
+import zmq
+
+from olsplat_msgs import DiagnosticStatus
+from olsplat_nodes.cli import main
+from olsplat_nodes.transport import Diagnostics, DiagnosticsCollector
+
+from .conftest import LOCAL, wait_for
+
+pytestmark = pytest.mark.timeout(30)
+
+
+def test_beats_arrive_at_a_bound_collector(ctx):
+    with DiagnosticsCollector(ctx, LOCAL, stale_after_s=5.0) as collector, \
+         Diagnostics(ctx, collector.endpoint, "accumulator", period_s=0.02) as diag:
+        values = {"rate_hz": 2.5, "drops": 3, "state": "running"}
+        # the first beats are lost while the PUB connects (slow joiner): beat until one arrives
+        assert wait_for(lambda: collector.poll(10), step=lambda: diag.beat(DiagnosticStatus.WARN, "slow", values))
+        (node,) = collector.nodes()
+        assert node["node"] == "accumulator" and node["frame_id"] == "accumulator"
+        assert node["level"] == DiagnosticStatus.WARN and node["message"] == "slow" and node["values"] == values
+        assert 0 <= node["age_s"] < 5.0 and node["stamp_ns"] > 0
+        assert collector.stats["bad_messages"] == 0
+
+
+def test_beat_is_rate_limited_and_beat_now_is_not(ctx):
+    with Diagnostics(ctx, "tcp://127.0.0.1:1", "n", period_s=60.0) as diag:
+        assert diag.beat(0, "up") is True
+        assert diag.beat(0, "up") is False  # within the period
+        assert diag.beat_now(2, "failed") is True
+        assert diag.seq == 2
+
+
+def test_two_nodes_and_stale_detection(ctx):
+    with DiagnosticsCollector(ctx, LOCAL, stale_after_s=0.5) as collector, \
+         Diagnostics(ctx, collector.endpoint, "ingest", period_s=0.01) as a, \
+         Diagnostics(ctx, collector.endpoint, "refiner", period_s=0.01) as b:
+        def both_seen():
+            collector.poll(5)
+            return {n["node"] for n in collector.nodes()} == {"ingest", "refiner"}
+
+        assert wait_for(both_seen, step=lambda: (a.beat(0), b.beat(0)))
+        # refiner goes silent; ingest keeps beating
+        levels = lambda: {n["node"]: n["level"] for n in collector.nodes()}  # noqa: E731
+        assert wait_for(lambda: levels()["refiner"] == DiagnosticStatus.STALE, step=lambda: (a.beat(0), collector.poll(5)))
+        assert levels()["ingest"] == DiagnosticStatus.OK
+
+
+def test_collector_counts_garbage(ctx):
+    with DiagnosticsCollector(ctx, LOCAL) as collector:
+        raw = ctx.socket(zmq.PUB)
+        raw.linger = 0
+        raw.connect(collector.endpoint)
+        start = time.monotonic()
+        wait_for(lambda: collector.stats["bad_messages"] > 0, step=lambda: (raw.send_multipart([b"diagnostics", b"junk"]), collector.poll(5)))
+        assert collector.stats["bad_messages"] > 0 and collector.nodes() == []
+        assert time.monotonic() - start < 3.0
+        raw.close(linger=0)
+
+
+def test_keys_generate_command(tmp_path, capsys):
+    assert main(["keys", "generate", "--out", str(tmp_path / "keys"), "--name", "ground1"]) == 0
+    public, secret = tmp_path / "keys" / "ground1.key", tmp_path / "keys" / "ground1.key_secret"
+    assert public.is_file() and stat.S_IMODE(secret.stat().st_mode) == 0o600
+    assert str(public) in capsys.readouterr().out
+    zmq.auth.load_certificate(secret)
+    assert main(["keys", "generate", "--out", str(tmp_path / "keys"), "--name", "ground1"]) == 1
+    assert "--force" in capsys.readouterr().err
+    assert main(["keys", "generate", "--out", str(tmp_path / "keys"), "--name", "ground1", "--force"]) == 0
+    assert main(["keys", "generate", "--out", str(tmp_path / "keys"), "--name", "../x"]) == 1
