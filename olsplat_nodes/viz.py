@@ -66,11 +66,13 @@ def write_png(path, image: np.ndarray) -> None:
 
 def query_pictures(image_rgb: np.ndarray, heatmap: np.ndarray, valid: np.ndarray, mask: np.ndarray, boxes) -> tuple[np.ndarray, np.ndarray]:
     """(heatmap overlay, mask overlay) as [H, W, 3] uint8 BGR: the view's photo [H, W, 3] RGB
-    blended with the cosine heatmap [H, W] (turbo, -1..1; black where ``valid`` is False), and
+    blended with the cosine heatmap [H, W] (turbo over the view's 1st..99th percentile: compact
+    encoders give every text a high cosine, so a fixed -1..1 scale shows little; black where
+    ``valid`` is False), and
     with the mask [H, W] bool in yellow plus each (x0, y0, x1, y1) box (exclusive end) in green."""
     cv2 = _cv2()
     photo = image_rgb[..., ::-1].astype(np.float32)
-    heat = colorize(heatmap, valid, -1.0, 1.0).astype(np.float32)
+    heat = colorize(heatmap, valid).astype(np.float32)
     overlay = photo.copy()
     overlay[mask] = 0.4 * overlay[mask] + 0.6 * np.array([0, 220, 255])
     overlay = overlay.astype(np.uint8)

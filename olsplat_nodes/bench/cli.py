@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import aggregate, compression, encode, query, raster, regions, robustness, structure
+from . import aggregate, compression, encode, graph, query, raster, regions, robustness, structure
 
 
 def add_parser(subparsers) -> None:
@@ -13,6 +13,7 @@ def add_parser(subparsers) -> None:
     encode.add_parser(targets)
     aggregate.add_parser(targets)
     query.add_parser(targets)
+    graph.add_parser(targets)
     compression.add_parser(targets)
     robustness.add_parser(targets)
     structure.add_parser(targets)

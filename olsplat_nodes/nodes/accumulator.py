@@ -116,7 +116,7 @@ class AccumulatorNode(Node):
                     stats.count("duplicates" if duplicate else "views_added")
                     stats.handled(message.stamp_ns, time.perf_counter() - start)
                 if diag is not None:
-                    diag.beat(0, f"{len(names)} views in the store", stats.values(queue_depth=len(batch), views=len(names), **sub.stats))
+                    diag.beat(0, f"{len(names)} views in the store", stats.with_sockets(sub.stats, queue_depth=len(batch), views=len(names)))
             return 130
         finally:
             for socket in (sub, pub, diag):

@@ -94,6 +94,19 @@ class NodeStats:
         out.update(extra)
         return out
 
+    def with_sockets(self, *socket_stats: dict, **extra) -> dict:
+        """``values(**extra)`` plus the counters of the node's receiving sockets (``Subscriber.stats``:
+        received, gaps, reconnects, ...; summed over several sockets). ``bad_messages`` adds up the
+        node's own count (messages that decoded but could not be used: wrong type, inconsistent
+        content) and the sockets' (messages that did not decode): a plain dict merge would let the
+        sockets' count replace the node's."""
+        merged: dict = {}
+        for stats in socket_stats:
+            for key, value in stats.items():
+                merged[key] = merged.get(key, 0) + value
+        merged["bad_messages"] = self.counts.get("bad_messages", 0) + merged.get("bad_messages", 0)
+        return self.values(**{**merged, **extra})
+
 
 class SequenceCounter:
     """Per message type sequence numbers (1, 2, ...): subscribers count the gaps of each

@@ -136,6 +136,9 @@ class IngestNode(Node):
                         f.write(message.name + "\n")
             elif isinstance(message, MapUpdated) and message.final:
                 self.final_map = True
+            elif not isinstance(message, (ObservationsAdded, MapUpdated, EndOfStream)):  # (EndOfStream: forwarded by the accumulator)
+                self.stats.count("bad_messages")
+                log.warning("unexpected %s on %s: dropped", type(message).__name__, " / ".join(self.acks.topics))
         now = time.monotonic()
         for name, (frame, sent) in list(pending.items()):
             if now - sent > self.params["ack_timeout_s"]:
@@ -148,5 +151,5 @@ class IngestNode(Node):
     def _beat(self, force: bool = False) -> None:
         if self.diag is None:
             return
-        values = self.stats.values(in_flight=len(self.pending), acknowledged=len(self.acked), **{k: v for k, v in self.acks.stats.items()})
+        values = self.stats.with_sockets(self.acks.stats, in_flight=len(self.pending), acknowledged=len(self.acked))
         (self.diag.beat_now if force else self.diag.beat)(0, "streaming", values)

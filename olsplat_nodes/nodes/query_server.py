@@ -84,6 +84,7 @@ class QueryServerNode(Node):
         server = QueryServer(self.context, p["query_endpoint"], keys=keys)
         collector = Subscriber(self.context, [p["diagnostics_bind"]], [p["topic_diagnostics"]], hwm=1000, bind=True)
         maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
+        self._transport = (server, collector, maps)  # their counters go into this node's status
         self._load_latest()
         last_check = time.monotonic()
         try:
@@ -95,7 +96,14 @@ class QueryServerNode(Node):
                 for _, status in collector.drain(0):
                     if isinstance(status, DiagnosticStatus):
                         self.nodes[status.node] = (time.monotonic(), status)
-                announced = [m.version for _, m in maps.drain(0) if isinstance(m, MapUpdated)]
+                    else:
+                        self._unexpected(status, p["topic_diagnostics"])
+                announced = []
+                for _, update in maps.drain(0):
+                    if isinstance(update, MapUpdated):
+                        announced.append(update.version)
+                    else:
+                        self._unexpected(update, p["topic_map"])
                 if (announced and max(announced) > self.version) or time.monotonic() - last_check > 2.0:
                     self._load_latest()
                     last_check = time.monotonic()
@@ -118,6 +126,7 @@ class QueryServerNode(Node):
         if len(language_map.features) != len(self.gaussians):
             log.error("map version %d has %d Gaussians, the prior map %d: ignored", record["version"], len(language_map.features), len(self.gaussians))
             return
+        language_map.features = language_map.features.astype(np.float32)  # once, not per query
         self.language_map, self.version = language_map, record["version"]
         log.info("map version %d loaded (%d views)", self.version, record["views"])
 
@@ -169,9 +178,25 @@ class QueryServerNode(Node):
             image = None
         return reply_for(answer, request, self.version, image, 0.0)
 
+    def _unexpected(self, message, topic: str) -> None:
+        self.stats.count("bad_messages")
+        log.warning("unexpected %s on %s: dropped", type(message).__name__, topic)
+
+    def _values(self) -> dict:
+        """This node's own status values: its counters and those of its three sockets;
+        ``bad_messages`` counts bad input on any of them (as every other node reports it)."""
+        server, collector, maps = self._transport
+        values = self.stats.values(
+            **server.stats,  # requests, bad_requests, replies, dropped_replies, auth_failures
+            **{f"diagnostics_{k}": collector.stats[k] for k in ("received", "bad_messages", "gaps")},
+            **{f"map_{k}": maps.stats[k] for k in ("received", "bad_messages", "gaps", "reconnects")},
+        )
+        values["bad_messages"] = self.stats.counts["bad_messages"] + server.stats["bad_requests"] + collector.stats["bad_messages"] + maps.stats["bad_messages"]
+        return values
+
     def _statuses(self) -> list[dict]:
         now = time.monotonic()
-        out = [{"node": self.name, "level": 0, "message": f"map version {self.version}", "values": self.stats.values(), "age_s": 0.0}]
+        out = [{"node": self.name, "level": 0, "message": f"map version {self.version}", "values": self._values(), "age_s": 0.0}]
         for name, (arrived, status) in sorted(self.nodes.items()):
             age = now - arrived
             level = STALE if age > self.params["stale_after_s"] else status.level

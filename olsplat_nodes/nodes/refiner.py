@@ -4,7 +4,9 @@ The store on disk is the source of truth: each pass reads the views that arrived
 last one, refines only the Gaussians they touched (the others keep their features), and
 writes ``MAP_DIR/language_map_NNNNNN.npz`` atomically plus ``MAP_DIR/latest.json`` naming it
 (the late-joiner snapshot: a query server that starts later reads it, never waits for a
-message). A pass runs every ``period_s`` when new views are in, and at once on
+message). A pass runs when new views are in and ``period_s`` has passed, and
+no sooner than ``(1 - max_duty) / max_duty`` times the last pass's length (passes grow with
+the flight; this keeps them from starving the encoder on a small CPU); and at once on
 ``EndOfStream``, which makes the final map (``final: true``); with ``exit_on_final`` the node
 then exits 0. ``MapUpdated`` is repeated with every heartbeat so that late subscribers learn
 the current version.
@@ -18,7 +20,7 @@ import threading
 import time
 from pathlib import Path
 
-from olsplat_msgs import EndOfStream, MapUpdated
+from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
 from ..transport import Diagnostics, Publisher, Subscriber
 from .base import Node, NodeStats, SequenceCounter
@@ -56,7 +58,8 @@ class RefinerNode(Node):
         "store": "{run_dir}/store",
         "map_dir": "{run_dir}/map",
         "method": "outlangsplat",
-        "period_s": 15.0,
+        "period_s": 15.0,  # at least this long between passes ...
+        "max_duty": 0.25,  # ... and long enough that passes take at most this share of the time
         "codebook": 0,  # 0: float16 snapshot; K: codebook form with K centres
         "exit_on_final": True,
         "observations_in": "ipc://{run_dir}/observations.sock",
@@ -86,33 +89,44 @@ class RefinerNode(Node):
         pub = Publisher(self.context, p["map_out"], bind=True, hwm=100)
         diag = Diagnostics(self.context, p["diagnostics"], self.name) if p["diagnostics"] else None
         last_pass = time.monotonic()
+        wait_s = p["period_s"]
         last_announce = 0.0
         final = False
         try:
             while not stop.is_set():
+                end_now = False
                 for _, message in sub.drain(200):
                     stats.count("received")
-                    final = final or isinstance(message, EndOfStream)
-                due = time.monotonic() - last_pass > p["period_s"]
-                if final or (due and len(self.store) > self.views_done):
+                    if not isinstance(message, (ObservationsAdded, EndOfStream)):
+                        stats.count("bad_messages")
+                        log.warning("unexpected %s on %s: dropped", type(message).__name__, p["topic_observations"])
+                    end_now |= isinstance(message, EndOfStream) and not final  # repeats are ignored
+                final |= end_now
+                due = time.monotonic() - last_pass > wait_s
+                if end_now or (due and len(self.store) > self.views_done):
                     start = time.perf_counter()
                     self._refine(final)
-                    stats.handled(0, time.perf_counter() - start)
+                    spent = time.perf_counter() - start
+                    stats.handled(0, spent)
                     last_pass = time.monotonic()
+                    # a pass re-reads every touched Gaussian's views, so passes grow with the
+                    # flight; spacing them by their own length keeps the refiner from starving
+                    # the encoder and the accumulator on a small CPU
+                    wait_s = max(p["period_s"], spent * (1.0 - p["max_duty"]) / p["max_duty"])
                     last_announce = 0.0
                 if self.record and time.monotonic() - last_announce > 1.0:
                     pub.send(p["topic_map"], seqs.stamp(MapUpdated(stamp_ns=time.time_ns(), frame_id="map", **{k: self.record[k] for k in ("version", "path", "views", "observed_gaussians", "encoder", "final")})))
                     stats.count("published")
                     last_announce = time.monotonic()
                 if diag is not None:
-                    diag.beat(0, f"map version {self.version}, {self.views_done} views", stats.values(map_version=self.version, views=self.views_done))
+                    diag.beat(0, f"map version {self.version}, {self.views_done} views", stats.with_sockets(sub.stats, map_version=self.version, views=self.views_done))
                 if final and p["exit_on_final"]:
                     time.sleep(0.5)  # subscribers get the last announcement before the socket closes
                     return 0
             return 130
         finally:
             if diag is not None:
-                diag.beat_now(0, "stopping", stats.values(map_version=self.version, views=self.views_done))
+                diag.beat_now(0, "stopping", stats.with_sockets(sub.stats, map_version=self.version, views=self.views_done))
             for socket in (sub, pub, diag):
                 if socket is not None:
                     socket.close()

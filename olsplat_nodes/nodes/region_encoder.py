@@ -111,7 +111,7 @@ class RegionEncoderNode(Node):
                         stats.count("bad_messages")
                         log.warning("unexpected %s on %s: dropped", type(message).__name__, p["topic_frames"])
                 if diag is not None:
-                    diag.beat(0, "encoding", stats.values(queue_depth=len(batch), **sub.stats))
+                    diag.beat(0, "encoding", stats.with_sockets(sub.stats, queue_depth=len(batch)))
             return 130
         finally:
             for socket in (sub, pub, diag):

@@ -59,7 +59,7 @@ def answer_query(
         raise OlsplatInputError(f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}")
     negatives = [n for n in (t.strip() for t in negatives) if n and n != text]
     embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
-    features = language_map.features.astype(np.float32)
+    features = np.asarray(language_map.features, dtype=np.float32)  # no copy when the caller keeps float32
     relevance = features @ embeddings.T
     chosen = (relevance.argmax(1) == 0) & language_map.observed
     answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen))

@@ -66,6 +66,20 @@ def test_collector_counts_garbage(ctx):
         raw.close(linger=0)
 
 
+def test_collector_survives_an_oversized_frame(ctx):
+    """The collector binds; a sender whose frame exceeds max_bytes is cut off by libzmq and, being
+    the connecting side, comes back by itself."""
+    with DiagnosticsCollector(ctx, LOCAL, max_bytes=64 * 1024) as collector, \
+         Diagnostics(ctx, collector.endpoint, "query_server", period_s=0.0) as diag:
+        assert wait_for(lambda: collector.poll(10), step=lambda: diag.beat(0))
+        message = lambda: (collector.poll(10), collector.nodes()[0]["message"])[1]  # noqa: E731
+        diag.beat_now(0, "before")
+        assert wait_for(lambda: message() == "before")
+        diag.socket.send_multipart([b"diagnostics", b"\x00" * (1 << 20)])  # libzmq cuts this connection
+        # every "back" beat is sent after the oversized frame: one arriving proves the link recovered
+        assert wait_for(lambda: message() == "back", timeout_s=5.0, step=lambda: diag.beat_now(0, "back"))
+
+
 def test_keys_generate_command(tmp_path, capsys):
     assert main(["keys", "generate", "--out", str(tmp_path / "keys"), "--name", "ground1"]) == 0
     public, secret = tmp_path / "keys" / "ground1.key", tmp_path / "keys" / "ground1.key_secret"

@@ -149,7 +149,8 @@ def test_req_client_works_without_adding_the_delimiter(ctx):
 
 
 def test_client_skips_garbage_and_stale_replies(ctx):
-    """A fake ROUTER server that first answers garbage and a reply to another request."""
+    """A fake ROUTER server that first answers garbage, a truncated and a wrong-version reply,
+    and a reply to another request, before the real one."""
     router = ctx.socket(zmq.ROUTER)
     router.linger = 0
     router.bind(LOCAL)
@@ -160,10 +161,13 @@ def test_client_skips_garbage_and_stale_replies(ctx):
         assert router.poll(3000)
         identity, delimiter, *body = router.recv_multipart()
         _, request = decode(body)
+        good = encode(QueryReply(request_id=request.request_id, text="yes"), "query")
         router.send_multipart([identity, b"", b"query", b"\xc1"])
         router.send_multipart([identity, b"no delimiter"])
+        router.send_multipart([identity, b"", *good[:1]])  # truncated
+        router.send_multipart([identity, b"", good[0], msgpack.packb({**msgpack.unpackb(good[1]), "version": 2}), *good[2:]])
         router.send_multipart([identity, b"", *encode(QueryReply(request_id="old"), "query")])
-        router.send_multipart([identity, b"", *encode(QueryReply(request_id=request.request_id, text="yes"), "query")])
+        router.send_multipart([identity, b"", *good])
         done.set()
 
     thread = threading.Thread(target=fake_server, daemon=True)
@@ -171,7 +175,7 @@ def test_client_skips_garbage_and_stale_replies(ctx):
     with QueryClient(ctx, endpoint, timeout_s=3.0) as client:
         reply = client.request(QueryRequest(request_id="mine", text="q"))
         assert reply.text == "yes"
-        assert client.stats["bad_replies"] == 2 and client.stats["stale_replies"] == 1
+        assert client.stats["bad_replies"] == 4 and client.stats["stale_replies"] == 1
     thread.join(3)
     assert done.is_set()
     router.close(linger=0)

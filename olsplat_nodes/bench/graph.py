@@ -1,0 +1,115 @@
+"""``olsplat bench graph``: the node graph on a live-paced stream, and ground-station query latency.
+
+The replay graph (``launch/replay.yaml``, one process per node) is fed as a live camera would
+be: ``--rate`` frames per second, latest-wins (a slow node drops frames; nothing waits). While
+it streams, the node diagnostics are read through the query server every 2 s. Printed:
+frames sent / aggregated / dropped, the sustained aggregation rate, and per node its rate,
+mean latency (acquisition stamp to end of handling, queueing included) and mean busy time per
+message. Then, on the final map, ``--queries`` ground-station queries over the real ZeroMQ link:
+relevance only (every Gaussian scored, 3D instances) and with the heatmap of one view.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("graph", help="node graph on a live-paced stream; query latency over the ground link")
+    parser.add_argument("--scene", required=True, type=Path, help="a simulator flight folder (replay.mcap, map/)")
+    parser.add_argument("--rate", type=float, default=1.0, help="frames per second sent (default 1)")
+    parser.add_argument("--queries", type=int, default=100, help="relevance queries after the flight")
+    parser.add_argument("--heatmap-queries", type=int, default=20)
+    parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"))
+    parser.add_argument("--port", type=int, default=5610)
+    parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
+    parser.set_defaults(run=run)
+
+
+def _percentiles(seconds: list[float]) -> str:
+    ms = 1000 * np.asarray(seconds)
+    return f"p50 {np.percentile(ms, 50):7.1f} ms  p95 {np.percentile(ms, 95):7.1f} ms  ({len(ms)} queries)"
+
+
+def run(args: argparse.Namespace) -> int:
+    import threading
+
+    import zmq
+
+    from olsplat_msgs import QueryRequest, StatusRequest
+
+    from ..evaluate.scene_eval import label_texts, load_queries
+    from ..launcher import Supervisor, load_launch
+    from ..nodes.refiner import latest_map
+    from ..pipeline.views import load_views
+    from ..transport import NoReply, QueryClient
+
+    scene = args.scene.resolve()
+    run_dir = args.work or Path(tempfile.mkdtemp(prefix="olsplat_bench_graph_"))
+    shutil.rmtree(run_dir, ignore_errors=True)
+    ply = scene / "map" / "point_cloud.ply"
+    endpoint = f"tcp://127.0.0.1:{args.port}"
+    overrides = [
+        f"ingest.source={scene / 'replay.mcap'}", "ingest.lossless=false", f"ingest.rate_hz={args.rate}", "ingest.fast=false",
+        "region_encoder.latest_wins=true", f"query_server.map={ply}", f"accumulator.map={ply}", f"refiner.map={ply}",
+        f"query_server.query_endpoint={endpoint}", "refiner.exit_on_final=false", "launch.exit_when=[]",
+    ]
+    supervisor = Supervisor(load_launch(args.launch, overrides=overrides, run_dir=str(run_dir)))
+    thread = threading.Thread(target=supervisor.run, daemon=True)
+    thread.start()
+    client = QueryClient(zmq.Context.instance(), endpoint, timeout_s=60.0)
+    samples: dict[str, list[dict]] = {}
+    start = time.monotonic()
+    try:
+        record = None
+        while record is None or not record["final"]:
+            time.sleep(2.0)
+            try:
+                status = client.request(StatusRequest(request_id=uuid.uuid4().hex[:8]))
+            except NoReply:
+                continue
+            for node in status.nodes:
+                samples.setdefault(node["node"], []).append(node["values"])
+            record = latest_map(run_dir / "map")
+        seconds = time.monotonic() - start
+        last = {name: values[-1] for name, values in samples.items()}
+        sent = int(last.get("ingest", {}).get("published", 0))
+        print(f"graph on {scene.name}: {sent} frames sent at {args.rate:g}/s, {record['views']} aggregated, "
+              f"{sent - record['views']} dropped, final map version {record['version']} after {seconds:.0f} s")
+        print(f"  sustained aggregation rate {record['views'] / seconds:.2f} views/s")
+        for name in ("ingest", "region_encoder", "accumulator", "refiner", "query_server"):
+            values = [v for v in samples.get(name, []) if v.get("handled", 0)]
+            if not values:
+                continue
+            rate = max(v.get("rate_hz", 0.0) for v in values)
+            latency = np.mean([v.get("latency_ms", 0.0) for v in values])
+            busy = np.mean([v.get("busy_ms", 0.0) for v in values])
+            drops = int(values[-1].get("dropped", 0)) + int(values[-1].get("gaps", 0))
+            print(f"  {name:15s} handled {values[-1]['handled']:4d}  peak rate {rate:5.2f} Hz  mean latency {latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}")
+        labels, queries = load_queries(scene)
+        texts = label_texts(labels, queries)
+        view = load_views(run_dir / "views")[0].camera.name
+        for kind, count, with_view in (("relevance", args.queries, ""), ("heatmap", args.heatmap_queries, view)):
+            times = []
+            for i in range(count):
+                text = texts[i % len(texts)]
+                t0 = time.perf_counter()
+                reply = client.request(QueryRequest(request_id=uuid.uuid4().hex[:8], text=text, view=with_view, heatmap=bool(with_view), threshold=float("nan"), negatives=[t for t in texts if t != text]))
+                times.append(time.perf_counter() - t0)
+                if reply.status != "ok":
+                    raise RuntimeError(f"query {text!r}: {reply.status}: {reply.message}")
+            print(f"  query {kind:9s} (round trip over the ground link) {_percentiles(times)}")
+    finally:
+        client.close()
+        supervisor.request_stop(0)
+        thread.join(30)
+        if not args.work:
+            shutil.rmtree(run_dir, ignore_errors=True)
+    return 0
