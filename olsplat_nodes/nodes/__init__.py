@@ -8,4 +8,5 @@ NODES = {
     "accumulator": "olsplat_nodes.nodes.accumulator:AccumulatorNode",
     "refiner": "olsplat_nodes.nodes.refiner:RefinerNode",
     "query_server": "olsplat_nodes.nodes.query_server:QueryServerNode",
+    "ground_monitor": "olsplat_nodes.nodes.ground_monitor:GroundMonitorNode",  # the ground station's side
 }

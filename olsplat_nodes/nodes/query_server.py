@@ -81,13 +81,17 @@ class QueryServerNode(Node):
         self.stats = NodeStats()
         self.nodes: dict[str, tuple[float, dict]] = {}  # node -> (monotonic arrival, status dict)
         keys = curve.ServerKeys(p["server_secret"], p["allow_dir"]) if p["server_secret"] else None
-        server = QueryServer(self.context, p["query_endpoint"], keys=keys)
-        collector = Subscriber(self.context, [p["diagnostics_bind"]], [p["topic_diagnostics"]], hwm=1000, bind=True)
-        maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
-        self._transport = (server, collector, maps)  # their counters go into this node's status
-        self._load_latest()
-        last_check = time.monotonic()
+        opened = []  # closed on the way out, also when opening a later one fails
         try:
+            server = QueryServer(self.context, p["query_endpoint"], keys=keys)
+            opened.append(server)
+            collector = Subscriber(self.context, [p["diagnostics_bind"]], [p["topic_diagnostics"]], hwm=1000, bind=True)
+            opened.append(collector)
+            maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
+            opened.append(maps)
+            self._transport = (server, collector, maps)  # their counters go into this node's status
+            self._load_latest()
+            last_check = time.monotonic()
             while not stop.is_set():
                 request = server.poll(100)
                 if request is not None:
@@ -109,7 +113,7 @@ class QueryServerNode(Node):
                     last_check = time.monotonic()
             return 130
         finally:
-            for socket in (server, collector, maps):
+            for socket in opened:
                 socket.close()
 
     def _load_latest(self) -> None:

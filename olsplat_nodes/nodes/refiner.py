@@ -138,7 +138,9 @@ class RefinerNode(Node):
             return
         encoder_file = Path(self.params["store"]) / "encoder.txt"
         if views == 0 or not encoder_file.exists():
-            log.warning("no view in the store yet: no map to write")
+            log.warning("no view in the store yet: no map to write%s", " (the stream ended with none)" if final else "")
+            if final:  # announce the end anyway, or the ingest would wait for a final map forever
+                self.record = {"version": self.version, "path": "", "views": 0, "observed_gaussians": 0, "encoder": "", "final": True}
             return
         from ..aggregate.snapshot import LanguageMap
 

@@ -45,7 +45,11 @@ def run(args: argparse.Namespace) -> int:
     if bool(args.client_key) != bool(args.server_key):
         raise OlsplatInputError("CURVE needs both --client-key and --server-key")
     keys = curve.ClientKeys(args.client_key, args.server_key) if args.client_key else None
-    client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
+    try:
+        client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
+    except zmq.ZMQError as exc:  # a malformed endpoint (no port, unknown transport): same exit as an unreachable one
+        print(f"olsplat ground {args.ground_command}: error: cannot connect to {args.connect}: {zmq.strerror(exc.errno)}", file=sys.stderr)
+        return 2
     request_id = uuid.uuid4().hex[:12]
     try:
         if args.ground_command == "status":

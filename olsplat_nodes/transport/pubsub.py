@@ -153,9 +153,14 @@ class Subscriber:
         late = 0
         while True:
             ready = dict(self._poller.poll(remaining_ms(deadline)))
-            if self._monitor in ready:
-                self._reconnect_dropped()
             if self.socket not in ready:
+                # Reconnect only once nothing is left to read: a poll that finds the SUB readable
+                # makes libzmq prefetch the first frame of the next message, and disconnecting the
+                # pipe that holds the rest of it aborts the process ("Assertion failed: !_more
+                # (src/fq.cpp:80)"), e.g. when messages were queued ahead of the oversized frame
+                # that cut the connection. Waiting also delivers those messages instead of dropping them.
+                if self._monitor in ready:
+                    self._reconnect_dropped()
                 if not ready or time.monotonic() >= deadline:
                     return None
                 continue

@@ -1,0 +1,49 @@
+"""The shipped launch files are valid, and the ground station's monitor talks to a real query server."""
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zmq
+
+from olsplat_nodes.launcher import load_launch, resolve_launch
+from olsplat_nodes.nodes.ground_monitor import GroundMonitorNode
+from olsplat_nodes.nodes.query_server import QueryServerNode
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize("name", ["replay", "drone", "ground"])
+def test_shipped_launch_files_validate(name, tmp_path):
+    config = load_launch(REPO / "launch" / f"{name}.yaml", run_dir=str(tmp_path))
+    params = resolve_launch(config, tmp_path)
+    assert set(params) == {n.name for n in config.nodes}
+
+
+def test_ground_monitor_writes_the_drones_status(tiny, tmp_path):
+    scene, _ = tiny
+    socket = zmq.Context.instance().socket(zmq.ROUTER)
+    port = socket.bind_to_random_port("tcp://127.0.0.1")
+    socket.close(0)
+    server = QueryServerNode("qs", {
+        "map": str(scene / "map" / "point_cloud.ply"), "map_dir": str(tmp_path / "map"), "views": str(tmp_path / "views"),
+        "query_endpoint": f"tcp://127.0.0.1:{port}", "diagnostics_bind": f"ipc://{tmp_path}/d.sock", "map_in": f"ipc://{tmp_path}/m.sock",
+    })
+    status_file = tmp_path / "status.json"
+    monitor = GroundMonitorNode("monitor", {"connect": f"tcp://127.0.0.1:{port}", "period_s": 0.2, "status_file": str(status_file)})
+    stop = threading.Event()
+    threads = [threading.Thread(target=node.run, args=(stop,), daemon=True) for node in (server, monitor)]
+    for thread in threads:
+        thread.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not status_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        status = json.loads(status_file.read_text())
+        assert status["map_version"] == 0 and status["nodes"][0]["node"] == "qs"
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(10)

@@ -1,0 +1,160 @@
+"""3D instances: the voxel clustering against its plain-Python oracle, and what it means."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.query._reference import instances_in_3d_bfs
+from olsplat_nodes.query.localize import Instance3D, dense_voxel_count, instances_in_3d
+
+
+def assert_same_instances(fast: list[Instance3D], slow: list[Instance3D]) -> None:
+    assert [i.gaussians for i in fast] == [i.gaussians for i in slow]
+    for a, b in zip(fast, slow):
+        np.testing.assert_array_equal(a.box_min, b.box_min)  # min and max pick points: exact
+        np.testing.assert_array_equal(a.box_max, b.box_max)
+        np.testing.assert_allclose(a.centre, b.centre, rtol=1e-12, atol=1e-9)
+
+
+def lattice(rng) -> tuple[np.ndarray, float, int]:
+    """0-9 points in each voxel of a 9^3 lattice (eps = 1): dense and sparse voxels side by side,
+    clusters touching by faces, edges and corners only, border voxels between clusters."""
+    counts = rng.integers(0, 10, (9, 9, 9)) * (rng.random((9, 9, 9)) < 0.35)
+    cells = np.repeat(np.argwhere(counts), counts[counts > 0], axis=0)
+    points = cells + rng.uniform(0.01, 0.99, cells.shape)
+    return np.vstack([[0.0, 0.0, 0.0], points]), 1.0, 10  # the origin point pins the grid
+
+
+def diagonal(rng) -> tuple[np.ndarray, float, int]:
+    """Blobs in voxels along a staircase that touch only at edges or corners, some steps skipped."""
+    steps = [(0, 0, 0), (1, 1, 1), (2, 2, 1), (3, 3, 2), (5, 5, 3), (6, 6, 4), (6, 7, 5), (9, 0, 0), (10, 1, 0)]
+    blobs = [np.array(s) + rng.uniform(0.0, 1.0, (rng.integers(3, 12), 3)) for s in steps]
+    return np.vstack([[0.0, 0.0, 0.0], *blobs]) * 2.0, 2.0, 12
+
+
+def road(rng) -> tuple[np.ndarray, float, int]:
+    """A 400 m road 3 m wide whose density varies along it, with two breaks, plus parked blobs."""
+    x = rng.uniform(0, 400, 6000)
+    x = x[((x < 140) | (x > 143.5)) & ((x < 300) | (x > 301))]  # a 3.5 m gap, then a 1 m gap
+    keep = rng.random(len(x)) < 0.5 + 0.5 * np.sin(x / 17.0) ** 2
+    strip = np.c_[x[keep], rng.uniform(0, 3, keep.sum()), rng.normal(0, 0.05, keep.sum())]
+    blobs = rng.normal(0, 0.4, (300, 3)) + np.repeat(rng.uniform((0, 5, 0), (400, 8, 2), (10, 3)), 30, axis=0)
+    return np.vstack([strip, blobs]), 1.5, 20
+
+
+def noise(rng) -> tuple[np.ndarray, float, int]:
+    """Sparse noise everywhere, a few tight blobs of different sizes, isolated points near them."""
+    scatter = rng.uniform((-50, -50, 0), (50, 50, 20), (1500, 3))
+    blobs = [rng.normal(rng.uniform(-40, 40, 3), rng.uniform(0.3, 2.0), (rng.integers(5, 400), 3)) for _ in range(6)]
+    return np.vstack([scatter, *blobs]), 1.5, 20
+
+
+@pytest.mark.parametrize("scene", [lattice, diagonal, road, noise])
+@pytest.mark.parametrize("seed", range(5))
+def test_matches_the_reference(scene, seed):
+    points, eps, min_points = scene(np.random.default_rng(seed))
+    rng = np.random.default_rng(100 + seed)
+    means = np.vstack([points, rng.uniform(-100, 100, (500, 3))])  # unselected Gaussians elsewhere
+    selected = np.zeros(len(means), bool)
+    selected[: len(points)] = True
+    fast = instances_in_3d(means, selected, eps, min_points)
+    assert_same_instances(fast, instances_in_3d_bfs(means, selected, eps, min_points))
+    assert [i.gaussians for i in fast] == sorted((i.gaussians for i in fast), reverse=True)
+    assert all(i.gaussians >= min_points for i in fast)
+    assert_same_instances(instances_in_3d(means, np.flatnonzero(selected), eps, min_points), fast)  # indices select too
+
+
+@pytest.mark.parametrize("min_points", [1, 3, 5, 20, 60])
+def test_matches_the_reference_over_min_points(min_points):
+    points, eps, _ = lattice(np.random.default_rng(7))
+    selected = np.ones(len(points), bool)
+    assert_same_instances(instances_in_3d(points, selected, eps, min_points), instances_in_3d_bfs(points, selected, eps, min_points))
+
+
+def test_empty_and_too_small_selections():
+    means = np.random.default_rng(0).normal(0, 0.1, (50, 3))
+    assert instances_in_3d(means, np.zeros(50, bool)) == []
+    assert instances_in_3d(means, np.arange(19)) == []  # 19 points in one tight blob, fewer than min_points
+    assert instances_in_3d_bfs(means, np.arange(19)) == []
+    assert [i.gaussians for i in instances_in_3d(means, np.arange(20))] == [20]
+
+
+def test_two_separated_boxes_are_two_instances_with_their_boxes():
+    rng = np.random.default_rng(3)
+    big = rng.uniform((0, 0, 0), (4, 3, 2), (2000, 3))
+    small = rng.uniform((20, 5, 0), (23, 9, 1), (700, 3))
+    means = np.vstack([small, rng.uniform(-50, 50, (100, 3)), big]).astype(np.float32)
+    selected = np.ones(len(means), bool)
+    selected[len(small) : len(small) + 100] = False
+    instances = instances_in_3d(means, selected)
+    assert [i.gaussians for i in instances] == [2000, 700]
+    for instance, box in zip(instances, (big, small)):
+        box = box.astype(np.float32).astype(np.float64)
+        assert instance.box_min == tuple(box.min(0)) and instance.box_max == tuple(box.max(0))
+        np.testing.assert_allclose(instance.centre, box.mean(0), atol=1e-9)
+        assert all(isinstance(x, float) for x in (*instance.box_min, *instance.box_max, *instance.centre))
+
+
+@pytest.mark.parametrize("gap, expected", [(0.6, 1), (3.2, 2), (10.0, 2)])
+def test_objects_closer_than_eps_merge_and_two_eps_apart_stay_separate(gap, expected):
+    rng = np.random.default_rng(5)
+    left = rng.uniform((0, 0, 0), (6, 6, 0.2), (3000, 3))
+    right = rng.uniform((6 + gap, 0, 0), (12 + gap, 6, 0.2), (3000, 3))
+    for shift in (0.0, 0.37, 0.81):  # wherever the grid falls
+        means = np.vstack([left, right, [[-shift, 0.0, 0.0]]])
+        selected = np.ones(len(means), bool)
+        selected[-1] = False
+        means[-1] = 0  # unselected: the grid starts at the selection's own corner
+        assert len(instances_in_3d(means + [shift, 0, 0], selected, eps=1.5)) == expected
+
+
+def test_sparse_noise_forms_no_instances():
+    rng = np.random.default_rng(11)
+    scatter = rng.uniform((-150, -150, 0), (150, 150, 50), (5000, 3))  # ~0.001 points per cubic metre
+    assert instances_in_3d(scatter, np.ones(len(scatter), bool)) == []
+    blob = rng.normal((10, 10, 10), 0.5, (200, 3))
+    means = np.vstack([scatter, blob])
+    assert [i.gaussians for i in instances_in_3d(means, np.ones(len(means), bool))] == [200]
+
+
+def test_agrees_with_dbscan_on_separated_objects():
+    """The rule it replaced: open3d DBSCAN, same eps and min_points, on surfaces plus noise."""
+    open3d = pytest.importorskip("open3d")
+    rng = np.random.default_rng(2)
+    parts = [
+        np.c_[rng.uniform(0, 40, 4000), rng.uniform(0, 4, 4000), rng.normal(0, 0.05, 4000)],  # road
+        np.c_[rng.uniform(0, 8, 2000), rng.uniform(10, 16, 2000), 6 + rng.normal(0, 0.05, 2000)],  # roof
+        np.c_[rng.uniform(20, 30, 1500), np.full(1500, 12.0), rng.uniform(0, 5, 1500)],  # wall
+        rng.normal((35, 20, 3), 1.0, (600, 3)),  # tree
+        rng.uniform((-20, -20, 0), (60, 40, 20), (400, 3)),  # noise
+    ]
+    points = np.vstack(parts)
+    cloud = open3d.geometry.PointCloud(open3d.utility.Vector3dVector(points))
+    labels = np.asarray(cloud.cluster_dbscan(eps=1.5, min_points=20, print_progress=False))
+    dbscan = sorted(np.bincount(labels[labels >= 0]).tolist(), reverse=True)
+    ours = [i.gaussians for i in instances_in_3d(points, np.ones(len(points), bool))]
+    assert len(ours) == len(dbscan) == 4
+    np.testing.assert_allclose(ours, dbscan, rtol=0.02)  # the same objects, give or take a few noise points
+
+
+def test_rejects_a_bad_eps():
+    with pytest.raises(ValueError, match="eps=0"):
+        instances_in_3d(np.zeros((30, 3)), np.ones(30, bool), eps=0)
+    assert dense_voxel_count(20) == 5 and dense_voxel_count(1) == 1 and dense_voxel_count(0) == 1
+
+
+def test_130k_points_in_well_under_a_second():
+    """Regression guard for the complexity (open3d DBSCAN took 1-8 s here; this takes ~15 ms)."""
+    rng = np.random.default_rng(0)
+    planes = [np.c_[rng.uniform(x, x + 30, 30000), rng.uniform(0, 20, 30000), rng.normal(h, 0.05, 30000)] for x, h in ((0, 0), (40, 6), (80, 9), (120, 3))]
+    means = np.vstack([*planes, rng.uniform((0, 0, 0), (150, 20, 20), (10000, 3))])
+    selected = np.ones(len(means), bool)
+    instances_in_3d(means, selected)  # numba compile or cache load
+    start = time.perf_counter()
+    instances = instances_in_3d(means, selected)
+    assert time.perf_counter() - start < 0.5
+    assert len(instances) == 4, "four planes; the noise forms nothing on its own"
+    assert all(30000 <= i.gaussians < 30600 for i in instances), "each plane with the noise points right against it"
