@@ -251,6 +251,8 @@ def _core(points, voxel_of, counts, start, members, begin, around, low, high, re
                     dx, dy, dz = points[p, 0] - points[q, 0], points[p, 1] - points[q, 1], points[p, 2] - points[q, 2]
                     if dx * dx + dy * dy + dz * dz <= reach2:
                         found += 1
+                        if found >= min_points:  # enough: stop counting
+                            break
                 if found >= min_points:
                     core[p] = True
                     break

@@ -20,9 +20,10 @@ log = logging.getLogger(__name__)
 class Ticker(Node):
     """Logs ``NAME tick i`` ``ticks`` times, then returns ``exit_code``. With ``crash_once``
     (a path), the first run creates that file and fails (``crash_how``: "exit" returns 3,
-    "raise" raises), later runs go on normally."""
+    "raise" raises), later runs go on normally. With ``wait_for`` (a path) it starts ticking
+    only once that file exists (another node is up)."""
 
-    DEFAULTS = {"ticks": 3, "period_s": 0.01, "exit_code": 0, "crash_once": "", "crash_how": "exit", "topic": "ticks", "note": ""}
+    DEFAULTS = {"ticks": 3, "period_s": 0.01, "exit_code": 0, "crash_once": "", "crash_how": "exit", "topic": "ticks", "note": "", "wait_for": ""}
 
     def run(self, stop: threading.Event) -> int:
         p = self.params
@@ -33,6 +34,9 @@ class Ticker(Node):
                 raise RuntimeError(f"{self.name} crashes on purpose")
             log.info("%s crashing on purpose", self.name)
             return 3
+        while p["wait_for"] and not os.path.exists(p["wait_for"]):
+            if stop.wait(0.02):
+                return 0
         for i in range(p["ticks"]):
             if stop.wait(p["period_s"]):
                 return 0

@@ -110,7 +110,7 @@ def test_without_exit_when_the_launch_ends_when_every_node_has_ended(tmp_path):
 def test_a_node_that_ignores_sigterm_is_killed_after_the_grace_period(tmp_path):
     path = write_launch(tmp_path, [
         {"name": "stubborn", "exec": f"{NODES}:Waiter", "params": {"ignore_stop": True, "pid_file": "{run_dir}/s.pid"}},
-        {"name": "ticker", "exec": f"{NODES}:Ticker"},
+        {"name": "ticker", "exec": f"{NODES}:Ticker", "params": {"wait_for": "{run_dir}/s.pid"}},  # stubborn is up
     ], exit_when=["ticker"], stop_timeout_s=0.3)  # fmt: skip
     code, out = run_launch(load_launch(path))
     assert code == 0, out
