@@ -90,6 +90,7 @@ class QueryServerNode(Node):
             maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
             opened.append(maps)
             self._transport = (server, collector, maps)  # their counters go into this node's status
+            threading.Thread(target=self._warm_up, name=f"{self.name}-warm-up", daemon=True).start()
             self._load_latest()
             last_check = time.monotonic()
             while not stop.is_set():
@@ -115,6 +116,25 @@ class QueryServerNode(Node):
         finally:
             for socket in opened:
                 socket.close()
+
+    def _warm_up(self) -> None:
+        """Compile the query kernels (numba: 3D clustering, feature rendering) on small inputs
+        while the node already serves: on a fresh install the first real query would
+        otherwise pay 10-40 s of compilation and time out at the ground station."""
+        from ..query.heatmap import render_feature_map
+        from ..query.localize import instances_in_3d
+        from ..scene import Camera, intrinsics, look_at
+
+        try:
+            start = time.perf_counter()
+            points = np.random.default_rng(0).uniform(0.0, 5.0, (500, 3))
+            instances_in_3d(points, np.ones(len(points), bool))
+            centre = np.median(self.gaussians.means, axis=0)
+            camera = Camera("warm-up", 32, 24, intrinsics(30.0, 30.0, 16.0, 12.0), look_at(centre + [0.0, 0.0, 100.0], centre, (0.0, 1.0, 0.0)))
+            render_feature_map(self.gaussians, np.zeros((len(self.gaussians), 1), np.float32), camera)
+            log.info("query kernels ready in %.1f s", time.perf_counter() - start)
+        except Exception:  # a warm-up failure must not take the server down; the query will say more
+            log.exception("warm-up failed")
 
     def _load_latest(self) -> None:
         from ..aggregate.snapshot import LanguageMap

@@ -1,12 +1,11 @@
 """Slow, obviously-correct versions of the query maths: the oracles of the fast ones.
 
-Plain Python over dicts and sets, straight from the rule in ``localize.py``'s docstring; use only
-on small inputs (thousands of points).
+Brute force over all pairs of points and breadth-first search over a dict of voxels, straight
+from the rule in ``localize.py``'s docstring; use only on small inputs (a few thousand points).
 """
 
 from __future__ import annotations
 
-import math
 from collections import deque
 
 import numpy as np
@@ -25,43 +24,44 @@ def _touching(voxel: tuple[int, int, int]):
 
 
 def instances_in_3d_bfs(means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20) -> list[Instance3D]:
-    """``localize.instances_in_3d`` by breadth-first search over a dict of voxels."""
+    """``localize.instances_in_3d`` with every distance computed: O(M^2) time, M^2 bits of memory."""
     points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
+    points = points[np.isfinite(points).all(1)]
     if len(points) == 0 or len(points) < min_points:
         return []
-    lowest = points.min(0)
-    members: dict[tuple[int, int, int], list[int]] = {}  # voxel (i, j, k) -> point indices
-    for n, cell in enumerate(np.floor((points - lowest) / eps).astype(np.int64)):
-        members.setdefault((int(cell[0]), int(cell[1]), int(cell[2])), []).append(n)
-    need = max(1, math.ceil(min_points / (4.0 * math.pi / 3.0)))
-    dense = {voxel for voxel, inside in members.items() if len(inside) >= need}
+    within = np.stack([((points - p) ** 2).sum(1) <= eps * eps for p in points])  # [M, M] bool
+    core = within.sum(1) >= min_points  # DBSCAN's test; each point is within eps of itself
+    voxel = [(int(i), int(j), int(k)) for i, j, k in np.floor((points - points.min(0)) / eps).astype(np.int64)]
+    core_in: dict[tuple[int, int, int], list[int]] = {}  # voxel -> its core points
+    for n in np.flatnonzero(core):
+        core_in.setdefault(voxel[n], []).append(int(n))
 
     cluster_of: dict[tuple[int, int, int], tuple[int, int, int]] = {}  # voxel -> its cluster's lowest voxel
-    for start in sorted(dense):
+    for start in sorted(core_in):
         if start in cluster_of:
             continue
         cluster_of[start] = start
         queue = deque([start])
         while queue:
-            for other in _touching(queue.popleft()):
-                if other in dense and other not in cluster_of:
-                    cluster_of[other] = start
-                    queue.append(other)
-    for voxel in members:
-        if voxel in dense:
-            continue
-        neighbours = [other for other in _touching(voxel) if other in dense]
-        if neighbours:  # border: the most populated dense neighbour, ties to the lowest voxel
-            best = min(neighbours, key=lambda other: (-len(members[other]), other))
-            cluster_of[voxel] = cluster_of[best]
+            here = queue.popleft()
+            for there in _touching(here):
+                if there in core_in and there not in cluster_of and within[np.ix_(core_in[here], core_in[there])].any():
+                    cluster_of[there] = start
+                    queue.append(there)
 
-    points_of: dict[tuple[int, int, int], list[int]] = {}
-    for voxel, cluster in cluster_of.items():
-        points_of.setdefault(cluster, []).extend(members[voxel])
+    members: dict[tuple[int, int, int], list[int]] = {}  # cluster -> its points
+    for n in range(len(points)):
+        if core[n]:
+            members.setdefault(cluster_of[voxel[n]], []).append(n)
+            continue
+        near = {voxel[m] for m in np.flatnonzero(within[n] & core)}  # voxels with a core point within eps
+        if near:  # border point: the voxel with the most core points, ties to the lowest voxel
+            best = min(near, key=lambda v: (-len(core_in[v]), v))
+            members.setdefault(cluster_of[best], []).append(n)
+
     out = []
-    for cluster in sorted(points_of):
-        inside = points[points_of[cluster]]
-        dense_points = sum(len(members[voxel]) for voxel in dense if cluster_of[voxel] == cluster)
-        if dense_points >= min_points:
+    for cluster in sorted(members):
+        inside = points[members[cluster]]
+        if len(inside) >= max(min_points, 1):
             out.append(Instance3D(tuple(map(float, inside.min(0))), tuple(map(float, inside.max(0))), tuple(map(float, inside.mean(0))), len(inside)))
     return sorted(out, key=lambda instance: -instance.gaussians)  # stable: ties stay in lowest-voxel order

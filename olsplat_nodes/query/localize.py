@@ -2,50 +2,47 @@
 
 In a view: connected components of the query's mask (8-connected, >= ``min_pixels``), with
 box, centre and area. In 3D: the Gaussians that pick the query over the negatives (highest
-cosine among query + negatives) and are observed, clustered on their centres; each cluster is an
-instance with an axis-aligned box in world metres.
+cosine among query + negatives) and are observed, clustered with DBSCAN (radius ``eps``,
+``min_points``) on their centres; each cluster is an instance with an axis-aligned box in world
+metres.
 
-3D clustering is density-based single linkage on a voxel grid, a linear-time stand-in for DBSCAN
-(open3d's took 1-8 s on 100k+ selected centres, most of a query's latency; this takes tens of ms):
+DBSCAN is computed here on a voxel grid in numba rather than by open3d, whose KD-tree version
+took 0.4-7 s on the 80k-320k selected centres of a 390k-Gaussian map, most of a query's latency;
+this takes 15-60 ms there (18 ms for 130k centres on planes plus noise, where open3d took 3.5-8
+s), on a shared 2-core machine. Voxels have side ``eps``, so a point's eps-ball lies within its own voxel and the 26
+touching ones, and every search looks at those 27 voxels only (points sorted by int64 voxel
+key; touching voxels found by binary search on the keys):
 
-1. Voxels of side ``eps`` metres, indexed ``floor((p - lowest corner) / eps)``.
-2. Noise rule: a voxel is *dense* when it holds at least ``dense_voxel_count(min_points) =
-   ceil(min_points / (4 pi / 3))`` points. That is the density DBSCAN asks of a core point
-   (``min_points`` within a ball of radius ``eps``, volume 4.19 eps^3), spread over one voxel
-   (eps^3); 5 points for the default 20.
-3. Dense voxels that touch (26-neighbourhood: faces, edges or corners) are linked; each
-   connected set is a cluster (union-find in numba over pairs found by binary search on sorted
-   int64 voxel keys).
-4. Like DBSCAN's border points, a non-dense voxel touching dense ones joins the cluster of the
-   dense neighbour with the most points (ties: the lowest voxel index (i, j, k)). It never links
-   two clusters, so a thin line of noise cannot bridge two objects.
-5. Clusters whose dense voxels hold at least ``min_points`` points are the instances (as a DBSCAN
-   cluster needs a core point with ``min_points`` neighbours); their box, centre and count
-   include the border points. Counting border points here instead would let uniform noise of
-   0.17 points/m^3 form instances (a 5-point voxel and its neighbours); with this rule noise
-   forms instances from about 0.5 points/m^3 on, where DBSCAN starts to as well.
+1. Core points, DBSCAN's own test and the noise rule: at least ``min_points`` selected centres,
+   itself included, within ``eps``. Counting stops at ``min_points``, and voxels whose 27-voxel
+   block holds fewer points are skipped outright, so dense data costs little.
+2. Clusters: voxels holding core points are linked when they touch and a core point of one lies
+   within ``eps`` of a core point of the other (union-find over voxels; a pair already joined
+   through other voxels is not looked at). The one departure from DBSCAN: all core points of a
+   voxel are in one cluster, even the rare ones that no chain of eps-steps joins (they are less
+   than sqrt(3) ``eps`` apart).
+3. Border points: a point that is not core but lies within ``eps`` of core points joins the
+   cluster of the voxel with the most core points among those holding such a core point (ties:
+   the lowest voxel (i, j, k)); DBSCAN leaves that choice to its visiting order. Border points
+   never link clusters.
+4. Clusters of at least ``min_points`` points, border points included, are the instances.
 
-What it keeps from DBSCAN: two points less than ``eps`` apart always lie in the same or touching
-voxels, so dense parts closer than ``eps`` end up in one instance; points in touching voxels
-are less than 2 ``eps`` apart along every axis, so objects separated by a gap of 2 ``eps`` or
-more along some axis are always separate instances (between ``eps`` and 2 ``eps`` it depends
-on where the grid falls); sparse noise does not form instances.
+As with DBSCAN, objects more than ``eps`` apart are separate instances (unless both crowd into
+one voxel, which needs them less than sqrt(3) ``eps`` apart) and sparse noise forms none.
+Against open3d's DBSCAN on a simulated 390k-Gaussian map: for seven real query selections
+(80k-320k centres) the instances are the same, their sizes within 3 points (border points
+DBSCAN gave to a neighbouring instance); for each label's Gaussians as the selection, with and
+without 3% scattered false picks, the point-wise adjusted Rand index is >= 0.999. The simpler
+rule of linking touching voxels that hold at least a few points (no distances at all; 13 ms
+instead of 18 ms for the 130k centres) linked objects up to 2 ``eps`` apart, merging two roofs
+2-2.6 m apart at ``eps`` = 1.5 m in a "red roof buildings" query, and its per-voxel density test
+let uniform noise of 0.17 points/m^3 form instances, where DBSCAN needs about 0.5.
 
-Measured against open3d DBSCAN (same eps, min_points) on a simulated 390k-Gaussian map, with
-each label's Gaussians as the selection, with and without 3% scattered false picks: the same
-objects (point-wise adjusted Rand index >= 0.99, instance counts equal or one more), except on
-fragmented bare ground (0.96-0.97; it keeps 40 fragments where DBSCAN keeps 60). It merges more
-where objects are 1-2 eps apart: road and lawn selected together (gaps of 1.8-2.6 m at eps
-1.5 m) give 4 instances to DBSCAN's 12 -- but with 3% false picks DBSCAN merges them into 2 and
-this gives 7, so that case is fragile either way. Finer voxels (side eps/3, neighbours within a
-ball) track DBSCAN there but cost 5-7 times as much; not worth it for a query answer.
-
-``olsplat_nodes/query/_reference.py`` is the slow, plain-Python oracle of the same rule.
+``olsplat_nodes/query/_reference.py`` is the brute-force oracle of the same rule.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
@@ -84,27 +81,23 @@ def regions_in_view(mask: np.ndarray, min_pixels: int = 50) -> list[Region2D]:
     return sorted(out, key=lambda r: -r.pixels)
 
 
-def dense_voxel_count(min_points: int) -> int:
-    """Points a voxel of side eps needs to be dense: DBSCAN's min_points per eps-ball, per eps^3."""
-    return max(1, math.ceil(min_points / (4.0 * math.pi / 3.0)))
-
-
 def instances_in_3d(means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20) -> list[Instance3D]:
-    """Clusters of the selected Gaussians' centres, largest first (see the module docstring).
+    """DBSCAN clusters of the selected Gaussians' centres, largest first (module docstring).
 
-    means [N, 3] world metres; selected: [N] bool mask or integer indices; eps: voxel side and
-    linking distance, metres; min_points: DBSCAN-style density and smallest instance.
+    means [N, 3] world metres; selected: [N] bool mask or integer indices; eps: DBSCAN radius
+    and voxel side, metres; min_points: points within eps (itself included) that make a point
+    core, and the smallest instance.
     """
     if not eps > 0:
         raise ValueError(f"eps must be a positive distance in metres, got eps={eps!r}")
     points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
+    if not np.isfinite(points.sum()):  # rare: a NaN/inf centre is nowhere, noise as DBSCAN has it
+        points = points[np.isfinite(points).all(1)]
     if len(points) == 0 or len(points) < min_points:
         return []
-    if not np.isfinite(points).all():
-        raise ValueError(f"{int((~np.isfinite(points).all(1)).sum())} selected Gaussian centres are not finite")
-    voxel_of, keys, counts, dims = _voxelise(points, eps)
+    points, keys, start, dims = _voxelise(points, eps)  # points now sorted by voxel
     first, second = _touching_pairs(keys, dims)
-    cluster = _cluster_points(points, voxel_of, counts, first, second, float(eps), int(min_points))  # [M]
+    cluster = _cluster_points(points, start, first, second, float(eps), int(min_points))  # [M]
     count, low, high, total = _cluster_stats(points, cluster, len(keys))
     order = np.flatnonzero(count >= max(min_points, 1))
     order = order[np.argsort(-count[order], kind="stable")]  # largest first; ties by lowest voxel
@@ -119,18 +112,48 @@ def _floats(row: np.ndarray) -> tuple[float, float, float]:
 
 
 def _voxelise(points: np.ndarray, eps: float):
-    """(voxel of each point [M], sorted distinct voxel keys [V] int64, points per voxel [V], dims [3]).
+    """(the points sorted by voxel [M, 3], distinct voxel keys [V] int64 ascending, start [V + 1]
+    with voxel v's points at start[v]:start[v + 1], dims [3]).
 
-    A key is the voxel's (i, j, k) + 1 in mixed radix ``dims``; the one-voxel margin on each
-    side means key + offset of a neighbour never wraps into another row.
+    A key is the voxel's (i, j, k) + 1 in mixed radix ``dims``, so key order is (i, j, k) order;
+    the one-voxel margin on each side means key + offset of a neighbour never wraps into
+    another row.
     """
-    ijk = np.floor((points - points.min(0)) / eps).astype(np.int64) + 1  # [M, 3], >= 1
-    dims = ijk.max(0) + 2
+    lowest, highest = _bounds(points)  # numpy's min(0) on [M, 3] is ten times slower
+    dims = np.floor((highest - lowest) / eps).astype(np.int64) + 3  # floor is monotonic
     if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
         raise ValueError(f"eps={eps!r} m is too small for the selection's extent {np.ptp(points, 0)} m: too many voxels for int64 keys")
-    point_keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    keys, voxel_of, counts = np.unique(point_keys, return_inverse=True, return_counts=True)
-    return voxel_of.ravel(), keys, counts, dims
+    point_keys = _voxel_keys(points, lowest, eps, dims)
+    order = np.argsort(point_keys)
+    point_keys = point_keys[order]
+    new = np.ones(len(point_keys), bool)
+    np.not_equal(point_keys[1:], point_keys[:-1], out=new[1:])
+    start = np.append(np.flatnonzero(new), len(point_keys))
+    return np.take(points, order, axis=0), point_keys[new], start, dims
+
+
+@njit(cache=True)
+def _bounds(points):
+    """(lowest [3], highest [3]) coordinates of points [M >= 1, 3]."""
+    low = points[0].copy()
+    high = points[0].copy()
+    for p in range(1, points.shape[0]):
+        for d in range(3):
+            low[d] = min(low[d], points[p, d])
+            high[d] = max(high[d], points[p, d])
+    return low, high
+
+
+@njit(cache=True)
+def _voxel_keys(points, lowest, eps, dims):
+    """[M] int64 key of each point's voxel (i, j, k) = floor((p - lowest) / eps), plus one."""
+    keys = np.empty(points.shape[0], np.int64)
+    for p in range(points.shape[0]):
+        i = np.int64(np.floor((points[p, 0] - lowest[0]) / eps)) + 1
+        j = np.int64(np.floor((points[p, 1] - lowest[1]) / eps)) + 1
+        k = np.int64(np.floor((points[p, 2] - lowest[2]) / eps)) + 1
+        keys[p] = (i * dims[1] + j) * dims[2] + k
+    return keys
 
 
 def _touching_pairs(keys: np.ndarray, dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -154,23 +177,9 @@ def _root(parent: np.ndarray, v: int) -> int:
 
 
 @njit(cache=True)
-def _group(voxel_of: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Counting sort of the points by voxel: voxel v's points are members[start[v]:start[v + 1]]."""
-    start = np.zeros(counts.shape[0] + 1, np.int64)
-    start[1:] = np.cumsum(counts)
-    fill = start[:-1].copy()
-    members = np.empty(voxel_of.shape[0], np.int64)
-    for p in range(voxel_of.shape[0]):
-        members[fill[voxel_of[p]]] = p
-        fill[voxel_of[p]] += 1
-    return start, members
-
-
-@njit(cache=True)
-def _neighbourhoods(counts, first, second):
-    """CSR lists of each voxel itself then the occupied voxels touching it: v's are
+def _neighbourhoods(n, first, second):
+    """Each voxel itself, then the occupied voxels touching it, as CSR lists: voxel v's are
     around[begin[v]:begin[v + 1]]."""
-    n = counts.shape[0]
     degree = np.ones(n, np.int64)
     for e in range(first.shape[0]):
         degree[first[e]] += 1
@@ -192,67 +201,54 @@ def _neighbourhoods(counts, first, second):
 
 
 @njit(cache=True)
-def _boxes(points, voxel_of, keep, n):
-    """Per voxel, the box [n, 3] low, high of its points where keep; empty boxes are inverted."""
-    low = np.full((n, 3), np.inf)
-    high = np.full((n, 3), -np.inf)
-    for p in range(points.shape[0]):
-        if keep[p]:
-            v = voxel_of[p]
-            for d in range(3):
-                low[v, d] = min(low[v, d], points[p, d])
-                high[v, d] = max(high[v, d], points[p, d])
+def _box(points, lo, hi):
+    """(low [3], high [3]) of points[lo:hi]; inverted when empty."""
+    low = np.full(3, np.inf)
+    high = np.full(3, -np.inf)
+    for p in range(lo, hi):
+        for d in range(3):
+            low[d] = min(low[d], points[p, d])
+            high[d] = max(high[d], points[p, d])
     return low, high
 
 
 @njit(cache=True)
-def _box_gap2(points, p, low, high) -> float:
+def _count_near(points, p, lo, hi, low, high, reach2, enough) -> int:
+    """How many of points[lo:hi] (their box: low, high) lie within sqrt(reach2) of point p,
+    counting up to ``enough``."""
     gap2 = 0.0
     for d in range(3):
         g = max(low[d] - points[p, d], 0.0, points[p, d] - high[d])
         gap2 += g * g
-    return gap2
-
-
-@njit(cache=True)
-def _near(points, p, members, lo, hi, low, high, reach2) -> bool:
-    """Whether point p is within sqrt(reach2) of one of members[lo:hi] (their box: low, high)."""
-    if _box_gap2(points, p, low, high) > reach2:  # most far pairs end here
-        return False
-    for m in range(lo, hi):
-        q = members[m]
-        dx, dy, dz = points[p, 0] - points[q, 0], points[p, 1] - points[q, 1], points[p, 2] - points[q, 2]
+    found = 0
+    if gap2 > reach2:  # most far voxels end here
+        return found
+    x, y, z = points[p, 0], points[p, 1], points[p, 2]
+    for q in range(lo, hi):
+        dx, dy, dz = x - points[q, 0], y - points[q, 1], z - points[q, 2]
         if dx * dx + dy * dy + dz * dz <= reach2:
-            return True
-    return False
+            found += 1
+            if found >= enough:
+                break
+    return found
 
 
 @njit(cache=True)
-def _core(points, voxel_of, counts, start, members, begin, around, low, high, reach2, min_points):
-    """[M] bool: at least min_points points (itself included) within eps, DBSCAN's core test,
-    looked for in the point's own and touching voxels (they hold its whole eps-ball)."""
-    n = counts.shape[0]
+def _core(points, start, begin, around, low, high, reach2, min_points):
+    """[M] bool: DBSCAN's core test, at least min_points points (itself included) within eps,
+    counted over the point's own and touching voxels (its whole eps-ball)."""
     core = np.zeros(points.shape[0], np.bool_)
-    for v in range(n):
+    for v in range(start.shape[0] - 1):
         block = 0
         for i in range(begin[v], begin[v + 1]):
-            block += counts[around[i]]
+            block += start[around[i] + 1] - start[around[i]]
         if block < min_points:
             continue  # no point here can have min_points within eps
-        for m in range(start[v], start[v + 1]):
-            p = members[m]
+        for p in range(start[v], start[v + 1]):
             found = 0
-            for i in range(begin[v], begin[v + 1]):
+            for i in range(begin[v], begin[v + 1]):  # its own voxel first: the likeliest
                 w = around[i]
-                if _box_gap2(points, p, low[w], high[w]) > reach2:
-                    continue
-                for k in range(start[w], start[w + 1]):
-                    q = members[k]
-                    dx, dy, dz = points[p, 0] - points[q, 0], points[p, 1] - points[q, 1], points[p, 2] - points[q, 2]
-                    if dx * dx + dy * dy + dz * dz <= reach2:
-                        found += 1
-                        if found >= min_points:  # enough: stop counting
-                            break
+                found += _count_near(points, p, start[w], start[w + 1], low[w], high[w], reach2, min_points - found)
                 if found >= min_points:
                     core[p] = True
                     break
@@ -260,33 +256,42 @@ def _core(points, voxel_of, counts, start, members, begin, around, low, high, re
 
 
 @njit(cache=True)
-def _cluster_points(points, voxel_of, counts, first, second, eps, min_points):
-    """[M] int64 cluster of each point, named by its cluster's lowest voxel index; -1 for noise."""
-    n = counts.shape[0]
+def _cluster_points(points, start, first, second, eps, min_points):
+    """[M] int64 cluster of each point, named by its cluster's lowest voxel index; -1 for noise.
+
+    points [M, 3] sorted by voxel, voxel v's at start[v]:start[v + 1]; this reorders each
+    voxel's points in place so that its core points come first.
+    """
+    n = start.shape[0] - 1
     reach2 = eps * eps
-    start, members = _group(voxel_of, counts)
-    begin, around = _neighbourhoods(counts, first, second)
-    everyone = np.ones(points.shape[0], np.bool_)
-    low, high = _boxes(points, voxel_of, everyone, n)
-    core = _core(points, voxel_of, counts, start, members, begin, around, low, high, reach2, min_points)
-    core_counts = np.zeros(n, np.int64)
-    for p in range(points.shape[0]):
-        if core[p]:
-            core_counts[voxel_of[p]] += 1
-    core_start, core_members = _group(voxel_of[core], core_counts)
-    core_members = np.flatnonzero(core)[core_members]
-    core_low, core_high = _boxes(points, voxel_of, core, n)
+    begin, around = _neighbourhoods(n, first, second)
+    low = np.empty((n, 3))
+    high = np.empty((n, 3))
+    for v in range(n):
+        low[v], high[v] = _box(points, start[v], start[v + 1])
+    core = _core(points, start, begin, around, low, high, reach2, min_points)
+    # core points first in each voxel: voxel v's are then points[start[v]:start[v] + cores[v]]
+    cores = np.zeros(n, np.int64)
+    for v in range(n):
+        for p in range(start[v], start[v + 1]):
+            if core[p]:
+                q = start[v] + cores[v]
+                for d in range(3):
+                    points[p, d], points[q, d] = points[q, d], points[p, d]
+                core[p], core[q] = core[q], core[p]
+                cores[v] += 1
+        low[v], high[v] = _box(points, start[v], start[v] + cores[v])
 
     parent = np.arange(n)
     for e in range(first.shape[0]):
         a, b = first[e], second[e]
-        if core_counts[a] == 0 or core_counts[b] == 0:
+        if cores[a] == 0 or cores[b] == 0:
             continue
         ra, rb = _root(parent, a), _root(parent, b)
         if ra == rb:
             continue  # already linked some other way: no need to look at points
-        for m in range(core_start[a], core_start[a + 1]):
-            if _near(points, core_members[m], core_members, core_start[b], core_start[b + 1], core_low[b], core_high[b], reach2):
+        for p in range(start[a], start[a] + cores[a]):
+            if _count_near(points, p, start[b], start[b] + cores[b], low[b], high[b], reach2, 1):
                 # the lower index becomes the root, so a cluster's root is its lowest voxel
                 if ra < rb:
                     parent[rb] = ra
@@ -294,24 +299,21 @@ def _cluster_points(points, voxel_of, counts, first, second, eps, min_points):
                     parent[ra] = rb
                 break
     cluster = np.full(points.shape[0], -1, np.int64)
-    for p in range(points.shape[0]):
-        v = voxel_of[p]
-        if core[p]:
-            cluster[p] = _root(parent, v)
-            continue
-        # border point: of the voxels with a core point within eps of it, the one with the most
-        # core points, ties to the lowest index
-        best = -1
-        for i in range(begin[v], begin[v + 1]):
-            w = around[i]
-            if core_counts[w] == 0:
-                continue
-            if best >= 0 and (core_counts[w] < core_counts[best] or (core_counts[w] == core_counts[best] and w > best)):
-                continue
-            if _near(points, p, core_members, core_start[w], core_start[w + 1], core_low[w], core_high[w], reach2):
-                best = w
-        if best >= 0:
-            cluster[p] = _root(parent, best)
+    for v in range(n):
+        if cores[v] > 0:
+            cluster[start[v] : start[v] + cores[v]] = _root(parent, v)
+        for p in range(start[v] + cores[v], start[v + 1]):
+            # border point: of the voxels with a core point within eps of it, the one with the
+            # most core points, ties to the lowest index
+            best = -1
+            for i in range(begin[v], begin[v + 1]):
+                w = around[i]
+                if cores[w] == 0 or (best >= 0 and (cores[w] < cores[best] or (cores[w] == cores[best] and w > best))):
+                    continue
+                if _count_near(points, p, start[w], start[w] + cores[w], low[w], high[w], reach2, 1):
+                    best = w
+            if best >= 0:
+                cluster[p] = _root(parent, best)
     return cluster
 
 

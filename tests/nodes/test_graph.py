@@ -20,6 +20,8 @@ from olsplat_nodes.launcher import Supervisor, load_launch
 from olsplat_nodes.nodes.refiner import latest_map
 from olsplat_nodes.transport import NoReply, QueryClient
 
+from .conftest import wait_for
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -47,16 +49,6 @@ class Background:
 
     def _run(self):
         self.code = self.supervisor.run()
-
-
-def wait_for(condition, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.2)
-    pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
 
 
 def pid_of(supervisor: Supervisor, node: str) -> int | None:
