@@ -2,7 +2,9 @@
 
 Two figures, p50/p95 over ``--repeats`` queries (texts cycled from the scene's queries):
 - relevance: text -> embedding (the encoders' text towers) -> cosine with every Gaussian's feature;
-- heatmap: the same plus rendering the feature map of one view and its cosine heatmap.
+- heatmap: the same plus rendering the feature map of one view and its cosine heatmap;
+- answer: what the query server computes without a view (relevance against the scene's other
+  queries as negatives, the Gaussians that pick the query, and their 3D instances).
 The map's features are converted to float32 once, at load, as the query server does.
 """
 
@@ -35,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluate.scene_eval import load_queries
     from ..pipeline import Scene
     from ..query import heatmaps, render_feature_map
+    from ..query.answer import answer_query
     from ..scene import read_ply
 
     scene = Scene.open(args.scene)
@@ -58,7 +61,16 @@ def run(args: argparse.Namespace) -> int:
         feature_map, _ = render_feature_map(gaussians, features, camera)
         heatmaps(feature_map, embedding)
         heat.append(time.perf_counter() - t0)
+    language_map.features = features
+    answer_query(language_map, gaussians, encoder, texts[0], texts[1:])  # warm-up (numba)
+    answers = []
+    for i in range(args.repeats):
+        text = texts[i % len(texts)]
+        t0 = time.perf_counter()
+        answer_query(language_map, gaussians, encoder, text, [t for t in texts if t != text])
+        answers.append(time.perf_counter() - t0)
     print(f"map {args.map}: {len(features):,} Gaussians x {features.shape[1]} dims; view {camera.name} {camera.width}x{camera.height}")
     print(_line("relevance", relevance))
     print(_line("heatmap", heat))
+    print(_line("answer 3D", answers))
     return 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -172,16 +171,13 @@ def test_rejects_a_bad_eps():
         instances_in_3d(np.zeros((30, 3)), np.ones(30, bool), eps=0)
 
 
-def test_130k_points_in_well_under_a_second():
-    """Regression guard for the complexity: open3d's DBSCAN took 1-8 s on selections like this, the
-    voxel grid about 20 ms."""
+def test_four_planes_in_130k_points_with_noise():
+    """A selection the size of a real query's (speed is measured by ``olsplat bench query``, not
+    here: open3d's DBSCAN took 1-8 s on selections like this, the voxel grid about 20 ms)."""
     rng = np.random.default_rng(0)
     planes = [np.c_[rng.uniform(x, x + 30, 30000), rng.uniform(0, 20, 30000), rng.normal(h, 0.05, 30000)] for x, h in ((0, 0), (40, 6), (80, 9), (120, 3))]
     means = np.vstack([*planes, rng.uniform((0, 0, 0), (150, 20, 20), (10000, 3))])
     selected = np.ones(len(means), bool)
-    instances_in_3d(means, selected)  # numba compile or cache load
-    start = time.perf_counter()
     instances = instances_in_3d(means, selected)
-    assert time.perf_counter() - start < 0.5
     assert len(instances) == 4, "four planes; the noise forms nothing on its own"
     assert all(30000 <= i.gaussians < 30600 for i in instances), "each plane with the noise points right against it"
