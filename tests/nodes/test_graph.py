@@ -120,3 +120,15 @@ def test_graph_aggregates_every_frame_once_survives_kill9_and_answers(tiny, tmp_
         late.close()
         stop.set()
         thread.join(10)
+
+
+@pytest.mark.timeout(600)
+def test_graph_composed_in_one_process(tiny, tmp_path):
+    """The same graph as threads of one process (inproc endpoints, one zmq context)."""
+    scene, summary = tiny
+    run_dir = tmp_path / "run"
+    config = launch_tiny(scene, run_dir, free_port(), "launch.compose=true")
+    assert Supervisor(config).run() == 0
+    record = latest_map(run_dir / "map")
+    assert record["final"] and record["views"] == summary["views"]
+    assert len(ObservationStore(run_dir / "store", 1).names()) == summary["views"]
