@@ -42,11 +42,19 @@ def observe_view_dense(topk_ids, topk_weights, pixel_features, valid, n_gaussian
 def refine_dense(features, strength, config: AggregationConfig):
     """features [N, V, D] f_iv, strength [N, V] d_iv (0 = no observation) -> F [N, D] after T iterations."""
     d = strength[..., None]
-    F = (d * features).sum(1) / (strength.sum(1, keepdims=True) + config.eps)  # eq. initial_gaussian_feature
+    F0 = F = (d * features).sum(1) / (strength.sum(1, keepdims=True) + config.eps)  # eq. initial_gaussian_feature
+    rho = strength
     for t in range(1, config.iterations + 1):
         cos = (features * F[:, None, :]).sum(-1) / (
             np.linalg.norm(features, axis=-1) * np.linalg.norm(F, axis=-1, keepdims=True) + config.eps
         )
         rho = strength * np.exp(config.beta_at(t) * cos)  # rho = d exp(beta_t c); 0 where no observation
         F = (rho[..., None] * features).sum(1) / (rho.sum(1, keepdims=True) + config.eps)  # eq. robust_feature_update
+    if config.min_retained_views is not None and config.iterations > 0:  # Kish effective views, after / before
+        for i in range(len(F)):
+            if strength[i].sum() > 0:
+                before = strength[i].sum() ** 2 / (strength[i] ** 2).sum()
+                after = rho[i].sum() ** 2 / (rho[i] ** 2).sum()
+                if after / before < config.min_retained_views:
+                    F[i] = F0[i]
     return F

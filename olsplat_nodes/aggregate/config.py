@@ -19,10 +19,17 @@ class AggregationConfig:
     use_quality: bool = True  # multiply by q_sum * q_eff (off: the "noquality" ablation and the baselines)
     mass_gate: float | None = None  # VALA-style: per view keep the fewest Gaussians holding this share of all d
     combine: Literal["consistency", "streaming_cosine"] = "consistency"  # how views are combined
+    # Keep F0 for a Gaussian whose consistency weights retain less than this share of its
+    # effective number of views, (sum rho)^2 / sum rho^2 over (sum d)^2 / sum d^2: its views
+    # disagree as a whole (e.g. a floater seen against different backgrounds), they do not hold
+    # a few outliers. None: off (the paper's update everywhere).
+    min_retained_views: float | None = 0.5
 
     def __post_init__(self) -> None:
         if not 0.0 < self.q_min <= 1.0:
             raise ValueError(f"q_min must be in (0, 1], got q_min={self.q_min}")
+        if self.min_retained_views is not None and not 0.0 < self.min_retained_views <= 1.0:
+            raise ValueError(f"min_retained_views must be in (0, 1], got {self.min_retained_views}")
         if self.kappa <= 0 or self.tau_d < 0 or self.iterations < 0 or not self.beta:
             raise ValueError(f"need kappa > 0, tau_d >= 0, iterations >= 0 and a beta schedule, got {self}")
 

@@ -41,14 +41,28 @@ def refine_observations(
     owner = np.ascontiguousarray(owner, np.int64)
     features = np.ascontiguousarray(features, np.float64)
     strength = np.ascontiguousarray(strength, np.float64)
-    F = _weighted_mean(owner, strength, features, n, config.eps)
+    F0 = F = _weighted_mean(owner, strength, features, n, config.eps)
     feature_norm = np.linalg.norm(features, axis=1)
+    rho = strength
     for t in range(1, config.iterations + 1):
         current = F[owner]
         cos = (features * current).sum(1) / (feature_norm * np.linalg.norm(current, axis=1) + config.eps)
         rho = strength * np.exp(config.beta_at(t) * cos)
         F = _weighted_mean(owner, rho, features, n, config.eps)
+    if config.min_retained_views is not None and config.iterations > 0:
+        F = np.where(_retained_views(owner, strength, rho, n)[:, None] < config.min_retained_views, F0, F)
     return F.astype(np.float32), np.bincount(owner, minlength=n)
+
+
+def _retained_views(owner: np.ndarray, strength: np.ndarray, rho: np.ndarray, n: int) -> np.ndarray:
+    """[n]: effective number of views under the final weights rho over that under d (Kish,
+    (sum w)^2 / sum w^2); 1 where unobserved. ~1 when the consistency weights only trim
+    outliers, small when they keep one of several disagreeing groups of views."""
+    def effective(w):
+        total, square = np.bincount(owner, w, n), np.bincount(owner, w * w, n)
+        return total**2 / np.maximum(square, 1e-300)
+    before = effective(strength)
+    return np.where(before > 0, effective(rho) / np.maximum(before, 1e-300), 1.0)
 
 
 def streaming_cosine(

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
+import pytest
 
 from olsplat_nodes.aggregate import AggregationConfig, ObservationStore, observe_view, refine_observations, stack_levels
 from olsplat_nodes.aggregate._reference import refine_dense
@@ -38,6 +41,43 @@ def test_consistency_downweights_the_outlier_view():
     assert f3[0, 0] / f3[0, 1] > 2 * f0[0, 0] / f0[0, 1]
 
 
+@pytest.mark.parametrize("min_retained", [0.3, 0.6, 0.9])
+def test_min_retained_views_equals_the_dense_equations(min_retained):
+    rng = np.random.default_rng(2)
+    n, views, dim = 60, 7, 5
+    features = rng.normal(size=(n, views, dim))
+    features[: n // 2, :5] += 3.0 * rng.normal(size=(n // 2, 1, dim))  # half: most views agree
+    strength = rng.uniform(0.1, 1.0, (n, views)) * (rng.random((n, views)) < 0.8)
+    strength[0] = 0.0
+    config = AggregationConfig(iterations=3, beta=(2.0, 4.0, 8.0), min_retained_views=min_retained)
+    expected = refine_dense(features, strength, config)
+    owner, view = np.nonzero(strength)
+    got, _ = refine_observations(owner, strength[owner, view], features[owner, view], n, config)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+    plain = refine_dense(features, strength, AggregationConfig(iterations=3, beta=(2.0, 4.0, 8.0), min_retained_views=None))
+    initial = refine_dense(features, strength, AggregationConfig(iterations=0))
+    kept_initial = np.all(np.isclose(got, initial), axis=1) & ~np.all(np.isclose(plain, initial), axis=1)
+    assert 0 < kept_initial.sum() < n  # some Gaussians fall back to F0, the others are refined
+
+
+def test_min_retained_views_keeps_the_mean_of_two_disagreeing_groups():
+    """Two equal groups of views disagree: the consistency update would pick one; with
+    min_retained_views the Gaussian keeps the d-weighted mean. One outlier among four: refined."""
+    a, b = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    split = np.array([a, a, b, b, a + 0.1 * b])
+    outlier = np.array([a, a, a, a, b])
+    features = np.concatenate([split, outlier])
+    owner = np.repeat([0, 1], 5)
+    strength = np.full(10, 0.5)
+    config = AggregationConfig(iterations=3, beta=(2.0, 4.0, 8.0), min_retained_views=None)
+    f0, _ = refine_observations(owner, strength, features, 2, AggregationConfig(iterations=0))
+    f3, _ = refine_observations(owner, strength, features, 2, config)
+    gated, _ = refine_observations(owner, strength, features, 2, replace(config, min_retained_views=0.7))  # kept: 3 of 5 vs 4 of 5
+    assert not np.allclose(f3[0], f0[0])
+    np.testing.assert_allclose(gated[0], f0[0], rtol=1e-6)
+    np.testing.assert_allclose(gated[1], f3[1], rtol=1e-6)
+
+
 def _views(count: int, n: int):
     gaussians = random_gaussians(n, 0, seed=4)
     rng = np.random.default_rng(1)
@@ -51,9 +91,10 @@ def _views(count: int, n: int):
         yield f"v{v}", observe_view(result.topk_ids, result.topk_weights, slots, n), stacked
 
 
-def test_streaming_views_equal_the_batch(tmp_path):
+@pytest.mark.parametrize("min_retained", [None, 0.5])
+def test_streaming_views_equal_the_batch(tmp_path, min_retained):
     n = 150
-    config = AggregationConfig()
+    config = AggregationConfig(min_retained_views=min_retained)
     streaming = ObservationStore(tmp_path / "stream", n)
     F = None
     for name, obs, bank in _views(5, n):
