@@ -16,11 +16,11 @@ def build_parser() -> argparse.ArgumentParser:
     from olsplat_sim import cli as sim
 
     from .bench import cli as bench
-    from .tools import aggregate, demo, encode, evaluate, export_clip, ground, keys, launch, query, render
+    from .tools import aggregate, demo, encode, evaluate, export_clip, ground, keys, launch, query, record, render
 
     parser = argparse.ArgumentParser(prog="olsplat", description="open-vocabulary 3D scene understanding for UAVs")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (render, demo, sim, encode, aggregate, evaluate, query, launch, ground, keys, export_clip, bench):
+    for module in (render, demo, sim, encode, aggregate, evaluate, query, launch, ground, keys, export_clip, bench, record):
         module.add_parser(subparsers)
     return parser
 

@@ -1,4 +1,10 @@
-"""ingest: frames from a replay log (MCAP) or an image folder + COLMAP model -> ``ImageFrame``.
+"""ingest: frames from a camera source -> ``ImageFrame``.
+
+Sources (``source_kind``, ``olsplat_nodes.sources``): ``replay`` (a replay log (MCAP) or an image
+folder + COLMAP model), ``exif_folder`` (geotagged photos, EXIF pose priors), ``depthai`` (a live
+OAK camera, poses from flight-controller telemetry or a fixed pose). The source's health is the
+heartbeat's level and message (a missing camera: ERROR "no DepthAI device found ..." while the
+node keeps running, heartbeating and looking for it); its counters go out as ``source_*`` values.
 
 Two delivery modes (parameter ``lossless``):
 - lossless (default for replays): at most ``window`` frames are in flight; a frame counts as
@@ -12,7 +18,8 @@ Two delivery modes (parameter ``lossless``):
 At the end of a finite source the node sends ``EndOfStream`` on the frame topic (after every
 frame was acknowledged, in lossless mode) once a second until the refiner announces the final
 map, then exits 0. Replayed frames are re-stamped with the wall clock at publication (their
-acquisition time in this run) so that latencies downstream are meaningful.
+acquisition time in this run) so that latencies downstream are meaningful; live frames keep their
+acquisition stamps. A live source never ends: the node runs until stopped.
 """
 
 from __future__ import annotations
@@ -26,17 +33,19 @@ import numpy as np
 
 from olsplat_msgs import EndOfStream, ImageFrame, MapUpdated, ObservationsAdded
 
+from ..sources import SOURCE_DEFAULTS, open_source
 from ..transport import Diagnostics, Publisher, Subscriber
 from .base import Node, NodeStats, SequenceCounter
 
 log = logging.getLogger(__name__)
 
 
-def frame_message(frame, seq: int) -> ImageFrame:
-    """A replay frame (sim.replay_log.ReplayFrame) as the wire message, stamped now."""
+def frame_message(frame, seq: int, stamp_ns: int | None = None) -> ImageFrame:
+    """A replay frame (sim.replay_log.ReplayFrame, sources.SourceFrame) as the wire message, stamped
+    ``stamp_ns`` (default: now)."""
     camera = frame.camera
     return ImageFrame(
-        stamp_ns=time.time_ns(), seq=seq, frame_id="camera", name=frame.name,
+        stamp_ns=time.time_ns() if stamp_ns is None else stamp_ns, seq=seq, frame_id="camera", name=frame.name,
         image=np.ascontiguousarray(frame.image, np.uint8), K=camera.K, D=camera.dist,
         distortion_model="plumb_bob" if len(camera.dist) else "none",
         world_from_camera=camera.world_from_camera, width=camera.width, height=camera.height,
@@ -45,9 +54,7 @@ def frame_message(frame, seq: int) -> ImageFrame:
 
 class IngestNode(Node):
     DEFAULTS = {
-        "source": "",  # replay log (.mcap) or folder with images/ + COLMAP model
-        "rate_hz": 0.0,  # 0: the recorded pace
-        "fast": False,  # as fast as possible (bounded by the window in lossless mode)
+        **SOURCE_DEFAULTS,  # source_kind, source, rate_hz, fast, exif_*, depthai_*, fixed_pose, telemetry_* (sources/README.md)
         "lossless": True,
         "window": 2,  # frames in flight without acknowledgement (lossless)
         "ack_timeout_s": 20.0,  # send a frame again when it was not acknowledged in time
@@ -63,8 +70,6 @@ class IngestNode(Node):
     }
 
     def run(self, stop: threading.Event) -> int:
-        from olsplat_sim.replay_log import paced, read_replay
-
         p = self.params
         self.stats = NodeStats()
         self.pub = Publisher(self.context, p["frames_out"], bind=True, hwm=p["hwm"])
@@ -76,11 +81,16 @@ class IngestNode(Node):
         self.pending: OrderedDict[str, tuple[object, float]] = OrderedDict()  # name -> (frame, last send time)
         pending = self.pending
         names: list[str] = []
-        frames = paced(read_replay(p["source"]), p["rate_hz"] or None, p["fast"])
+        self.source = None
         try:
-            for frame in frames:
-                if stop.is_set():
-                    return 130
+            self.source = source = open_source({key: p[key] for key in SOURCE_DEFAULTS})
+            while not stop.is_set():
+                frame = source.read(0.1)
+                if frame is None:
+                    if source.done:
+                        break
+                    self._service(pending, 0)
+                    continue
                 names.append(frame.name)
                 if p["lossless"]:
                     while len(pending) >= p["window"] and not stop.is_set():
@@ -90,6 +100,8 @@ class IngestNode(Node):
                     pending[frame.name] = (frame, time.monotonic())
                 self._send(frame)
                 self._service(pending, 0)
+            if stop.is_set():
+                return 130
             while pending and not stop.is_set():
                 self._service(pending, 0.1)
             log.info("all %d frames delivered; waiting for the final map", len(names))
@@ -102,6 +114,8 @@ class IngestNode(Node):
             return 0 if self.final_map else 130
         finally:
             self._beat(force=True)
+            if self.source is not None:
+                self.source.close()
             for socket in (self.pub, self.acks, self.diag):
                 if socket is not None:
                     socket.close()
@@ -120,7 +134,7 @@ class IngestNode(Node):
 
     def _send(self, frame) -> None:
         start = time.perf_counter()
-        message = self.seqs.stamp(frame_message(frame, 0))
+        message = self.seqs.stamp(frame_message(frame, 0, frame.stamp_ns if self.source is not None and self.source.live else None))
         self.pub.send(self.params["topic_frames"], message)
         self.stats.count("published")
         self.stats.handled(message.stamp_ns, time.perf_counter() - start)
@@ -152,4 +166,8 @@ class IngestNode(Node):
         if self.diag is None:
             return
         values = self.stats.with_sockets(self.acks.stats, in_flight=len(self.pending), acknowledged=len(self.acked))
-        (self.diag.beat_now if force else self.diag.beat)(0, "streaming", values)
+        level, message = (0, "starting")
+        if self.source is not None:
+            level, message = self.source.status()
+            values.update({f"source_{key}": value for key, value in self.source.stats.items()})
+        (self.diag.beat_now if force else self.diag.beat)(level, message, values)

@@ -15,7 +15,7 @@ from olsplat_nodes.nodes.query_server import QueryServerNode
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.mark.parametrize("name", ["replay", "drone", "ground"])
+@pytest.mark.parametrize("name", ["replay", "drone", "ground", "field_drone", "field_ground"])
 def test_shipped_launch_files_validate(name, tmp_path):
     config = load_launch(REPO / "launch" / f"{name}.yaml", run_dir=str(tmp_path))
     params = resolve_launch(config, tmp_path)
