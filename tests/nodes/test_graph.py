@@ -123,12 +123,18 @@ def test_graph_aggregates_every_frame_once_survives_kill9_and_answers(tiny, tmp_
 
 
 @pytest.mark.timeout(600)
-def test_graph_composed_in_one_process(tiny, tmp_path):
-    """The same graph as threads of one process (inproc endpoints, one zmq context)."""
-    scene, summary = tiny
+def test_a_recorded_session_replays_through_the_graph_composed_in_one_process(tiny, tmp_path):
+    """``olsplat record`` saves a session (here: 8 frames of the tiny flight) to a replay log;
+    the graph, as threads of one process (inproc endpoints, one zmq context), aggregates every
+    recorded frame from it."""
+    from olsplat_nodes.cli import main
+
+    scene, _ = tiny
+    log = tmp_path / "session.mcap"
+    assert main(["record", "--source", str(scene / "replay.mcap"), "--out", str(log), "--frames", "8"]) == 0
     run_dir = tmp_path / "run"
-    config = launch_tiny(scene, run_dir, free_port(), "launch.compose=true")
+    config = launch_tiny(scene, run_dir, free_port(), "launch.compose=true", f"ingest.source={log}")
     assert Supervisor(config).run() == 0
     record = latest_map(run_dir / "map")
-    assert record["final"] and record["views"] == summary["views"]
-    assert len(ObservationStore(run_dir / "store", 1).names()) == summary["views"]
+    assert record["final"] and record["views"] == 8
+    assert len(ObservationStore(run_dir / "store", 1).names()) == 8
