@@ -6,7 +6,9 @@ there aggregation has little to correct. This study injects view-specific errors
 view, each region's feature is, with probability ``p``, replaced by the feature of a random
 region of the same view (the encoder "saw something else there"). The confusion of a view is
 seeded by its index, so every method aggregates exactly the same corrupted features. Each
-method is then scored on the scene's annotations as ``olsplat eval`` does.
+method is then scored on the scene's annotations as ``olsplat eval`` does. With ``--features
+2d,2d3d`` each method also runs with the 3D branch (``olsplat eval --features 2d3d``): the
+confusion hits the 2D bank before the fusion, so h_theta is taught by the confused 2D features.
 """
 
 from __future__ import annotations
@@ -35,21 +37,27 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--methods", default="outlangsplat,projection,topk,vala")
     parser.add_argument("--confusion", default="0,0.2,0.4", help="comma-separated probabilities p")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--features", default="2d", help="comma-separated, from: 2d, 2d3d (fused with the 3D branch, lambda_f 0.7)")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
+    from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
     from ..pipeline import Scene, aggregate_scene
     from ..pipeline.offline import method, view_features
+    from ..structure.branch import StructureConfig
 
     scene = Scene.open(args.scene)
     encoder = encoder_from_spec()
     names = [m.strip() for m in args.methods.split(",") if m.strip()]
     for name in names:
         method(name)
+    features = [f.strip() for f in args.features.split(",") if f.strip()]
+    if not features or any(f not in ("2d", "2d3d") for f in features):
+        raise OlsplatInputError(f"--features: comma-separated 2d, 2d3d; got {args.features!r}")
     index = {c.name: i for i, c in enumerate(scene.cameras)}
     print(f"{scene.folder.name}: {len(scene.cameras)} views; p = share of each view's regions given another region's feature")
     for p in (float(x) for x in args.confusion.split(",")):
@@ -58,9 +66,11 @@ def run(args: argparse.Namespace) -> int:
             label_maps, bank = view_features(scene, camera, encoder)
             return label_maps, confuse(bank, p, np.random.default_rng([args.seed, index[camera.name]]))
 
-        for name in names:
+        for name, kind in ((n, f) for n in names for f in features):
+            structure = StructureConfig() if kind == "2d3d" else None
+            label = name if features == ["2d"] else f"{name} {kind}"
             with tempfile.TemporaryDirectory() as tmp:
-                stats = aggregate_scene(scene, name, encoder, Path(tmp), features_of=features_of)
+                stats = aggregate_scene(scene, name, encoder, Path(tmp), features_of=features_of, structure=structure)
                 r = evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
-            print(f"  p {p:4.2f}  {name:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  ({stats['seconds']:.0f} s)", flush=True)
+            print(f"  p {p:4.2f}  {label:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  ({stats['seconds']:.0f} s)", flush=True)
     return 0

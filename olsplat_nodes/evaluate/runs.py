@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 from ..structure.branch import StructureConfig
 
-LAMBDA_2D = (0.5, 0.6, 0.7)
+LAMBDA_2D = (0.5, 0.6, 0.7, 1.0)  # 1.0: the first encoder (cnn64) alone
 LAMBDA_F = (0.6, 0.7, 0.8)
 
 

@@ -20,7 +20,7 @@ def add_parser(subparsers) -> None:
     ev.add_argument("--lambda-f", type=float, default=0.7, help="2D share of the 2D-3D fusion (paper: 0.7)")
     ev.add_argument("--minkunet", type=Path, help="3D branch: a MinkUNet checkpoint (SegContrast layout) instead of geometric descriptors")
     ev.add_argument("--feature-ablation", action="store_true", help="also run the paper's Table 6 (each encoder, 2D fusion, 2D-3D fusion)")
-    ev.add_argument("--fusion-sweep", action="store_true", help="also run the paper's Table 7 (lambda_2D x lambda_f, 9 runs)")
+    ev.add_argument("--fusion-sweep", action="store_true", help="also run the paper's Table 7 (lambda_2D x lambda_f, 12 runs)")
     ev.add_argument("--work", type=Path, help="folder for the per-run maps (default: SCENE/eval)")
     ev.add_argument("--json", type=Path, help="write the results here")
     ev.add_argument("--md", type=Path, help="write the paper's tables (Markdown) here")

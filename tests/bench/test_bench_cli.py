@@ -55,6 +55,11 @@ def test_robustness_benchmark_runs(tiny, tmp_path, capsys):
     shutil.copytree(tiny[0], scene)
     assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5"]) == 0
     assert re.search(r"p 0\.50\s+topk\s+mIoU\s+\d+\.\d", capsys.readouterr().out)
+    assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5", "--features", "2d,2d3d"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"p 0\.50\s+topk 2d\s+mIoU\s+\d+\.\d", out) and re.search(r"p 0\.50\s+topk 2d3d\s+mIoU\s+\d+\.\d", out), out
+    assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--features", "3d"]) == 1
+    assert "--features" in capsys.readouterr().err
 
 
 def test_structure_benchmark_runs(tiny, tmp_path, capsys):

@@ -46,3 +46,20 @@ def test_feature_and_sweep_tables():
     feature_table = text.split("paper Table 6")[1]
     assert "| Metrics | olsplat-cnn64 | 2D-3D fusion |" in feature_table and "| mIoU ↑ | 50.0 | **58.0** |" in feature_table
     assert "lambda_2D" not in text.split("paper Table 6")[0]  # sweep runs stay out of the method tables
+
+
+def test_sweep_includes_the_first_encoder_alone_and_renders_it():
+    from olsplat_nodes.evaluate.runs import LAMBDA_2D, LAMBDA_F, plan_runs
+
+    sweep = [r for r in plan_runs(["outlangsplat"], fusion_sweep=True) if r.kind == "sweep"]
+    assert len(sweep) == len(LAMBDA_2D) * len(LAMBDA_F) and 1.0 in LAMBDA_2D
+    alone = [r for r in sweep if r.weights[0] == 1.0]
+    assert len(alone) == len(LAMBDA_F) and all(r.weights == (1.0, 0.0) and r.structure is not None for r in alone)
+    runs = {}
+    for l2d, lf, miou in ((0.6, 0.7, 66.0), (0.6, 0.8, 66.5), (1.0, 0.7, 67.0), (1.0, 0.8, 67.5)):
+        scores = _scores(miou, 40, 60)
+        scores["run"] = {"kind": "sweep", "weights": [l2d, round(1 - l2d, 6)], "lambda_f": lf}
+        runs[f"lambda_2D={l2d} lambda_f={lf}"] = scores
+    text = paper_tables({"s": runs}).split("paper Table 7")[1]
+    assert "| 0.6 | 0.7/0.8 | 66.0/66.5 | " in text and "| 1 | 0.7/0.8 | 67.0/**67.5** | " in text
+    assert text.index("| 0.6 |") < text.index("| 1 |")  # rows in lambda_2D order
