@@ -15,10 +15,10 @@ from pathlib import Path
 from olsplat_msgs import StatusRequest
 
 from ..transport import NoReply, QueryClient, curve
+from ..transport.diagnostics import LEVEL_NAMES
 from .base import Node
 
 log = logging.getLogger(__name__)
-LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
 
 class GroundMonitorNode(Node):
@@ -44,7 +44,7 @@ class GroundMonitorNode(Node):
                 else:
                     for node in reply.nodes:
                         v = node["values"]
-                        log.info("%-16s %-5s rate %.2f Hz latency %.0f ms drops %d", node["node"], LEVELS.get(node["level"], node["level"]),
+                        log.info("%-16s %-5s rate %.2f Hz latency %.0f ms drops %d", node["node"], LEVEL_NAMES.get(node["level"], node["level"]),
                                  v.get("rate_hz", 0.0), v.get("latency_ms", 0.0), int(v.get("dropped", 0)) + int(v.get("gaps", 0)))
                     path = Path(p["status_file"])
                     tmp = path.with_name(path.name + ".tmp")

@@ -15,24 +15,18 @@ import logging
 import math
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
-from olsplat_msgs import DiagnosticStatus, MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest
+from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest
 
-from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
-from ..pipeline.views import load_views
-from ..query import CANONICAL_NEGATIVES
-from ..query.answer import answer_query, encoder_for_map
-from ..scene import read_ply, select_view
-from ..query.localize import regions_in_view
-from ..transport import QueryServer, Subscriber, curve
+from ..transport import DiagnosticsCollector, QueryServer, Subscriber, curve
 from .base import Node, NodeStats
 from .refiner import latest_map
 
 log = logging.getLogger(__name__)
-STALE = 3
 
 
 def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray | None, seconds: float) -> QueryReply:
@@ -60,7 +54,7 @@ class QueryServerNode(Node):
         "map": "",  # the prior Gaussian map (INRIA PLY)
         "map_dir": "{run_dir}/map",
         "views": "{run_dir}/views",
-        "negatives": ["object", "things", "stuff", "texture"],  # query.CANONICAL_NEGATIVES  # texts a query must beat, unless the request names its own
+        "negatives": ["object", "things", "stuff", "texture"],  # query.CANONICAL_NEGATIVES: texts a query must beat, unless the request names its own
         "query_endpoint": "tcp://127.0.0.1:5600",
         "diagnostics_bind": "ipc://{run_dir}/diagnostics.sock",
         "map_in": "ipc://{run_dir}/map.sock",
@@ -79,13 +73,13 @@ class QueryServerNode(Node):
         self.gaussians = read_ply(p["map"])
         self.language_map, self.version, self.encoders = None, 0, {}
         self.stats = NodeStats()
-        self.nodes: dict[str, tuple[float, dict]] = {}  # node -> (monotonic arrival, status dict)
+        self.views: list = []  # pipeline.views.SavedView, re-read when the run's views folder grows
         keys = curve.ServerKeys(p["server_secret"], p["allow_dir"]) if p["server_secret"] else None
         opened = []  # closed on the way out, also when opening a later one fails
         try:
             server = QueryServer(self.context, p["query_endpoint"], keys=keys)
             opened.append(server)
-            collector = Subscriber(self.context, [p["diagnostics_bind"]], [p["topic_diagnostics"]], hwm=1000, bind=True)
+            collector = DiagnosticsCollector(self.context, p["diagnostics_bind"], p["stale_after_s"], topic=p["topic_diagnostics"])
             opened.append(collector)
             maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
             opened.append(maps)
@@ -98,11 +92,7 @@ class QueryServerNode(Node):
                 if request is not None:
                     identity, message = request
                     server.reply(identity, self._answer(message))
-                for _, status in collector.drain(0):
-                    if isinstance(status, DiagnosticStatus):
-                        self.nodes[status.node] = (time.monotonic(), status)
-                    else:
-                        self._unexpected(status, p["topic_diagnostics"])
+                collector.poll(0)
                 announced = []
                 for _, update in maps.drain(0):
                     if isinstance(update, MapUpdated):
@@ -184,7 +174,9 @@ class QueryServerNode(Node):
         if self.language_map is None:
             return refuse("no_map", "no map yet: no view has been aggregated and refined")
         try:
-            views = load_views(self.params["views"])
+            if len(self.views) != sum(1 for _ in Path(self.params["views"]).glob("*.json")):
+                self.views = load_views(self.params["views"])  # views are only ever added
+            views = self.views
             camera = select_view([v.camera for v in views], request.view) if request.view else None
             image = views[[v.camera for v in views].index(camera)].image() if camera is not None else None
             encoder_name = self.language_map.encoder
@@ -215,14 +207,11 @@ class QueryServerNode(Node):
             **{f"diagnostics_{k}": collector.stats[k] for k in ("received", "bad_messages", "gaps")},
             **{f"map_{k}": maps.stats[k] for k in ("received", "bad_messages", "gaps", "reconnects")},
         )
-        values["bad_messages"] = self.stats.counts["bad_messages"] + server.stats["bad_requests"] + collector.stats["bad_messages"] + maps.stats["bad_messages"]
+        values["bad_messages"] = (self.stats.counts["bad_messages"] + server.stats["bad_requests"] + collector.stats["bad_messages"]
+                                  + collector.stats["unexpected"] + maps.stats["bad_messages"])
         return values
 
     def _statuses(self) -> list[dict]:
-        now = time.monotonic()
-        out = [{"node": self.name, "level": 0, "message": f"map version {self.version}", "values": self._values(), "age_s": 0.0}]
-        for name, (arrived, status) in sorted(self.nodes.items()):
-            age = now - arrived
-            level = STALE if age > self.params["stale_after_s"] else status.level
-            out.append({"node": name, "level": level, "message": status.message, "values": status.values, "age_s": round(age, 2)})
-        return out
+        """This node's own status first, then every other node's latest (STALE when silent)."""
+        own = {"node": self.name, "level": 0, "message": f"map version {self.version}", "values": self._values(), "age_s": 0.0}
+        return [own, *self._transport[1].nodes()]

@@ -82,6 +82,7 @@ class RefinerNode(Node):
         self.version = previous["version"] if previous else 0
         self.record = previous
         self.features = None  # a restarted refiner recomputes everything once
+        self.observed = None
         self.views_done = 0
         stats = NodeStats()
         seqs = SequenceCounter()
@@ -148,7 +149,7 @@ class RefinerNode(Node):
         self.features, observed = self.store.refine(self.features, self.config, only_touched=self.features is not None)
         if self.features is None:
             return
-        if getattr(self, "observed", None) is not None:
+        if self.observed is not None:
             observed |= self.observed  # Gaussians outside this pass keep their state
         self.observed = observed
         self.views_done = views

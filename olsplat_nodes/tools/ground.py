@@ -11,7 +11,7 @@ import sys
 import uuid
 from pathlib import Path
 
-LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
+from ..transport.diagnostics import LEVEL_NAMES
 
 
 def add_parser(subparsers) -> None:
@@ -75,7 +75,7 @@ def print_status(reply, as_json: bool) -> int:
     for node in reply.nodes:
         v = node.get("values", {})
         print(
-            f"  {node['node']:16s} {LEVELS.get(node['level'], node['level']):5s} age {node['age_s']:5.1f} s  "
+            f"  {node['node']:16s} {LEVEL_NAMES.get(node['level'], node['level']):5s} age {node['age_s']:5.1f} s  "
             f"rate {v.get('rate_hz', 0):5.2f} Hz  latency {v.get('latency_ms', 0):8.1f} ms  "
             f"handled {v.get('handled', 0):5d}  drops {v.get('dropped', 0) + v.get('gaps', 0):4d}  bad {v.get('bad_messages', 0):3d}  {node['message']}"
         )

@@ -4,6 +4,7 @@ owned by the query server), which keeps the latest status per node and marks sil
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from typing import Any, Mapping
 
@@ -14,7 +15,9 @@ from olsplat_msgs import DiagnosticStatus, encode
 from ._sockets import attach, make_socket
 from .pubsub import Subscriber
 
+log = logging.getLogger(__name__)
 DIAGNOSTICS_TOPIC = "diagnostics"
+LEVEL_NAMES = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR", DiagnosticStatus.STALE: "STALE"}
 
 
 class Diagnostics:
@@ -76,16 +79,22 @@ class DiagnosticsCollector:
         self.subscriber = Subscriber(context, endpoint, [topic], hwm=hwm, bind=True, max_bytes=max_bytes)
         self.endpoint = self.subscriber.endpoint
         self._latest: dict[str, tuple[DiagnosticStatus, float]] = {}
+        self.unexpected = 0  # well-formed messages of another type on the diagnostics topic
 
     @property
     def stats(self) -> dict[str, int]:
-        return self.subscriber.stats
+        """The subscriber's counters plus ``unexpected`` (other message types, dropped)."""
+        return {**self.subscriber.stats, "unexpected": self.unexpected}
 
     def poll(self, timeout_ms: float | None = 0) -> int:
         """Take every status queued now (waiting up to ``timeout_ms`` for the first); returns how many."""
         received = self.subscriber.drain(timeout_ms)
         now = time.monotonic()
-        for _topic, status in received:
+        for topic, status in received:
+            if not isinstance(status, DiagnosticStatus):
+                self.unexpected += 1
+                log.warning("unexpected %s on %s: dropped", type(status).__name__, topic)
+                continue
             self._latest[status.node] = (status, now)
         return len(received)
 
