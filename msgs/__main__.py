@@ -11,8 +11,12 @@ from .schema import header_table, message_tables, update_readme
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m olsplat_msgs", description="print or update the README tables generated from schema.yaml")
-    parser.add_argument("--update", type=Path, metavar="README", help="rewrite the generated blocks of this file in place")
+    parser = argparse.ArgumentParser(
+        prog="python -m olsplat_msgs", description="print or update the README tables generated from schema.yaml"
+    )
+    parser.add_argument(
+        "--update", type=Path, metavar="README", help="rewrite the generated blocks of this file in place"
+    )
     args = parser.parse_args(argv)
     if args.update is None:
         print(header_table() + "\n" + message_tables(), end="")

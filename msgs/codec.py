@@ -14,7 +14,8 @@ the frames alive as long as they are referenced.
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -55,7 +56,9 @@ def _array_to_wire(spec: FieldSpec, value: Any, where: str) -> np.ndarray | None
 
 def _check_shape(spec: FieldSpec, shape: Sequence[int], where: str, error: type[Exception]) -> None:
     if len(shape) != len(spec.shape):
-        raise error(f"{where}: rank {len(shape)} (shape {list(shape)}), schema wants rank {len(spec.shape)} {list(spec.shape)}")
+        raise error(
+            f"{where}: rank {len(shape)} (shape {list(shape)}), schema wants rank {len(spec.shape)} {list(spec.shape)}"
+        )
     for axis, (got, want) in enumerate(zip(shape, spec.shape)):
         if isinstance(want, int) and got != want:
             raise error(f"{where}: shape {list(shape)}, axis {axis} must be {want} (schema {list(spec.shape)})")
@@ -89,7 +92,9 @@ def encode(msg: Any, topic: str) -> list[bytes]:
         "stamp_ns": _common_int(msg.stamp_ns, f"{spec.name}.stamp_ns", True),
         "seq": _common_int(msg.seq, f"{spec.name}.seq", True),
         "frame_id": msg.frame_id,
-        "fields": {f.name: field_value(f, getattr(msg, f.name), f"{spec.name}.{f.name}", True) for f in spec.scalar_fields},
+        "fields": {
+            f.name: field_value(f, getattr(msg, f.name), f"{spec.name}.{f.name}", True) for f in spec.scalar_fields
+        },
     }
     entries, buffers = [], []
     for f in spec.array_fields:
@@ -108,7 +113,9 @@ def _byte_views(frames: Any) -> list[memoryview]:
     try:
         frames = list(frames)
     except TypeError:
-        raise MalformedMessage(f"frames must be a sequence of bytes-like objects, got {type(frames).__name__}") from None
+        raise MalformedMessage(
+            f"frames must be a sequence of bytes-like objects, got {type(frames).__name__}"
+        ) from None
     views = []
     for i, frame in enumerate(frames):
         try:
@@ -139,11 +146,15 @@ def _array_from_wire(spec: FieldSpec, entry: Any, view: memoryview, where: str) 
     if not isinstance(entry, dict) or set(entry) != {"name", "dtype", "shape"}:
         raise MalformedMessage(f"{where}: array entry must be a map with keys name, dtype, shape; got {entry!r:.120}")
     if entry["name"] != spec.name:
-        raise MalformedMessage(f"{where}: array entry named {entry['name']!r:.40}, expected {spec.name!r} (schema order)")
+        raise MalformedMessage(
+            f"{where}: array entry named {entry['name']!r:.40}, expected {spec.name!r} (schema order)"
+        )
     dtype, shape = entry["dtype"], entry["shape"]
     if dtype is None or shape is None:
         if dtype is not None or shape is not None:
-            raise MalformedMessage(f"{where}: dtype and shape must both be nil for a None array, got {dtype!r:.40} / {shape!r:.40}")
+            raise MalformedMessage(
+                f"{where}: dtype and shape must both be nil for a None array, got {dtype!r:.40} / {shape!r:.40}"
+            )
         if not spec.optional:
             raise MalformedMessage(f"{where}: nil (None), but the array is required")
         if view.nbytes:
@@ -156,13 +167,17 @@ def _array_from_wire(spec: FieldSpec, entry: Any, view: memoryview, where: str) 
         raise MalformedMessage(f"{where}: dtype {dtype!r:.20} is not a wire dtype ({', '.join(sorted(_WIRE_DTYPES))})")
     if dtype not in spec.dtypes:
         raise MalformedMessage(f"{where}: dtype {dtype!r} not allowed, expected {_dtype_names(spec.dtypes)}")
-    if not isinstance(shape, list) or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= INT64_MAX for s in shape):
+    if not isinstance(shape, list) or not all(
+        isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= INT64_MAX for s in shape
+    ):
         raise MalformedMessage(f"{where}: shape must be a list of non-negative ints, got {shape!r:.80}")
     _check_shape(spec, shape, where, MalformedMessage)
     itemsize = np.dtype(dtype).itemsize
     expected = math.prod(shape) * itemsize
     if expected != view.nbytes:
-        raise MalformedMessage(f"{where}: frame has {view.nbytes} bytes, dtype {dtype} x shape {shape} needs {expected}")
+        raise MalformedMessage(
+            f"{where}: frame has {view.nbytes} bytes, dtype {dtype} x shape {shape} needs {expected}"
+        )
     array = np.frombuffer(view, dtype=dtype).reshape(shape)
     array.flags.writeable = False  # a view of the receive buffer: writing would corrupt (or fault on) shared memory
     return array
@@ -202,7 +217,9 @@ def decode(frames: Sequence[Any], max_bytes: int = DEFAULT_MAX_BYTES) -> tuple[s
         raise MalformedMessage(f"{spec.name} header: missing keys {missing}, unexpected keys {extra}")
     expected_frames = 2 + len(spec.array_fields)
     if len(views) != expected_frames:
-        raise MalformedMessage(f"{spec.name}: expected {expected_frames} frames (topic, header, {len(spec.array_fields)} arrays), got {len(views)}")
+        raise MalformedMessage(
+            f"{spec.name}: expected {expected_frames} frames (topic, header, {len(spec.array_fields)} arrays), got {len(views)}"
+        )
     values: dict[str, Any] = {
         "stamp_ns": _common_int(header["stamp_ns"], f"{spec.name}.stamp_ns", False),
         "seq": _common_int(header["seq"], f"{spec.name}.seq", False),
@@ -221,7 +238,9 @@ def decode(frames: Sequence[Any], max_bytes: int = DEFAULT_MAX_BYTES) -> tuple[s
         values[f.name] = field_value(f, fields[f.name], f"{spec.name}.{f.name}", False)
     entries = header["arrays"]
     if not isinstance(entries, list) or len(entries) != len(spec.array_fields):
-        raise MalformedMessage(f"{spec.name} header: 'arrays' must list {len(spec.array_fields)} entries, got {entries!r:.120}")
+        raise MalformedMessage(
+            f"{spec.name} header: 'arrays' must list {len(spec.array_fields)} entries, got {entries!r:.120}"
+        )
     for i, (f, entry) in enumerate(zip(spec.array_fields, entries)):
         values[f.name] = _array_from_wire(f, entry, views[2 + i], f"{spec.name}.{f.name}")
     return topic, MESSAGES[name](**values)

@@ -159,12 +159,29 @@ class DiagnosticStatus:
     values: dict = field(default_factory=dict)  # str -> int | float | str
 
 
-MESSAGE_CLASSES = (ImageFrame, EndOfStream, RegionFeatures, ObservationsAdded, MapUpdated,
-                   QueryRequest, QueryReply, StatusRequest, StatusReply, DiagnosticStatus)
+MESSAGE_CLASSES = (
+    ImageFrame,
+    EndOfStream,
+    RegionFeatures,
+    ObservationsAdded,
+    MapUpdated,
+    QueryRequest,
+    QueryReply,
+    StatusRequest,
+    StatusReply,
+    DiagnosticStatus,
+)
 MESSAGES: dict[str, type] = {f"olsplat_msgs/{cls.__name__}": cls for cls in MESSAGE_CLASSES}
 
-_ANNOTATIONS = {"str": "str", "int": "int", "float": "float", "bool": "bool",
-                "list[str]": "list[str]", "list[dict]": "list[dict]", "dict": "dict"}
+_ANNOTATIONS = {
+    "str": "str",
+    "int": "int",
+    "float": "float",
+    "bool": "bool",
+    "list[str]": "list[str]",
+    "list[dict]": "list[dict]",
+    "dict": "dict",
+}
 
 
 def _same_default(a, b) -> bool:
@@ -177,7 +194,9 @@ def check_against_schema() -> list[str]:
     schema = load_schema()
     problems = []
     if list(MESSAGES) != [m.schema_name for m in schema.messages.values()]:
-        problems.append(f"messages differ: classes {list(MESSAGES)}, schema {[m.schema_name for m in schema.messages.values()]}")
+        problems.append(
+            f"messages differ: classes {list(MESSAGES)}, schema {[m.schema_name for m in schema.messages.values()]}"
+        )
     for cls in MESSAGE_CLASSES:
         spec = schema.messages.get(cls.__name__)
         if spec is None:

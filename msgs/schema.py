@@ -98,8 +98,16 @@ def _field(raw: dict, dtypes: dict[str, str], where: str) -> FieldSpec:
         bad = [d for d in raw["dtype"] if d not in dtypes]
         if bad or not raw["dtype"] or not raw["shape"]:
             raise ValueError(f"schema.yaml {where}.{raw['name']}: bad dtype {raw['dtype']} or shape {raw.get('shape')}")
-        return FieldSpec(raw["name"], kind, raw["description"], bool(raw.get("optional", False)),
-                         None, None, tuple(dtypes[d] for d in raw["dtype"]), tuple(raw["shape"]))
+        return FieldSpec(
+            raw["name"],
+            kind,
+            raw["description"],
+            bool(raw.get("optional", False)),
+            None,
+            None,
+            tuple(dtypes[d] for d in raw["dtype"]),
+            tuple(raw["shape"]),
+        )
     if kind in ("list[str]", "list[dict]", "dict"):
         if "default" in raw:
             raise ValueError(f"schema.yaml {where}.{raw['name']}: containers always default to empty")
@@ -165,8 +173,14 @@ def message_tables() -> str:
     schema = load_schema()
     lines = []
     for msg in schema.messages.values():
-        lines += [f"### {msg.name}", "", f'Schema `"{msg.schema_name}"`. {msg.description}', "",
-                  "| # | field | type | default | where | description |", "|---|---|---|---|---|---|"]
+        lines += [
+            f"### {msg.name}",
+            "",
+            f'Schema `"{msg.schema_name}"`. {msg.description}',
+            "",
+            "| # | field | type | default | where | description |",
+            "|---|---|---|---|---|---|",
+        ]
         array_index = 0
         for i, f in enumerate([*schema.common, *msg.fields]):
             if f.is_array:
@@ -175,7 +189,9 @@ def message_tables() -> str:
             else:
                 where = "header" if i < len(schema.common) else "header.fields"
             choices = f" (one of {', '.join(map(str, f.choices))})" if f.choices else ""
-            lines.append(f"| {i} | `{f.name}` | {_cell(f.type_text())} | {_cell(_default_text(f))} | {where} | {_cell(f.description + choices)} |")
+            lines.append(
+                f"| {i} | `{f.name}` | {_cell(f.type_text())} | {_cell(_default_text(f))} | {where} | {_cell(f.description + choices)} |"
+            )
         lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 
@@ -184,14 +200,16 @@ GENERATED_BLOCKS = {"header": header_table, "messages": message_tables}
 
 
 def _markers(block: str) -> tuple[str, str]:
-    return (f"<!-- BEGIN GENERATED: {block} (python -m olsplat_msgs --update msgs/README.md) -->",
-            f"<!-- END GENERATED: {block} -->")
+    return (
+        f"<!-- BEGIN GENERATED: {block} (python -m olsplat_msgs --update msgs/README.md) -->",
+        f"<!-- END GENERATED: {block} -->",
+    )
 
 
 def readme_block(text: str, block: str) -> str:
     """The content of a generated block of a README (between its markers, exclusive)."""
     begin, end = _markers(block)
-    return text[text.index(begin) + len(begin):text.index(end)].strip("\n") + "\n"
+    return text[text.index(begin) + len(begin) : text.index(end)].strip("\n") + "\n"
 
 
 def update_readme(text: str) -> str:

@@ -20,7 +20,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="olsplat", description="open-vocabulary 3D scene understanding for UAVs")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (render, demo, sim, encode, aggregate, evaluate, query, launch, ground, keys, export_clip, bench, record):
+    for module in (
+        render,
+        demo,
+        sim,
+        encode,
+        aggregate,
+        evaluate,
+        query,
+        launch,
+        ground,
+        keys,
+        export_clip,
+        bench,
+        record,
+    ):
         module.add_parser(subparsers)
     return parser
 

@@ -64,7 +64,9 @@ def write_png(path, image: np.ndarray) -> None:
         raise OSError(f"{path}: cannot write the image (bad folder or extension?)")
 
 
-def query_pictures(image_rgb: np.ndarray, heatmap: np.ndarray, valid: np.ndarray, mask: np.ndarray, boxes) -> tuple[np.ndarray, np.ndarray]:
+def query_pictures(
+    image_rgb: np.ndarray, heatmap: np.ndarray, valid: np.ndarray, mask: np.ndarray, boxes
+) -> tuple[np.ndarray, np.ndarray]:
     """(heatmap overlay, mask overlay) as [H, W, 3] uint8 BGR: the view's photo [H, W, 3] RGB
     blended with the cosine heatmap [H, W] (turbo over the view's 1st..99th percentile: compact
     encoders give every text a high cosine, so a fixed -1..1 scale shows little; black where

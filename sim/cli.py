@@ -22,7 +22,9 @@ def add_parser(subparsers) -> None:
     make.add_argument("--gaussians", type=int, help="override the preset's number of Gaussians")
     make.add_argument("--rate", type=float, default=1.0, metavar="HZ", help="frame rate of the flight (default 1)")
     make.add_argument("--fov", type=float, default=50.0, metavar="DEG", help="horizontal field of view (default 50)")
-    make.add_argument("--motion-blur", type=float, default=0.0, metavar="SECONDS", help="shutter time for motion blur (0: none)")
+    make.add_argument(
+        "--motion-blur", type=float, default=0.0, metavar="SECONDS", help="shutter time for motion blur (0: none)"
+    )
     make.add_argument("--no-pose-noise", action="store_true", help="write the true poses to sparse/0 and the log")
     make.set_defaults(run=run_make)
 
@@ -60,9 +62,13 @@ def run_make(args: argparse.Namespace) -> int:
     if any(v <= 0 for v in changes.values()):
         raise OlsplatInputError(f"--views and --gaussians must be positive, got {changes}")
     if args.rate <= 0 or not 5.0 <= args.fov <= 150.0 or args.motion_blur < 0:
-        raise OlsplatInputError(f"need --rate > 0, 5 <= --fov <= 150, --motion-blur >= 0; got {args.rate}, {args.fov}, {args.motion_blur}")
+        raise OlsplatInputError(
+            f"need --rate > 0, 5 <= --fov <= 150, --motion-blur >= 0; got {args.rate}, {args.fov}, {args.motion_blur}"
+        )
     preset = dataclasses.replace(preset, **changes)
-    recon = ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
+    recon = (
+        ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
+    )
     options = MakeOptions(SensorSpec(blur_exposure_s=args.motion_blur), recon, rate_hz=args.rate, fov_deg=args.fov)
     make_dataset(preset, args.seed, args.out, options)
     return 0
@@ -112,7 +118,9 @@ def run_zeroshot(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise OlsplatInputError(str(exc)) from None
     counts = results.pop("_counts")
-    print(f"held-out seeds {args.seeds}, {args.views} views each, {int(counts.sum())} regions; queries: {label_queries()}")
+    print(
+        f"held-out seeds {args.seeds}, {args.views} views each, {int(counts.sum())} regions; queries: {label_queries()}"
+    )
     short = [label.replace(" buildings", "") for label in LABELS]
     print(f"{'encoder':26s} {'accuracy':>8s} {'balanced':>8s}  " + " ".join(f"{s[:9]:>9s}" for s in short))
     print(f"{'(regions per label)':26s} {'':>8s} {'':>8s}  " + " ".join(f"{int(c):>9d}" for c in counts))

@@ -37,7 +37,9 @@ class FlightFrame:
     kind: str  # "nadir", "oblique" or "orbit"
 
 
-def _lawnmower(n: int, extent: float, altitude: float, pitch: float, rng) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _lawnmower(
+    n: int, extent: float, altitude: float, pitch: float, rng
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """n (eye, target, up) on boustrophedon lines whose view centres cover [-extent, extent]^2.
 
     The camera looks ``pitch`` from nadir, forwards along its track; the point it looks at

@@ -131,9 +131,20 @@ class _Builder:
         color = roof_color or rng.choice(list(ROOF_COLORS), p=[0.32, 0.18, 0.2, 0.3])
         along_x = (box[2] - box[0]) >= (box[3] - box[1])
         short = min(box[2] - box[0], box[3] - box[1])
-        wall = rng.choice([(0.86, 0.83, 0.76), (0.78, 0.74, 0.66), (0.70, 0.70, 0.70), (0.74, 0.56, 0.45), (0.9, 0.9, 0.88)])
+        wall = rng.choice(
+            [(0.86, 0.83, 0.76), (0.78, 0.74, 0.66), (0.70, 0.70, 0.70), (0.74, 0.56, 0.45), (0.9, 0.9, 0.88)]
+        )
         self.layout.buildings.append(
-            Building(boxes, eave, roof, along_x, 0.5 * short * np.tan(np.radians(rng.uniform(25, 38))), str(color), tuple(wall), self.instance())
+            Building(
+                boxes,
+                eave,
+                roof,
+                along_x,
+                0.5 * short * np.tan(np.radians(rng.uniform(25, 38))),
+                str(color),
+                tuple(wall),
+                self.instance(),
+            )
         )
         return True
 
@@ -141,13 +152,33 @@ class _Builder:
         rng = self.rng
         radius = radius or rng.uniform(2.0, 4.8)
         green = np.array([0.17, 0.33, 0.12]) * rng.uniform(0.75, 1.25) + rng.uniform(-0.03, 0.03, 3)
-        self.layout.trees.append(Tree(x, y, radius, radius + rng.uniform(2.5, 6.0), tuple(np.clip(green, 0, 1)), self.instance()))
+        self.layout.trees.append(
+            Tree(x, y, radius, radius + rng.uniform(2.5, 6.0), tuple(np.clip(green, 0, 1)), self.instance())
+        )
 
     def car(self, x, y, along_x) -> None:
         rng = self.rng
-        palette = [(0.85, 0.85, 0.85), (0.1, 0.1, 0.11), (0.55, 0.56, 0.58), (0.6, 0.08, 0.07), (0.1, 0.2, 0.5), (0.92, 0.92, 0.9)]
+        palette = [
+            (0.85, 0.85, 0.85),
+            (0.1, 0.1, 0.11),
+            (0.55, 0.56, 0.58),
+            (0.6, 0.08, 0.07),
+            (0.1, 0.2, 0.5),
+            (0.92, 0.92, 0.9),
+        ]
         rgb = np.array(palette[rng.integers(len(palette))]) * rng.uniform(0.9, 1.1)
-        self.layout.cars.append(Car(x, y, along_x, rng.uniform(4.0, 4.9), rng.uniform(1.7, 1.95), rng.uniform(1.4, 1.6), tuple(np.clip(rgb, 0, 1)), self.instance()))
+        self.layout.cars.append(
+            Car(
+                x,
+                y,
+                along_x,
+                rng.uniform(4.0, 4.9),
+                rng.uniform(1.7, 1.95),
+                rng.uniform(1.4, 1.6),
+                tuple(np.clip(rgb, 0, 1)),
+                self.instance(),
+            )
+        )
 
 
 def _fill_residential(b: _Builder, block, ground) -> None:
@@ -170,7 +201,9 @@ def _fill_residential(b: _Builder, block, ground) -> None:
                 box = (x1 - t - w, y1 - setback - d, x1 - t, y1 - setback)
             else:
                 box = (x0 + setback, y1 - t - w, x0 + setback + d, y1 - t)
-            b.building(box, rng.uniform(3.0, 7.5), "gable" if rng.random() < 0.75 else "flat", l_shape=rng.random() < 0.25)
+            b.building(
+                box, rng.uniform(3.0, 7.5), "gable" if rng.random() < 0.75 else "flat", l_shape=rng.random() < 0.25
+            )
             t += w + rng.uniform(2.5, 6)
     for _ in range(int((x1 - x0) * (y1 - y0) / 120)):  # back-garden houses where they fit
         w, d = rng.uniform(8, 12, 2)
@@ -272,7 +305,11 @@ def _roads(b: _Builder, ground) -> None:
             for side in (-1, 1):
                 t = other + side * 10.0
                 for k in np.arange(-hw + 0.6, hw - 0.6, 1.0):
-                    stripe = (t - 1.5, c + k, t + 1.5, c + k + 0.5) if axis == "x" else (c + k, t - 1.5, c + k + 0.5, t + 1.5)
+                    stripe = (
+                        (t - 1.5, c + k, t + 1.5, c + k + 0.5)
+                        if axis == "x"
+                        else (c + k, t - 1.5, c + k + 0.5, t + 1.5)
+                    )
                     layout.markings[_to_cells(stripe, size_m, n)] = True
         # street trees on the pavement of some roads
         if rng.random() < 0.6:
@@ -308,10 +345,17 @@ def _shadows(layout: Layout) -> np.ndarray:
             cast(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), building.top)
     for tree in layout.trees:
         centre = np.array([tree.x, tree.y]) + run * tree.centre_z
-        cv2.ellipse(shadow, tuple(int(v) for v in to_px(centre)), (int(tree.radius / GROUND_RES),) * 2, 0, 0, 360, 1.0, -1)
+        cv2.ellipse(
+            shadow, tuple(int(v) for v in to_px(centre)), (int(tree.radius / GROUND_RES),) * 2, 0, 0, 360, 1.0, -1
+        )
     for car in layout.cars:
         hl, hw = (car.length / 2, car.width / 2) if car.along_x else (car.width / 2, car.length / 2)
-        cast(np.array([[car.x - hl, car.y - hw], [car.x + hl, car.y - hw], [car.x + hl, car.y + hw], [car.x - hl, car.y + hw]]), car.height)
+        cast(
+            np.array(
+                [[car.x - hl, car.y - hw], [car.x + hl, car.y - hw], [car.x + hl, car.y + hw], [car.x - hl, car.y + hw]]
+            ),
+            car.height,
+        )
     return cv2.GaussianBlur(shadow, (0, 0), 0.35 / GROUND_RES)
 
 
@@ -320,7 +364,9 @@ def generate_layout(size_m: float, rng: np.random.Generator) -> Layout:
     roads = [("y", x, rng.uniform(3.5, 6.0)) for x in _road_lines(size_m, rng)]
     roads += [("x", y, rng.uniform(3.5, 6.0)) for y in _road_lines(size_m, rng)]
     n = int(round(size_m / GROUND_RES))
-    layout = Layout(size_m, roads, ground=np.full((n, n), CATEGORY["bare ground"], np.uint8), markings=np.zeros((n, n), bool))
+    layout = Layout(
+        size_m, roads, ground=np.full((n, n), CATEGORY["bare ground"], np.uint8), markings=np.zeros((n, n), bool)
+    )
     builder = _Builder(layout, rng)
     half = size_m / 2
     xs = [-half] + sorted(c for a, c, _ in roads if a == "y") + [half]
@@ -339,7 +385,11 @@ def generate_layout(size_m: float, rng: np.random.Generator) -> Layout:
                 blocks.append(block)
     # every kind of block appears (as far as there are blocks), the rest are drawn at random
     kinds = ["residential", "parking", "residential", "commercial", "park"][: len(blocks)]
-    kinds += list(rng.choice(["residential", "commercial", "park", "parking"], p=[0.66, 0.16, 0.08, 0.1], size=len(blocks) - len(kinds)))
+    kinds += list(
+        rng.choice(
+            ["residential", "commercial", "park", "parking"], p=[0.66, 0.16, 0.08, 0.1], size=len(blocks) - len(kinds)
+        )
+    )
     fill = {"residential": _fill_residential, "commercial": _fill_commercial, "park": _fill_park}
     for block, kind in zip(blocks, rng.permutation(kinds)):
         if kind == "parking":

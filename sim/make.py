@@ -76,7 +76,12 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
     log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
         f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x {preset.size_m:.0f} m")  # fmt: skip
     spec = FlightSpec(
-        preset.n_views, preset.width, preset.height, fov_deg=options.fov_deg, altitude_m=preset.altitude_m, rate_hz=options.rate_hz
+        preset.n_views,
+        preset.width,
+        preset.height,
+        fov_deg=options.fov_deg,
+        altitude_m=preset.altitude_m,
+        rate_hz=options.rate_hz,
     )
     frames = plan_flight(preset.size_m, spec, flight_rng)
     gains = exposure_gains(len(frames), options.sensor, sensor_rng)
@@ -87,8 +92,12 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
     write_colmap(out / "sparse" / "0", sfm_cameras, binary=False)
     write_colmap(out / "truth" / "true_poses", [f.camera for f in frames], binary=False)
     write_ply(out / "truth" / "ground_truth.ply", truth.gaussians)
-    np.savez_compressed(out / "truth" / "map_labels.npz", category=recon.category, instance=recon.instance, label=recon.label)
-    np.savez_compressed(out / "truth" / "ground_truth_labels.npz", category=truth.category, instance=truth.instance, label=truth.label)
+    np.savez_compressed(
+        out / "truth" / "map_labels.npz", category=recon.category, instance=recon.instance, label=recon.label
+    )
+    np.savez_compressed(
+        out / "truth" / "ground_truth_labels.npz", category=truth.category, instance=truth.instance, label=truth.label
+    )
     (out / "truth" / "labels.json").write_text(json.dumps({"categories": CATEGORIES, "labels": LABELS}, indent=2))
     log(f"map: {len(recon.gaussians):,} Gaussians -> {out / 'map' / 'point_cloud.ply'}")
 
@@ -104,7 +113,9 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
             image = to_uint8(apply_sensor(rgb, gains[i], options.sensor, sensor_rng))
             jpeg = encode_jpeg(image, options.jpeg_quality)
             (out / "images" / frame.camera.name).write_bytes(jpeg)
-            labels, instances = label_maps(result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance)
+            labels, instances = label_maps(
+                result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance
+            )
             doc = annotate_view(labels, instances, f"../images/{frame.camera.name}")
             (out / "annotations" / (Path(frame.camera.name).stem + ".json")).write_text(json.dumps(doc))
             for shape in doc["shapes"]:
@@ -128,7 +139,11 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
 
     cv2.imwrite(str(out / "preview" / "contact_sheet.jpg"), contact_sheet(previews), [cv2.IMWRITE_JPEG_QUALITY, 90])
     kinds = [(f.kind, f.camera) for f in frames]
-    cv2.imwrite(str(out / "preview" / "overview.jpg"), overview(truth.gaussians, preset.size_m, kinds, background=BACKGROUND), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    cv2.imwrite(
+        str(out / "preview" / "overview.jpg"),
+        overview(truth.gaussians, preset.size_m, kinds, background=BACKGROUND),
+        [cv2.IMWRITE_JPEG_QUALITY, 90],
+    )
 
     summary = {
         "preset": asdict(preset),

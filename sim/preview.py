@@ -46,13 +46,20 @@ def legend(width: int) -> np.ndarray:
     return strip
 
 
-def contact_sheet(tiles: list[tuple[str, np.ndarray, np.ndarray]], columns: int = 3, tile_width: int = 480) -> np.ndarray:
+def contact_sheet(
+    tiles: list[tuple[str, np.ndarray, np.ndarray]], columns: int = 3, tile_width: int = 480
+) -> np.ndarray:
     """tiles: (caption, frame BGR, overlay BGR) -> one BGR image, frames above their overlays."""
     cells = []
     for caption, frame, annotated in tiles:
         scale = tile_width / frame.shape[1]
         size = (tile_width, int(round(frame.shape[0] * scale)))
-        pair = np.concatenate([cv2.resize(frame, size, interpolation=cv2.INTER_AREA), cv2.resize(annotated, size, interpolation=cv2.INTER_AREA)])
+        pair = np.concatenate(
+            [
+                cv2.resize(frame, size, interpolation=cv2.INTER_AREA),
+                cv2.resize(annotated, size, interpolation=cv2.INTER_AREA),
+            ]
+        )
         cv2.putText(pair, caption, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 2, cv2.LINE_AA)
         cells.append(np.pad(pair, ((2, 2), (2, 2), (0, 0))))
     while len(cells) % columns:
@@ -62,7 +69,9 @@ def contact_sheet(tiles: list[tuple[str, np.ndarray, np.ndarray]], columns: int 
     return np.concatenate([sheet, legend(sheet.shape[1])], axis=0)
 
 
-def overview(gaussians, size_m: float, cameras: list[tuple[str, Camera]], pixels: int = 1024, background=(0.45, 0.43, 0.38)) -> np.ndarray:
+def overview(
+    gaussians, size_m: float, cameras: list[tuple[str, Camera]], pixels: int = 1024, background=(0.45, 0.43, 0.38)
+) -> np.ndarray:
     """Top-down BGR picture of the map with the flight's view centres on it.
 
     A view centre is where the camera's optical axis meets the ground (z = 0): for a nadir view
@@ -71,7 +80,13 @@ def overview(gaussians, size_m: float, cameras: list[tuple[str, Camera]], pixels
     fov = np.radians(30.0)
     altitude = 0.55 * size_m / np.tan(fov / 2) + 40.0
     focal = 0.5 * pixels / np.tan(fov / 2)
-    top = Camera("overview", pixels, pixels, intrinsics(focal, focal, pixels / 2, pixels / 2), look_at([0, 0, altitude], [0, 1e-6, 0], (0, 1, 0)))
+    top = Camera(
+        "overview",
+        pixels,
+        pixels,
+        intrinsics(focal, focal, pixels / 2, pixels / 2),
+        look_at([0, 0, altitude], [0, 1e-6, 0], (0, 1, 0)),
+    )
     image = rasterize(gaussians, top, want_topk=False, background=background).rgb
     out = np.ascontiguousarray((np.clip(image[..., ::-1], 0, 1) * 255).astype(np.uint8))
     colors = {"nadir": (0, 200, 255), "oblique": (255, 160, 0), "orbit": (255, 0, 200)}
@@ -88,5 +103,14 @@ def overview(gaussians, size_m: float, cameras: list[tuple[str, Camera]], pixels
         previous = (kind, uv)
     for i, (kind, color) in enumerate(colors.items()):
         cv2.circle(out, (16, 18 + 20 * i), 5, color, -1)
-        cv2.putText(out, f"{kind} view centres", (28, 23 + 20 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            out,
+            f"{kind} view centres",
+            (28, 23 + 20 * i),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
     return out

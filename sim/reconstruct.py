@@ -101,7 +101,9 @@ def reconstruct(truth: TruthScene, spec: ReconstructionSpec, rng: np.random.Gene
     # layers: translucent, grown copies of surface Gaussians, off the surface and across edges
     k_layer = int(spec.layered * m)
     source = rng.integers(0, m, k_layer)
-    out_means = np.concatenate([out_means, out_means[source] + rng.normal(0, spec.layer_offset * spacing, (k_layer, 3))])
+    out_means = np.concatenate(
+        [out_means, out_means[source] + rng.normal(0, spec.layer_offset * spacing, (k_layer, 3))]
+    )
     growth = np.log(rng.uniform(*spec.layer_growth, (k_layer, 1)))
     out_log_scales = np.concatenate([out_log_scales, out_log_scales[source] + growth])
     out_opacity = np.concatenate([out_opacity, rng.normal(*spec.layer_opacity_logit, k_layer)])

@@ -29,10 +29,34 @@ TRAINING_SEED_BASE = 1000
 # what people call each label: training captions (the evaluation queries' own texts are not
 # all here, so zero-shot accuracy also measures how the text tower generalises)
 CAPTIONS = {
-    "red roof buildings": ["a red roof", "a building with a red roof", "a red-roofed house", "red roof tiles", "a house with a red roof"],
-    "blue roof buildings": ["a blue roof", "a building with a blue roof", "a blue-roofed house", "blue roof tiles", "a house with a blue roof"],
-    "white roof buildings": ["a white roof", "a building with a white roof", "a white house", "a white-roofed building", "white roof"],
-    "grey roof buildings": ["a grey roof", "a gray roof", "a building with a grey roof", "a dark roof", "a house with a gray roof"],
+    "red roof buildings": [
+        "a red roof",
+        "a building with a red roof",
+        "a red-roofed house",
+        "red roof tiles",
+        "a house with a red roof",
+    ],
+    "blue roof buildings": [
+        "a blue roof",
+        "a building with a blue roof",
+        "a blue-roofed house",
+        "blue roof tiles",
+        "a house with a blue roof",
+    ],
+    "white roof buildings": [
+        "a white roof",
+        "a building with a white roof",
+        "a white house",
+        "a white-roofed building",
+        "white roof",
+    ],
+    "grey roof buildings": [
+        "a grey roof",
+        "a gray roof",
+        "a building with a grey roof",
+        "a dark roof",
+        "a house with a gray roof",
+    ],
     "road": ["a road", "an asphalt road", "a street", "a road with lane markings", "asphalt"],
     "lawn": ["a lawn", "grass", "a green lawn", "a grass field", "a garden lawn"],
     "tree": ["a tree", "tree crowns", "a tree canopy", "green trees", "a leafy tree"],
@@ -74,7 +98,9 @@ def collect(
         for frame, gain in zip(frames, gains):
             result = rasterize(truth.gaussians, frame.camera, background=BACKGROUND)
             picture = to_uint8(apply_sensor(result.rgb, gain, sensor, rng))
-            truth_labels, _ = label_maps(result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance)
+            truth_labels, _ = label_maps(
+                result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance
+            )
             levels = propose_regions(picture, regions_config)
             valid = truth_labels >= 0
             for level_map in levels.label_maps:

@@ -65,7 +65,11 @@ SCHEMAS = {
         },
     },
 }
-TOPICS = {"/camera/image": "foxglove.CompressedImage", "/camera/calibration": "foxglove.CameraCalibration", "/tf": "foxglove.FrameTransform"}
+TOPICS = {
+    "/camera/image": "foxglove.CompressedImage",
+    "/camera/calibration": "foxglove.CameraCalibration",
+    "/tf": "foxglove.FrameTransform",
+}
 CAMERA_FRAME = "camera"
 
 
@@ -99,8 +103,12 @@ def write_mcap(path: str | Path, frames: Iterable[tuple[int, str, bytes, Camera]
     with open(tmp, "wb") as stream:
         writer = Writer(stream)
         writer.start(profile="", library="olsplat")
-        schema_ids = {name: writer.register_schema(name, "jsonschema", json.dumps(s).encode()) for name, s in SCHEMAS.items()}
-        channels = {topic: writer.register_channel(topic, "json", schema_ids[schema]) for topic, schema in TOPICS.items()}
+        schema_ids = {
+            name: writer.register_schema(name, "jsonschema", json.dumps(s).encode()) for name, s in SCHEMAS.items()
+        }
+        channels = {
+            topic: writer.register_channel(topic, "json", schema_ids[schema]) for topic, schema in TOPICS.items()
+        }
         for seq, (stamp_ns, name, jpeg, camera) in enumerate(frames):
             names.append(name)
             k = camera.K
@@ -167,7 +175,15 @@ def _frame_from_messages(seq: int, parts: dict, names: list[str], path: Path) ->
     K = np.asarray(calib["K"], float).reshape(3, 3)
     dist = np.asarray(calib["D"], float)
     name = names[seq] if seq < len(names) else f"frame_{seq:04d}.jpg"
-    camera = Camera(name, calib["width"], calib["height"], K, pose, dist if dist.any() else np.zeros(0), "OPENCV" if dist.any() else "PINHOLE")
+    camera = Camera(
+        name,
+        calib["width"],
+        calib["height"],
+        K,
+        pose,
+        dist if dist.any() else np.zeros(0),
+        "OPENCV" if dist.any() else "PINHOLE",
+    )
     return ReplayFrame(seq, int(parts["stamp"]), name, image[..., ::-1].copy(), camera)
 
 
@@ -224,4 +240,3 @@ def write_timestamps(path: str | Path, names: list[str], stamps: list[int]) -> N
         writer = csv.writer(f)
         writer.writerow(["name", "stamp_ns"])
         writer.writerows(zip(names, stamps))
-

@@ -77,7 +77,9 @@ def _ground(layout: Layout, count: int, footprint: np.ndarray, rng, noise: Noise
     coarse, fine = noise(xy, 18.0)[:, None], noise(xy * 7.3, 4.0)[:, None]
     for name, rgb in GROUND_COLORS.items():
         mask = codes == CATEGORY[name]
-        variation = {"lawn": 0.22 * coarse + 0.12 * fine, "bare ground": 0.12 * coarse + 0.1 * fine}.get(name, 0.05 * coarse + 0.07 * fine)
+        variation = {"lawn": 0.22 * coarse + 0.12 * fine, "bare ground": 0.12 * coarse + 0.1 * fine}.get(
+            name, 0.05 * coarse + 0.07 * fine
+        )
         colors[mask] = np.asarray(rgb) * (1.0 + variation[mask])
         if name == "lawn":  # dry, yellower patches
             colors[mask] += np.clip(coarse[mask], 0, None) * np.array([0.12, 0.06, 0.0])
@@ -85,7 +87,9 @@ def _ground(layout: Layout, count: int, footprint: np.ndarray, rng, noise: Noise
     colors[paint] = PAINT * (1.0 + 0.05 * fine[paint])
     colors *= 1.0 - 0.58 * layout.shadow[row, col][:, None]
     category = codes.astype(np.int16)
-    label = np.array([LABEL[STUFF_LABEL[name]] for name in ("bare ground", "road", "lawn", "parking", "pavement")], np.int16)[category]
+    label = np.array(
+        [LABEL[STUFF_LABEL[name]] for name in ("bare ground", "road", "lawn", "parking", "pavement")], np.int16
+    )[category]
     means = np.c_[xy, np.zeros(len(xy))]
     normals = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
     return _Part(means, normals, np.clip(colors, 0, 1), category, np.full(len(xy), -1, np.int32), label)
@@ -114,7 +118,12 @@ def _building(b: Building, density: float, rng, noise: Noise2D) -> list[_Part]:
         along_x = w >= d
         short = min(w, d)
         # walls: four faces; gable ends rise to the ridge
-        faces = [((x0, y0), (x1, y0), (0, -1)), ((x1, y0), (x1, y1), (1, 0)), ((x1, y1), (x0, y1), (0, 1)), ((x0, y1), (x0, y0), (-1, 0))]
+        faces = [
+            ((x0, y0), (x1, y0), (0, -1)),
+            ((x1, y0), (x1, y1), (1, 0)),
+            ((x1, y1), (x0, y1), (0, 1)),
+            ((x0, y1), (x0, y0), (-1, 0)),
+        ]
         for (ax, ay), (bx, by), (nx, ny) in faces:
             length = np.hypot(bx - ax, by - ay)
             gable_end = b.roof == "gable" and ((nx != 0) == along_x)
@@ -127,7 +136,12 @@ def _building(b: Building, density: float, rng, noise: Noise2D) -> list[_Part]:
             xy = np.c_[ax + t * (bx - ax), ay + t * (by - ay)]
             inside_other = np.zeros(len(xy), bool)
             for ox0, oy0, ox1, oy1 in others:
-                inside_other |= (xy[:, 0] > ox0 + 0.05) & (xy[:, 0] < ox1 - 0.05) & (xy[:, 1] > oy0 + 0.05) & (xy[:, 1] < oy1 - 0.05)
+                inside_other |= (
+                    (xy[:, 0] > ox0 + 0.05)
+                    & (xy[:, 0] < ox1 - 0.05)
+                    & (xy[:, 1] > oy0 + 0.05)
+                    & (xy[:, 1] < oy1 - 0.05)
+                )
             xy, z, t = xy[~inside_other], z[~inside_other], t[~inside_other]
             normal = np.array([nx, ny, 0.0])
             s = t * length
@@ -183,7 +197,11 @@ def _trees(layout: Layout, density: float, rng) -> _Part:
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     # leaf clumps near the crown's surface; lobes (a random low-order wave per tree) make it bumpy
     phase = rng.uniform(0, 2 * np.pi, (len(trees), 3))[owner]
-    lobes = 0.12 * (np.sin(3 * direction[:, 0] + phase[:, 0]) + np.sin(3 * direction[:, 1] + phase[:, 1]) + np.sin(2 * direction[:, 2] + phase[:, 2]))
+    lobes = 0.12 * (
+        np.sin(3 * direction[:, 0] + phase[:, 0])
+        + np.sin(3 * direction[:, 1] + phase[:, 1])
+        + np.sin(2 * direction[:, 2] + phase[:, 2])
+    )
     depth = rng.uniform(0.72, 1.0, m) * (1.0 + lobes)
     centre = np.array([[t.x, t.y, t.centre_z] for t in trees])[owner]
     offset = direction * (radius[owner] * depth)[:, None] * np.array([1.0, 1.0, 0.85])
@@ -191,7 +209,14 @@ def _trees(layout: Layout, density: float, rng) -> _Part:
     light = _shade(direction) * (0.72 + 0.28 * (direction[:, 2] + 1) / 2) * rng.uniform(0.8, 1.2, m)
     colors = rgb * light[:, None]
     instance = np.array([t.instance for t in trees], np.int32)[owner]
-    return _Part(centre + offset, None, np.clip(colors, 0, 1), np.full(m, CATEGORY["tree"], np.int16), instance, np.full(m, LABEL["tree"], np.int16))
+    return _Part(
+        centre + offset,
+        None,
+        np.clip(colors, 0, 1),
+        np.full(m, CATEGORY["tree"], np.int16),
+        instance,
+        np.full(m, LABEL["tree"], np.int16),
+    )
 
 
 def _car(car, density: float, rng) -> _Part:
@@ -259,7 +284,9 @@ def generate_scene(n_gaussians: int, size_m: float, seed: int) -> TruthScene:
     means = np.concatenate([p.means for p in parts])
     n = len(means)
     flat = np.concatenate([np.full(len(p.means), p.normals is not None) for p in parts])
-    normals = np.concatenate([p.normals if p.normals is not None else np.tile([0.0, 0, 1], (len(p.means), 1)) for p in parts])
+    normals = np.concatenate(
+        [p.normals if p.normals is not None else np.tile([0.0, 0, 1], (len(p.means), 1)) for p in parts]
+    )
     quats = _quats_from_normals(normals, rng)
     quats[~flat] = rng.normal(size=(int((~flat).sum()), 4))
     size = spacing * rng.uniform(0.6, 1.1, n)

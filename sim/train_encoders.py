@@ -126,7 +126,9 @@ def train_design(design: Design, samples: RegionSamples, tokenizer: WordTokenize
     target_table = (caption_label[None, :] == torch.arange(len(LABELS))[:, None]).float()
     target_table /= target_table.sum(1, keepdim=True).clamp(min=1.0)  # [labels, captions]
     counts = np.bincount(samples.labels, minlength=len(LABELS)).astype(np.float64)
-    class_weight = torch.tensor(np.clip(counts.sum() / np.maximum(counts, 1) / len(LABELS), 0.2, 5.0), dtype=torch.float32)
+    class_weight = torch.tensor(
+        np.clip(counts.sum() / np.maximum(counts, 1) / len(LABELS), 0.2, 5.0), dtype=torch.float32
+    )
 
     pixels = torch.from_numpy(samples.crops[design.name]).permute(0, 3, 1, 2).float() / 255.0
     pixels = (pixels - torch.tensor(MEAN)[:, None, None]) / torch.tensor(STD)[:, None, None]
@@ -166,7 +168,9 @@ def export_design(design: Design, image_tower, text_tower, vocab: list[str], out
     (folder / "vocab.json").write_text(json.dumps(vocab))
     tokenizer = WordTokenizer(folder / "vocab.json", CONTEXT)
     with torch.no_grad():
-        export_tower(image_tower, torch.zeros(2, 3, design.image_size, design.image_size), folder / "image.onnx", "pixels")
+        export_tower(
+            image_tower, torch.zeros(2, 3, design.image_size, design.image_size), folder / "image.onnx", "pixels"
+        )
         export_tower(text_tower, torch.from_numpy(tokenizer(["a red roof", "a road"])), folder / "text.onnx", "tokens")
     write_manifest(
         folder, design.name, EMBED_DIM, design.image_size, CONTEXT, tokenizer.vocab_size, MEAN, STD, "vocab.json", "words",

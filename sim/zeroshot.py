@@ -41,7 +41,14 @@ def evaluate(encoders: dict[str, object], seeds: list[int], views: int) -> dict[
             images = encoder.encode_images(samples.crops[encoder.name])
         predicted = (images @ encoder.encode_text(texts).T).argmax(1)
         right = predicted == samples.labels
-        per_label = np.array([right[samples.labels == i].mean() if (samples.labels == i).any() else np.nan for i in range(len(LABELS))])
-        results[name] = {"accuracy": float(right.mean()), "balanced": float(np.nanmean(per_label)), "per_label": per_label, "n": len(right)}
+        per_label = np.array(
+            [right[samples.labels == i].mean() if (samples.labels == i).any() else np.nan for i in range(len(LABELS))]
+        )
+        results[name] = {
+            "accuracy": float(right.mean()),
+            "balanced": float(np.nanmean(per_label)),
+            "per_label": per_label,
+            "n": len(right),
+        }
     results["_counts"] = np.bincount(samples.labels, minlength=len(LABELS))
     return results

@@ -46,7 +46,17 @@ def test_render_writes_the_documented_npz(scene, cameras, capsys):
 
 
 def _render_args(scene, ply="map.ply", cameras="sparse/0", view="0"):
-    return ["render", "--ply", str(scene / ply), "--cameras", str(scene / cameras), "--view", view, "--out", str(scene / "o.npz")]
+    return [
+        "render",
+        "--ply",
+        str(scene / ply),
+        "--cameras",
+        str(scene / cameras),
+        "--view",
+        view,
+        "--out",
+        str(scene / "o.npz"),
+    ]
 
 
 def test_bad_inputs_give_one_line_and_exit_1(scene, capsys):
@@ -55,7 +65,9 @@ def test_bad_inputs_give_one_line_and_exit_1(scene, capsys):
     (scene / "model").mkdir()
     (scene / "model" / "cameras.txt").write_text("1 OPENCV_FISHEYE 10 10 1 1 5 5 0 0 0 0\n")
     (scene / "model" / "images.txt").write_text("")
-    (scene / "noK.json").write_text('{"w": 4, "h": 4, "frames": [{"file_path": "x", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}')
+    (scene / "noK.json").write_text(
+        '{"w": 4, "h": 4, "frames": [{"file_path": "x", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}'
+    )
     cases = [
         (_render_args(scene, ply="cut.ply"), "cut.ply: not a readable PLY file"),
         (_render_args(scene, ply="nothing.ply"), "nothing.ply: file does not exist"),

@@ -39,7 +39,10 @@ def test_encode_scene(tiny, tmp_path, capsys):
     data = np.load(scene / "cache" / "encode" / "frame_0000.npz")
     assert str(data["encoder"]) == "olsplat-vit48" and data["features_2"].shape[1] == 64
     assert main(["encode", "--scene", str(scene), "--limit", "1", "--force"]) == 0  # default: shipped fusion
-    assert str(np.load(scene / "cache" / "encode" / "frame_0000.npz")["encoder"]) == "olsplat-cnn64:0.60+olsplat-vit48:0.40"
+    assert (
+        str(np.load(scene / "cache" / "encode" / "frame_0000.npz")["encoder"])
+        == "olsplat-cnn64:0.60+olsplat-vit48:0.40"
+    )
     assert main(["encode", "--scene", str(tmp_path), "--levels", "2"]) == 1
     assert "no images/ folder" in capsys.readouterr().err
     assert main(["encode", "--scene", str(scene), "--levels", "9"]) == 1

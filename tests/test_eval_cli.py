@@ -11,7 +11,17 @@ from olsplat_nodes.cli import main
 def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(tiny[0], scene)
-    args = ["eval", "--scene", str(scene), "--methods", "outlangsplat,projection", "--json", str(tmp_path / "r.json"), "--md", str(tmp_path / "r.md")]
+    args = [
+        "eval",
+        "--scene",
+        str(scene),
+        "--methods",
+        "outlangsplat,projection",
+        "--json",
+        str(tmp_path / "r.json"),
+        "--md",
+        str(tmp_path / "r.md"),
+    ]
     assert main([*args, "--figures", str(tmp_path / "fig"), "--figure-views", "1"]) == 0
     printed = capsys.readouterr().out
     assert "(paper Table 2)" in printed and "| scene | " in printed  # the tables, one row for the scene
@@ -26,9 +36,21 @@ def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
     assert "| outlangsplat |" in (tmp_path / "r.md").read_text()  # the category table
     assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m"), "--codebook", "64"]) == 0
     assert (tmp_path / "m" / "language_map.npz").exists()  # the codebook form: queried below like any map
-    assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 1  # a used store is not mixed into
+    assert (
+        main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 1
+    )  # a used store is not mixed into
     assert "already holds" in capsys.readouterr().err
-    query = ["query", "--map", str(tmp_path / "m" / "language_map.npz"), "--scene", str(scene), "--view", "3", "--out", str(tmp_path / "q")]
+    query = [
+        "query",
+        "--map",
+        str(tmp_path / "m" / "language_map.npz"),
+        "--scene",
+        str(scene),
+        "--view",
+        "3",
+        "--out",
+        str(tmp_path / "q"),
+    ]
     assert main([*query, "red roof buildings"]) == 0
     printed = capsys.readouterr().out
     assert '"red roof buildings":' in printed and "view frame_0003.jpg" in printed
@@ -44,7 +66,19 @@ def test_eval_writes_the_documented_json(tiny, tmp_path, capsys):
 def test_eval_over_several_scenes_reports_each_and_the_mean(tiny, tmp_path):
     for name in ("a", "b"):
         shutil.copytree(tiny[0], tmp_path / name)
-    args = ["eval", "--scene", str(tmp_path / "a"), "--scene", str(tmp_path / "b"), "--methods", "topk", "--json", str(tmp_path / "r.json"), "--md", str(tmp_path / "r.md")]
+    args = [
+        "eval",
+        "--scene",
+        str(tmp_path / "a"),
+        "--scene",
+        str(tmp_path / "b"),
+        "--methods",
+        "topk",
+        "--json",
+        str(tmp_path / "r.json"),
+        "--md",
+        str(tmp_path / "r.md"),
+    ]
     assert main(args) == 0
     document = json.loads((tmp_path / "r.json").read_text())
     assert set(document["scenes"]) == {"a", "b"}
@@ -57,13 +91,26 @@ def test_eval_over_several_scenes_reports_each_and_the_mean(tiny, tmp_path):
 def test_eval_feature_ablation_runs_the_3d_branch(tiny, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(tiny[0], scene)
-    args = ["eval", "--scene", str(scene), "--methods", "outlangsplat", "--features", "2d3d", "--feature-ablation", "--json", str(tmp_path / "r.json")]
+    args = [
+        "eval",
+        "--scene",
+        str(scene),
+        "--methods",
+        "outlangsplat",
+        "--features",
+        "2d3d",
+        "--feature-ablation",
+        "--json",
+        str(tmp_path / "r.json"),
+    ]
     assert main(args) == 0
     document = json.loads((tmp_path / "r.json").read_text())
     assert document["methods"]["outlangsplat"]["run"]["features"] == "2d3d"
     features = document["features"]
     assert list(features) == ["olsplat-cnn64", "olsplat-vit48", "w/o 3D fusion", "2D-3D fusion"]
-    assert features["2D-3D fusion"]["mIoU"] == document["methods"]["outlangsplat"]["mIoU"]  # the same run, aggregated once
+    assert (
+        features["2D-3D fusion"]["mIoU"] == document["methods"]["outlangsplat"]["mIoU"]
+    )  # the same run, aggregated once
     assert features["w/o 3D fusion"]["mIoU"] != features["2D-3D fusion"]["mIoU"]  # the 3D branch changed the features
     assert "paper Table 6)" in capsys.readouterr().out
     assert main(["eval", "--scene", str(scene), "--lambda-f", "1.5"]) == 1

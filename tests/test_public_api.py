@@ -9,7 +9,15 @@ import pytest
 
 @pytest.mark.parametrize(
     "module",
-    ["olsplat_nodes", "olsplat_nodes.scene", "olsplat_nodes.raster", "olsplat_nodes.regions", "olsplat_nodes.encoders", "olsplat_msgs", "olsplat_sim"],
+    [
+        "olsplat_nodes",
+        "olsplat_nodes.scene",
+        "olsplat_nodes.raster",
+        "olsplat_nodes.regions",
+        "olsplat_nodes.encoders",
+        "olsplat_msgs",
+        "olsplat_sim",
+    ],
 )
 def test_all_names_exist(module):
     mod = importlib.import_module(module)

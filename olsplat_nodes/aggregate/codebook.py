@@ -20,7 +20,9 @@ def assign(features: np.ndarray, centres: np.ndarray, chunk: int = 65_536) -> np
     return codes
 
 
-def fit_codebook(features: np.ndarray, k: int, iterations: int = 15, sample: int = 100_000, seed: int = 0) -> np.ndarray:
+def fit_codebook(
+    features: np.ndarray, k: int, iterations: int = 15, sample: int = 100_000, seed: int = 0
+) -> np.ndarray:
     """[K, D] float32 unit centres fitted to the non-zero rows of ``features`` [N, D] (unit rows)."""
     rows = features[np.linalg.norm(features.astype(np.float32), axis=1) > 0]
     if len(rows) == 0:

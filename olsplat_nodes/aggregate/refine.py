@@ -58,9 +58,11 @@ def _retained_views(owner: np.ndarray, strength: np.ndarray, rho: np.ndarray, n:
     """[n]: effective number of views under the final weights rho over that under d (Kish,
     (sum w)^2 / sum w^2); 1 where unobserved. ~1 when the consistency weights only trim
     outliers, small when they keep one of several disagreeing groups of views."""
+
     def effective(w):
         total, square = np.bincount(owner, w, n), np.bincount(owner, w * w, n)
         return total**2 / np.maximum(square, 1e-300)
+
     before = effective(strength)
     return np.where(before > 0, effective(rho) / np.maximum(before, 1e-300), 1.0)
 

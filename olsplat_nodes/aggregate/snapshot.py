@@ -33,7 +33,7 @@ class LanguageMap:
     form: str = "float16"  # how it was (or will be) stored: "float16" or "codebook"
 
     @staticmethod
-    def from_features(features: np.ndarray, observed: np.ndarray, encoder: str) -> "LanguageMap":
+    def from_features(features: np.ndarray, observed: np.ndarray, encoder: str) -> LanguageMap:
         norm = np.linalg.norm(features, axis=1, keepdims=True)
         unit = np.where(norm > 0, features / np.maximum(norm, 1e-12), 0.0)
         return LanguageMap(unit.astype(np.float16), observed.astype(bool), encoder)
@@ -52,7 +52,7 @@ class LanguageMap:
         tmp.replace(path)
 
     @staticmethod
-    def load(path: str | Path) -> "LanguageMap":
+    def load(path: str | Path) -> LanguageMap:
         path = Path(path)
         try:
             data = np.load(path)

@@ -58,9 +58,13 @@ class ObservationStore:
     def append(self, name: str, observations: ViewObservations, bank: np.ndarray) -> int:
         """Write one view's observations and its stacked region bank [R, D]; returns the view index."""
         if len(observations) and observations.gaussians.max() >= self.n_gaussians:
-            raise ValueError(f"view {name!r}: Gaussian {observations.gaussians.max()} is outside the map of {self.n_gaussians}")
+            raise ValueError(
+                f"view {name!r}: Gaussian {observations.gaussians.max()} is outside the map of {self.n_gaussians}"
+            )
         if len(observations.slots) and observations.slots.max() >= len(bank):
-            raise ValueError(f"view {name!r}: observation slot {observations.slots.max()} is outside its bank of {len(bank)} rows")
+            raise ValueError(
+                f"view {name!r}: observation slot {observations.slots.max()} is outside its bank of {len(bank)} rows"
+            )
         index = len(self.segments())
         final = self.folder / "views" / f"{index:06d}"
         tmp = final.with_name(final.name + ".tmp")
@@ -97,7 +101,13 @@ class ObservationStore:
             rows = np.flatnonzero(selected[obs.gaussians])
             if not len(rows):
                 continue
-            dense = _mix_rows(np.asarray(bank, np.float32), np.asarray(obs.slots), np.asarray(obs.weights), np.asarray(obs.offsets), rows)
+            dense = _mix_rows(
+                np.asarray(bank, np.float32),
+                np.asarray(obs.slots),
+                np.asarray(obs.weights),
+                np.asarray(obs.offsets),
+                rows,
+            )
             owners.append(np.asarray(obs.gaussians)[rows])
             views.append(np.full(len(rows), index))
             strengths.append(np.asarray(obs.strength)[rows])
@@ -125,7 +135,13 @@ class ObservationStore:
             counts[np.asarray(self.load(index)[0].gaussians)] += 1  # a Gaussian appears once per view
         return counts
 
-    def refine(self, F: np.ndarray | None, config: AggregationConfig, only_touched: bool = True, max_observations: int = 400_000):
+    def refine(
+        self,
+        F: np.ndarray | None,
+        config: AggregationConfig,
+        only_touched: bool = True,
+        max_observations: int = 400_000,
+    ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
         rows of F. ``observed`` marks the Gaussians with at least one kept observation among

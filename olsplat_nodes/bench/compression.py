@@ -16,7 +16,9 @@ from pathlib import Path
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("compression", help="query accuracy of float32 / float16 / codebook language maps")
     parser.add_argument("--scene", required=True, type=Path)
-    parser.add_argument("--aggregated", required=True, type=Path, help="an `olsplat aggregate --out` folder (its store/)")
+    parser.add_argument(
+        "--aggregated", required=True, type=Path, help="an `olsplat aggregate --out` folder (its store/)"
+    )
     parser.add_argument("--method", default="outlangsplat", help="the method the folder was aggregated with")
     parser.add_argument("--codebooks", default="256,1024,4096", help="comma-separated K")
     parser.set_defaults(run=run)
@@ -39,7 +41,9 @@ def run(args: argparse.Namespace) -> int:
     encoder = encoder_from_spec()
     n = len(read_ply(scene.ply))
     if not (args.aggregated / "store" / "views").is_dir():
-        raise OlsplatInputError(f"{args.aggregated / 'store'}: no aggregated views (run `olsplat aggregate --out` first)")
+        raise OlsplatInputError(
+            f"{args.aggregated / 'store'}: no aggregated views (run `olsplat aggregate --out` first)"
+        )
     store = ObservationStore(args.aggregated / "store", n)
     if not len(store):
         raise OlsplatInputError(f"{args.aggregated / 'store'}: no aggregated views")
@@ -58,5 +62,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{scene.folder.name}: {n:,} Gaussians x {d} dims, {len(store)} views")
     for name, (values, bytes_per) in forms.items():
         r = evaluate_map(scene, LanguageMap(values, observed, encoder.name), encoder)
-        print(f"  {name:14s} {bytes_per:7.1f} B/Gaussian  mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}")
+        print(
+            f"  {name:14s} {bytes_per:7.1f} B/Gaussian  mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}"
+        )
     return 0

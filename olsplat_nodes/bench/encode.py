@@ -55,7 +55,9 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("encode", help="seconds per view for regions and region features")
     parser.add_argument("--scene", type=Path, help="take the view from this scene's images/")
     parser.add_argument("--encoders", help="comma-separated encoder folders")
-    parser.add_argument("--vit-b32", action="store_true", help="also time a random-weight ViT-B/32 (exports ~600 MB to a temp folder)")
+    parser.add_argument(
+        "--vit-b32", action="store_true", help="also time a random-weight ViT-B/32 (exports ~600 MB to a temp folder)"
+    )
     parser.set_defaults(run=run)
 
 
@@ -67,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
     image = _frame(args.scene)
     start = time.perf_counter()
     levels = propose_regions(image)
-    print(f"regions: {time.perf_counter() - start:.2f} s for {sum(levels.counts)} regions in {levels.n_levels} levels {levels.counts}")
+    print(
+        f"regions: {time.perf_counter() - start:.2f} s for {sum(levels.counts)} regions in {levels.n_levels} levels {levels.counts}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         folders = [Path(p) for p in args.encoders.split(",")] if args.encoders else []
         if args.vit_b32:

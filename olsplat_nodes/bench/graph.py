@@ -22,7 +22,9 @@ import numpy as np
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("graph", help="node graph on a live-paced stream; query latency over the ground link")
+    parser = subparsers.add_parser(
+        "graph", help="node graph on a live-paced stream; query latency over the ground link"
+    )
     parser.add_argument("--scene", required=True, type=Path, help="a simulator flight folder (replay.mcap, map/)")
     parser.add_argument("--rate", type=float, default=1.0, help="frames per second sent (default 1)")
     parser.add_argument("--queries", type=int, default=100, help="relevance queries after the flight")
@@ -57,9 +59,17 @@ def run(args: argparse.Namespace) -> int:
     ply = scene / "map" / "point_cloud.ply"
     endpoint = f"tcp://127.0.0.1:{args.port}"
     overrides = [
-        f"ingest.source={scene / 'replay.mcap'}", "ingest.lossless=false", f"ingest.rate_hz={args.rate}", "ingest.fast=false",
-        "region_encoder.latest_wins=true", f"query_server.map={ply}", f"accumulator.map={ply}", f"refiner.map={ply}",
-        f"query_server.query_endpoint={endpoint}", "refiner.exit_on_final=false", "launch.exit_when=[]",
+        f"ingest.source={scene / 'replay.mcap'}",
+        "ingest.lossless=false",
+        f"ingest.rate_hz={args.rate}",
+        "ingest.fast=false",
+        "region_encoder.latest_wins=true",
+        f"query_server.map={ply}",
+        f"accumulator.map={ply}",
+        f"refiner.map={ply}",
+        f"query_server.query_endpoint={endpoint}",
+        "refiner.exit_on_final=false",
+        "launch.exit_when=[]",
     ]
     supervisor = Supervisor(load_launch(args.launch, overrides=overrides, run_dir=str(run_dir)))
     thread = threading.Thread(target=supervisor.run, daemon=True)
@@ -81,8 +91,10 @@ def run(args: argparse.Namespace) -> int:
         seconds = time.monotonic() - start
         last = {name: values[-1] for name, values in samples.items()}
         sent = int(last.get("ingest", {}).get("published", 0))
-        print(f"graph on {scene.name}: {sent} frames sent at {args.rate:g}/s, {record['views']} aggregated, "
-              f"{sent - record['views']} dropped, final map version {record['version']} after {seconds:.0f} s")
+        print(
+            f"graph on {scene.name}: {sent} frames sent at {args.rate:g}/s, {record['views']} aggregated, "
+            f"{sent - record['views']} dropped, final map version {record['version']} after {seconds:.0f} s"
+        )
         print(f"  sustained aggregation rate {record['views'] / seconds:.2f} views/s")
         for name in ("ingest", "region_encoder", "accumulator", "refiner", "query_server"):
             values = [v for v in samples.get(name, []) if v.get("handled", 0)]
@@ -92,7 +104,9 @@ def run(args: argparse.Namespace) -> int:
             latency = np.mean([v.get("latency_ms", 0.0) for v in values])
             busy = np.mean([v.get("busy_ms", 0.0) for v in values])
             drops = int(values[-1].get("dropped", 0)) + int(values[-1].get("gaps", 0))
-            print(f"  {name:15s} handled {values[-1]['handled']:4d}  peak rate {rate:5.2f} Hz  mean latency {latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}")
+            print(
+                f"  {name:15s} handled {values[-1]['handled']:4d}  peak rate {rate:5.2f} Hz  mean latency {latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}"
+            )
         labels, queries = load_queries(scene)
         texts = label_texts(labels, queries)
         view = load_views(run_dir / "views")[0].camera.name
@@ -101,7 +115,16 @@ def run(args: argparse.Namespace) -> int:
             for i in range(count):
                 text = texts[i % len(texts)]
                 t0 = time.perf_counter()
-                reply = client.request(QueryRequest(request_id=uuid.uuid4().hex[:8], text=text, view=with_view, heatmap=bool(with_view), threshold=float("nan"), negatives=[t for t in texts if t != text]))
+                reply = client.request(
+                    QueryRequest(
+                        request_id=uuid.uuid4().hex[:8],
+                        text=text,
+                        view=with_view,
+                        heatmap=bool(with_view),
+                        threshold=float("nan"),
+                        negatives=[t for t in texts if t != text],
+                    )
+                )
                 times.append(time.perf_counter() - t0)
                 if reply.status != "ok":
                     raise RuntimeError(f"query {text!r}: {reply.status}: {reply.message}")

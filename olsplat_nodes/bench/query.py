@@ -69,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         answer_query(language_map, gaussians, encoder, text, [t for t in texts if t != text])
         answers.append(time.perf_counter() - t0)
-    print(f"map {args.map}: {len(features):,} Gaussians x {features.shape[1]} dims; view {camera.name} {camera.width}x{camera.height}")
+    print(
+        f"map {args.map}: {len(features):,} Gaussians x {features.shape[1]} dims; view {camera.name} {camera.width}x{camera.height}"
+    )
     print(_line("relevance", relevance))
     print(_line("heatmap", heat))
     print(_line("answer 3D", answers))

@@ -64,10 +64,13 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import numba
+
     from olsplat_sim import generate_scene
 
     threads = numba.get_num_threads()
-    print(f"machine: {platform.processor() or platform.machine()}, {threads} numba threads, python {platform.python_version()}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {threads} numba threads, python {platform.python_version()}"
+    )
     print(
         f"{'gaussians':>10} {'image':>9} {'in view':>9} {'tiles x G':>10} {'s/view':>7} {'s/view':>8} "
         f"{'evals':>6} {'Mevals/s':>9} {'gsplat':>7} {'Mpairs/s':>9} {'project':>8} {'bin':>6} {'compos.':>8}"
@@ -94,7 +97,9 @@ def run(args: argparse.Namespace) -> int:
             )
     if not args.skip_reference:
         reference, fast = reference_speedup(threads)
-        print(f"reference (numpy, 64x48, 3,000 Gaussians): {reference:.2f} s; fast: {fast * 1e3:.2f} ms; speed-up {reference / fast:,.0f}x")
+        print(
+            f"reference (numpy, 64x48, 3,000 Gaussians): {reference:.2f} s; fast: {fast * 1e3:.2f} ms; speed-up {reference / fast:,.0f}x"
+        )
     print("evals: Gaussian-pixel pairs whose sigma was computed (each Gaussian only over its alpha >= 1/255 box);")
     print("gsplat pairs: the pairs a per-pixel tile-list loop (gsplat classic) tests for the same image;")
     print("rates per core divide by (s/view with top-K) x threads; stage times are of the median top-K run.")

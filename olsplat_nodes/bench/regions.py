@@ -72,7 +72,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(files)} views of {args.scene} ({w}x{h}), {len(best)} annotated segments of >= 200 px")
     print(f"{'level':>5} {'regions':>8} {'ASA':>6} {'IoU>=0.5':>9}")
     for level in range(len(asa)):
-        print(f"{level:>5} {np.mean(counts[level]):>8.0f} {np.mean(asa[level]):>6.3f} {np.mean(best[:, level] >= 0.5):>9.3f}")
+        print(
+            f"{level:>5} {np.mean(counts[level]):>8.0f} {np.mean(asa[level]):>6.3f} {np.mean(best[:, level] >= 0.5):>9.3f}"
+        )
     print(f"{'any':>5} {'':>8} {'':>6} {np.mean(best.max(1) >= 0.5):>9.3f}")
     print(f"seconds per view: {np.median(seconds):.2f} (median)")
     return 0

@@ -37,7 +37,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--methods", default="outlangsplat,projection,topk,vala")
     parser.add_argument("--confusion", default="0,0.2,0.4", help="comma-separated probabilities p")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--features", default="2d", help="comma-separated, from: 2d, 2d3d (fused with the 3D branch, lambda_f 0.7)")
+    parser.add_argument(
+        "--features", default="2d", help="comma-separated, from: 2d, 2d3d (fused with the 3D branch, lambda_f 0.7)"
+    )
     parser.set_defaults(run=run)
 
 
@@ -59,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
     if not features or any(f not in ("2d", "2d3d") for f in features):
         raise OlsplatInputError(f"--features: comma-separated 2d, 2d3d; got {args.features!r}")
     index = {c.name: i for i, c in enumerate(scene.cameras)}
-    print(f"{scene.folder.name}: {len(scene.cameras)} views; p = share of each view's regions given another region's feature")
+    print(
+        f"{scene.folder.name}: {len(scene.cameras)} views; p = share of each view's regions given another region's feature"
+    )
     for p in (float(x) for x in args.confusion.split(",")):
 
         def features_of(camera, p=p):
@@ -72,5 +76,8 @@ def run(args: argparse.Namespace) -> int:
             with tempfile.TemporaryDirectory() as tmp:
                 stats = aggregate_scene(scene, name, encoder, Path(tmp), features_of=features_of, structure=structure)
                 r = evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
-            print(f"  p {p:4.2f}  {label:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  ({stats['seconds']:.0f} s)", flush=True)
+            print(
+                f"  p {p:4.2f}  {label:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  ({stats['seconds']:.0f} s)",
+                flush=True,
+            )
     return 0

@@ -44,8 +44,12 @@ def run(args: argparse.Namespace) -> int:
     t1 = time.perf_counter()
     descriptors = geometric_descriptors(points, centres)
     t2 = time.perf_counter()
-    print(f"scene {scene.folder.name}: {len(gaussians):,} Gaussians -> {len(points):,} points (voxel {points.voxel:.3f})")
-    print(f"  once per map: points {t1 - t0:.1f} s, geometric descriptors {t2 - t1:.1f} s ({descriptors.shape[1]} dims)")
+    print(
+        f"scene {scene.folder.name}: {len(gaussians):,} Gaussians -> {len(points):,} points (voxel {points.voxel:.3f})"
+    )
+    print(
+        f"  once per map: points {t1 - t0:.1f} s, geometric descriptors {t2 - t1:.1f} s ({descriptors.shape[1]} dims)"
+    )
     if args.minkunet:
         t0 = time.perf_counter()
         features = minkunet_point_features(MinkUNet(4), points.positions, points.opacity, points.voxel)

@@ -5,4 +5,12 @@ from .base import VisionLanguageEncoder, normalize
 from .crops import CropConfig, region_crops
 from .fusion import FusedEncoder
 
-__all__ = ["CropConfig", "FeatureBank", "FusedEncoder", "VisionLanguageEncoder", "encode_regions", "normalize", "region_crops"]
+__all__ = [
+    "CropConfig",
+    "FeatureBank",
+    "FusedEncoder",
+    "VisionLanguageEncoder",
+    "encode_regions",
+    "normalize",
+    "region_crops",
+]

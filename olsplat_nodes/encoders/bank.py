@@ -41,11 +41,16 @@ def encode_regions(
     features = []
     for label_map in levels.label_maps:
         # each member gets crops its own way: its input size and, if it has one, its crop style
-        crops = [region_crops(image_rgb, label_map, m.input_size, getattr(m, "crop_config", None) or crop_config) for m in members]
+        crops = [
+            region_crops(image_rgb, label_map, m.input_size, getattr(m, "crop_config", None) or crop_config)
+            for m in members
+        ]
         chunks = []
         for start in range(0, len(crops[0]), batch):
             part = [c[start : start + batch] for c in crops]
-            chunks.append(encoder.encode_crops(part) if isinstance(encoder, FusedEncoder) else encoder.encode_images(part[0]))
+            chunks.append(
+                encoder.encode_crops(part) if isinstance(encoder, FusedEncoder) else encoder.encode_images(part[0])
+            )
         features.append(np.concatenate(chunks).astype(np.float32))
     return FeatureBank(features, encoder.name)
 

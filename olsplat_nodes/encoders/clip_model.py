@@ -41,7 +41,7 @@ class ClipConfig:
     activation: Activation = "gelu"  # open_clip ViT-B-32: gelu; OpenAI weights: quick_gelu
 
     @staticmethod
-    def from_state_dict(state: dict[str, torch.Tensor], activation: Activation = "gelu") -> "ClipConfig":
+    def from_state_dict(state: dict[str, torch.Tensor], activation: Activation = "gelu") -> ClipConfig:
         """Read the architecture off the tensors' shapes (raises KeyError naming a missing key)."""
 
         def layers(prefix: str) -> int:
@@ -186,11 +186,15 @@ def load_clip(path: str, activation: Activation = "gelu") -> ClipModel:
     except KeyError as exc:
         raise ValueError(f"{path}: not an open_clip CLIP ViT checkpoint (no key {exc.args[0]!r})") from None
     model = ClipModel(config)
-    state = {k: v for k, v in state.items() if k not in ("attn_mask", "input_resolution", "context_length", "vocab_size")}
+    state = {
+        k: v for k, v in state.items() if k not in ("attn_mask", "input_resolution", "context_length", "vocab_size")
+    }
     try:
         missing, unexpected = model.load_state_dict(state, strict=False)
     except RuntimeError as exc:
-        raise ValueError(f"{path}: tensor shapes do not match a CLIP ViT ({str(exc).splitlines()[-1].strip()})") from None
+        raise ValueError(
+            f"{path}: tensor shapes do not match a CLIP ViT ({str(exc).splitlines()[-1].strip()})"
+        ) from None
     if missing or unexpected:
         raise ValueError(f"{path}: keys do not match a CLIP ViT (missing {missing[:4]}, unexpected {unexpected[:4]})")
     return model.eval()

@@ -22,7 +22,9 @@ class CropConfig:
     min_box_px: int = 16  # tiny regions get at least this much image around them
 
 
-def region_crops(image_rgb: np.ndarray, label_map: np.ndarray, size: int, config: CropConfig = CropConfig()) -> np.ndarray:
+def region_crops(
+    image_rgb: np.ndarray, label_map: np.ndarray, size: int, config: CropConfig = CropConfig()
+) -> np.ndarray:
     """[H, W, 3] uint8 image, [H, W] int region ids 0..R-1 -> [R, size, size, 3] uint8 crops."""
     if image_rgb.shape[:2] != label_map.shape:
         raise ValueError(f"image {image_rgb.shape[:2]} and label map {label_map.shape} differ in size")
@@ -57,5 +59,9 @@ def region_crops(image_rgb: np.ndarray, label_map: np.ndarray, size: int, config
         patch = image[sy0:sy1, sx0:sx1]
         patch = np.where(inside[..., None], patch, (1 - config.fade) * patch + config.fade * GREY)
         box[sy0 - top : sy1 - top, sx0 - left : sx1 - left] = patch
-        crops[r] = cv2.resize(box, (size, size), interpolation=cv2.INTER_AREA if side > size else cv2.INTER_LINEAR).round().clip(0, 255)
+        crops[r] = (
+            cv2.resize(box, (size, size), interpolation=cv2.INTER_AREA if side > size else cv2.INTER_LINEAR)
+            .round()
+            .clip(0, 255)
+        )
     return crops

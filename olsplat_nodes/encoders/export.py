@@ -53,14 +53,18 @@ def export_tower(module: torch.nn.Module, example: torch.Tensor, path: Path, inp
         )  # fmt: skip
 
 
-def export_model(model: ClipModel, vocab: str | Path, out: str | Path, name: str, mean=OPENAI_MEAN, std=OPENAI_STD) -> Path:
+def export_model(
+    model: ClipModel, vocab: str | Path, out: str | Path, name: str, mean=OPENAI_MEAN, std=OPENAI_STD
+) -> Path:
     """Export a ClipModel (with its BPE vocabulary) to an ONNX encoder folder."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     c = model.config
     tokenizer = ClipTokenizer(vocab, context_length=c.context_length)
     if tokenizer.vocab_size != c.vocab_size:
-        raise ValueError(f"{vocab}: {tokenizer.vocab_size} tokens, but the text tower embeds {c.vocab_size}: not its vocabulary")
+        raise ValueError(
+            f"{vocab}: {tokenizer.vocab_size} tokens, but the text tower embeds {c.vocab_size}: not its vocabulary"
+        )
     model = model.eval()
     with torch.no_grad():
         export_tower(_ImageTower(model), torch.zeros(2, 3, c.image_size, c.image_size), out / "image.onnx", "pixels")
@@ -69,7 +73,9 @@ def export_model(model: ClipModel, vocab: str | Path, out: str | Path, name: str
         shutil.copyfile(vocab, out / "vocab.txt.gz")
     else:
         _gzip_copy(vocab, out / "vocab.txt.gz")
-    write_manifest(out, name, c.embed_dim, c.image_size, c.context_length, c.vocab_size, mean, std, "vocab.txt.gz", "clip-bpe")
+    write_manifest(
+        out, name, c.embed_dim, c.image_size, c.context_length, c.vocab_size, mean, std, "vocab.txt.gz", "clip-bpe"
+    )
     return out
 
 
@@ -102,7 +108,9 @@ def _gzip_copy(src, dst) -> None:
         g.write(f.read())
 
 
-def export_clip(checkpoint: str | Path, vocab: str | Path, out: str | Path, activation: Activation = "gelu", name: str | None = None) -> Path:
+def export_clip(
+    checkpoint: str | Path, vocab: str | Path, out: str | Path, activation: Activation = "gelu", name: str | None = None
+) -> Path:
     """Load an open_clip checkpoint and export it (see the module docstring)."""
     model = load_clip(str(checkpoint), activation)
     return export_model(model, vocab, out, name or Path(checkpoint).stem)

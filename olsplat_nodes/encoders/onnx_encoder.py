@@ -53,7 +53,9 @@ class OnnxEncoder:
             try:
                 self.sessions[key] = ort.InferenceSession(str(files[key]), options, providers=["CPUExecutionProvider"])
             except Exception as exc:  # onnxruntime raises its own exception types
-                raise OlsplatInputError(f"{files[key]}: not a loadable ONNX model ({str(exc).splitlines()[0]})") from None
+                raise OlsplatInputError(
+                    f"{files[key]}: not a loadable ONNX model ({str(exc).splitlines()[0]})"
+                ) from None
         self._check_io(files, context)
         try:
             make = ClipTokenizer if tokenizer_kind == "clip-bpe" else WordTokenizer

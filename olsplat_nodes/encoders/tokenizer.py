@@ -29,7 +29,9 @@ _SPLIT = regex.compile(
 @lru_cache
 def bytes_to_unicode() -> dict[int, str]:
     """A reversible map of the 256 byte values to printable unicode characters (GPT-2's)."""
-    printable = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    printable = (
+        list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    )
     chars = printable[:]
     extra = 0
     for b in range(256):

@@ -20,7 +20,6 @@ from ..viz import colorize, write_png
 from .annotations import read_annotation
 from .scene_eval import label_texts, load_queries
 
-
 RELEVANCY_SCALE = 50.0  # inverse softmax temperature over cosines
 
 

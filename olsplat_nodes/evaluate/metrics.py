@@ -25,7 +25,9 @@ class QueryScore:
     located: dict[float, int] = field(default_factory=lambda: {t: 0 for t in THRESHOLDS})
     instances: int = 0
 
-    def add_view(self, predicted: np.ndarray, target: np.ndarray, labelled: np.ndarray, instances: np.ndarray | None) -> None:
+    def add_view(
+        self, predicted: np.ndarray, target: np.ndarray, labelled: np.ndarray, instances: np.ndarray | None
+    ) -> None:
         predicted = predicted & labelled
         self.tp += int((predicted & target).sum())
         self.fp += int((predicted & ~target).sum())

@@ -68,5 +68,14 @@ def plan_runs(
         for l2d in LAMBDA_2D:
             for lf in LAMBDA_F:
                 label = f"lambda_2D={l2d} lambda_f={lf}"
-                runs.append(Run(label, "sweep", "outlangsplat", encoders, (l2d, round(1 - l2d, 6)), replace(structure, lambda_f=lf)))
+                runs.append(
+                    Run(
+                        label,
+                        "sweep",
+                        "outlangsplat",
+                        encoders,
+                        (l2d, round(1 - l2d, 6)),
+                        replace(structure, lambda_f=lf),
+                    )
+                )
     return runs

@@ -42,11 +42,15 @@ def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = 
     labels, queries = load_queries(scene.folder)
     gaussians = read_ply(scene.ply)
     if len(language_map.features) != len(gaussians):
-        raise OlsplatInputError(f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}")
+        raise OlsplatInputError(
+            f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}"
+        )
     texts = encoder.encode_text(label_texts(labels, queries))
     scores = {q["text"]: QueryScore() for q in queries}
     label_index = {name: i for i, name in enumerate(labels)}
-    cameras = [c for c in scene.cameras if (scene.folder / "annotations" / f"{Path(c.name).stem}.json").exists()][:views]
+    cameras = [c for c in scene.cameras if (scene.folder / "annotations" / f"{Path(c.name).stem}.json").exists()][
+        :views
+    ]
     if not cameras:
         raise OlsplatInputError(f"{scene.folder / 'annotations'}: no annotation for any view of sparse/0")
     features = language_map.features.astype(np.float32)

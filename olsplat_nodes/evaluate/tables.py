@@ -24,7 +24,10 @@ def overall(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
     out = {}
     for name in methods:
         runs = [scene[name] for scene in results.values() if name in scene]
-        merged = {key: float(np.mean([r[key] for r in runs])) for key in ("mIoU", "mAcc", "loc40", "loc50", "loc60", "seconds", "peak_rss_mb")}
+        merged = {
+            key: float(np.mean([r[key] for r in runs]))
+            for key in ("mIoU", "mAcc", "loc40", "loc50", "loc60", "seconds", "peak_rss_mb")
+        }
         queries = dict.fromkeys(q for r in runs for q in r["per_query"])
         merged["per_query"] = {
             q: {k: float(np.mean([r["per_query"][q][k] for r in runs if q in r["per_query"]])) for k in ("IoU", "acc")}
@@ -64,7 +67,10 @@ def localisation_table(results: dict, methods: list[str]) -> list[str]:
 
 def segmentation_table(results: dict, methods: list[str]) -> list[str]:
     lines = ["**Semantic segmentation, mIoU / mAcc (%)** (paper Table 3)", ""]
-    lines += [_row(["Scenes", *(f"{m} {k}" for m in methods for k in ("mIoU", "mAcc"))]), _row(["---"] * (1 + 2 * len(methods)))]
+    lines += [
+        _row(["Scenes", *(f"{m} {k}" for m in methods for k in ("mIoU", "mAcc"))]),
+        _row(["---"] * (1 + 2 * len(methods))),
+    ]
     for scene, runs in _rows_by_scene(results, methods):
         miou, macc = _bold_best([runs[m]["mIoU"] for m in methods]), _bold_best([runs[m]["mAcc"] for m in methods])
         lines.append(_row([scene, *(c for pair in zip(miou, macc) for c in pair)]))
@@ -77,7 +83,9 @@ def category_table(results: dict, methods: list[str]) -> list[str]:
     where = "mean over the scenes" if len(results) > 1 else next(iter(results))
     lines = [f"**Category-level IoU (%)** ({where}; paper Table 4)", ""]
     lines += [_row(["Methods", *queries]), _row(["---"] * (1 + len(queries)))]
-    columns = [_bold_best([runs[m]["per_query"].get(q, {"IoU": float("nan")})["IoU"] for m in methods]) for q in queries]
+    columns = [
+        _bold_best([runs[m]["per_query"].get(q, {"IoU": float("nan")})["IoU"] for m in methods]) for q in queries
+    ]
     for i, name in enumerate(methods):
         lines.append(_row([name, *(c[i] for c in columns)]))
     return lines
@@ -123,7 +131,11 @@ def paper_tables(results: dict[str, dict[str, dict]]) -> str:
     labels = [m for m in first if all(m in scene for scene in results.values())]
     methods = [m for m in labels if _kind(first[m]) == "method"]
     baselines = [m for m in methods if m not in ABLATIONS[1:]]
-    sections = [localisation_table(results, baselines), segmentation_table(results, baselines), category_table(results, baselines)]
+    sections = [
+        localisation_table(results, baselines),
+        segmentation_table(results, baselines),
+        category_table(results, baselines),
+    ]
     where = "mean over the scenes" if len(results) > 1 else next(iter(results))
     sections.append(strategy_table(results, baselines, f"**Aggregation strategies** ({where}; paper Table 5)"))
     ablations = [m for m in ABLATIONS if m in methods]

@@ -6,7 +6,15 @@ this process when ``compose: true``), restarts them by policy and returns an exi
 format and the rules (placeholders, remaps, restart policies) are in ``launch/README.md``.
 """
 
-from ._config import RESTART_POLICIES, LaunchConfig, LaunchFileError, NodeConfig, apply_overrides, load_launch, parse_launch
+from ._config import (
+    RESTART_POLICIES,
+    LaunchConfig,
+    LaunchFileError,
+    NodeConfig,
+    apply_overrides,
+    load_launch,
+    parse_launch,
+)
 from ._resolve import resolve_launch, resolve_params
 from ._supervisor import Supervisor
 

@@ -58,7 +58,16 @@ class ProcessChild:
     def __init__(self, name: str, exec_name: str, params: dict[str, Any], log: NodeLog):
         self.name = name
         self.log = log
-        self.argv = [sys.executable, "-m", "olsplat_nodes.nodes", exec_name, "--name", name, "--params-json", json.dumps(params)]
+        self.argv = [
+            sys.executable,
+            "-m",
+            "olsplat_nodes.nodes",
+            exec_name,
+            "--name",
+            name,
+            "--params-json",
+            json.dumps(params),
+        ]
         self.process: subprocess.Popen | None = None
         self.failure = ""
 
@@ -67,7 +76,9 @@ class ProcessChild:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         self.failure = ""
         try:
-            self.process = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=self.log.file, stderr=subprocess.STDOUT, env=env)
+            self.process = subprocess.Popen(
+                self.argv, stdin=subprocess.DEVNULL, stdout=self.log.file, stderr=subprocess.STDOUT, env=env
+            )
         except OSError as exc:  # counted as a failed run, so the restart policy applies
             self.process, self.failure = None, f"could not start: {exc}"
             self.log.marker(self.failure)

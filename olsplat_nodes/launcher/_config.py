@@ -26,7 +26,10 @@ RESTART_POLICIES: tuple[str, ...] = get_args(RestartPolicy)
 # Node names become log file names and --set targets: keep them to safe characters.
 _NAME = (re.compile(r"[A-Za-z_][A-Za-z0-9_-]*\Z"), "letters, digits, '_' and '-', starting with a letter or '_'")
 # A namespace is a topic prefix such as "uav1" or "fleet/uav1".
-_NAMESPACE = (re.compile(r"([A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*)?\Z"), "empty, or words of letters, digits, '_', '-' joined by '/' (no leading or trailing '/')")
+_NAMESPACE = (
+    re.compile(r"([A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*)?\Z"),
+    "empty, or words of letters, digits, '_', '-' joined by '/' (no leading or trailing '/')",
+)
 _PATH = (re.compile(r".*\S"), "must not be empty")
 _TOP_KEYS = ("name", "run_dir", "namespace", "compose", "exit_when", "stop_timeout_s", "nodes")
 _NODE_KEYS = ("name", "exec", "params", "remap", "namespace", "restart", "max_restarts", "restart_delay_s")
@@ -96,11 +99,15 @@ def load_launch(path: str | Path, overrides: Sequence[str] = (), run_dir: str | 
     return config
 
 
-def parse_launch(data: Any, source: str = "<launch>", overrides: Sequence[str] = (), default_name: str = "launch") -> LaunchConfig:
+def parse_launch(
+    data: Any, source: str = "<launch>", overrides: Sequence[str] = (), default_name: str = "launch"
+) -> LaunchConfig:
     """Validate a launch mapping (as ``yaml.safe_load`` returns it) into a ``LaunchConfig``."""
     where = _Where(source)
     if not isinstance(data, dict):
-        raise LaunchFileError(f"{source}: the launch file must be a mapping with a 'nodes' list, got {type(data).__name__}")
+        raise LaunchFileError(
+            f"{source}: the launch file must be a mapping with a 'nodes' list, got {type(data).__name__}"
+        )
     data = apply_overrides(data, overrides, source)
     _check_keys(data, _TOP_KEYS, "", where)
     if "nodes" not in data:
@@ -117,7 +124,9 @@ def parse_launch(data: Any, source: str = "<launch>", overrides: Sequence[str] =
     return LaunchConfig(
         name=_string(data.get("name", default_name), "name", where, pattern=_NAME),
         nodes=nodes,
-        run_dir=Path(_string(data.get("run_dir", f"out/{data.get('name', default_name)}"), "run_dir", where, pattern=_PATH)),
+        run_dir=Path(
+            _string(data.get("run_dir", f"out/{data.get('name', default_name)}"), "run_dir", where, pattern=_PATH)
+        ),
         namespace=_string(data.get("namespace", ""), "namespace", where, pattern=_NAMESPACE),
         compose=_boolean(data.get("compose", False), "compose", where),
         exit_when=exit_when,
@@ -150,13 +159,17 @@ def apply_overrides(data: dict, overrides: Sequence[str], source: str = "<launch
             raise LaunchFileError(f"{where.source}: --set {item!r}: value is not valid YAML ({exc})") from exc
         if target == LAUNCH_TARGET:
             if key not in _TOP_KEYS or key == "nodes":
-                raise LaunchFileError(f"{where.source}: --set {item!r}: unknown top-level key {key!r}; known: {', '.join(k for k in _TOP_KEYS if k != 'nodes')}")
+                raise LaunchFileError(
+                    f"{where.source}: --set {item!r}: unknown top-level key {key!r}; known: {', '.join(k for k in _TOP_KEYS if k != 'nodes')}"
+                )
             data[key] = value
             continue
         matches = [n for n in nodes or [] if isinstance(n, dict) and n.get("name") == target]
         if not matches:
             known = [str(n.get("name")) for n in nodes or [] if isinstance(n, dict)]
-            raise LaunchFileError(f"{where.source}: --set {item!r}: no node named {target!r}; nodes: {', '.join(known)} (or 'launch' for a top-level key)")
+            raise LaunchFileError(
+                f"{where.source}: --set {item!r}: no node named {target!r}; nodes: {', '.join(known)} (or 'launch' for a top-level key)"
+            )
         node = matches[0]
         params = node.get("params") or {}
         if not isinstance(params, dict):
@@ -198,7 +211,9 @@ def _parse_node(raw: Any, key: str, where: _Where) -> NodeConfig:
             where.fail(f"{key}.params", f"parameter names must be strings, got {pname!r}")
         _check_param_value(value, f"{key}.params.{pname}", where)
     remap = raw.get("remap") or {}
-    if not isinstance(remap, dict) or not all(isinstance(k, str) and isinstance(v, str) and k and v for k, v in remap.items()):
+    if not isinstance(remap, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) and k and v for k, v in remap.items()
+    ):
         where.fail(f"{key}.remap", f"must map topic names to topic names (non-empty strings), got {remap!r}")
     restart = raw.get("restart", "on-failure")
     if restart not in RESTART_POLICIES:
@@ -254,7 +269,10 @@ def _check_param_value(value: Any, key: str, where: _Where) -> None:
                 where.fail(key, f"mapping keys must be strings, got {k!r}")
             _check_param_value(item, f"{key}.{k}", where)
         return
-    where.fail(key, f"unsupported value {value!r} ({type(value).__name__}); use a string, number, bool, list or mapping (quote dates and the like)")
+    where.fail(
+        key,
+        f"unsupported value {value!r} ({type(value).__name__}); use a string, number, bool, list or mapping (quote dates and the like)",
+    )
 
 
 def _string(value: Any, key: str, where: _Where, pattern: tuple[re.Pattern, str] | None = None) -> str:

@@ -48,12 +48,21 @@ def resolve_launch(config: LaunchConfig, run_dir: Path) -> dict[str, dict[str, A
     return resolved
 
 
-def resolve_params(node: NodeConfig, defaults: Mapping[str, Any], run_dir: Path, namespace: str, composed: bool, where: str = "<launch>") -> dict[str, Any]:
+def resolve_params(
+    node: NodeConfig,
+    defaults: Mapping[str, Any],
+    run_dir: Path,
+    namespace: str,
+    composed: bool,
+    where: str = "<launch>",
+) -> dict[str, Any]:
     """The params ``node`` is started with (see the module docstring for the rules).
     ``where`` prefixes error messages (``replay.yaml: nodes[0] (ingest)``)."""
     unknown = sorted(set(node.params) - set(defaults))
     if unknown:
-        raise LaunchFileError(f"{where}.params.{unknown[0]}: unknown parameter of {node.exec}; known: {', '.join(sorted(defaults)) or '(none)'}")
+        raise LaunchFileError(
+            f"{where}.params.{unknown[0]}: unknown parameter of {node.exec}; known: {', '.join(sorted(defaults)) or '(none)'}"
+        )
     values = {"run_dir": str(Path(run_dir).resolve()), "namespace": namespace, "name": node.name}
     params: dict[str, Any] = {}
     for key, default in defaults.items():
@@ -66,12 +75,20 @@ def resolve_params(node: NodeConfig, defaults: Mapping[str, Any], run_dir: Path,
         if _is_topic_param(key, value):
             params[key] = _map_names(value, lambda name: _topic(name, node.remap, namespace, unused))
     if unused:
-        topics = sorted({t for k, v in params.items() if _is_topic_param(k, v) for t in ([v] if isinstance(v, str) else v)})
-        raise LaunchFileError(f"{where}.remap.{sorted(unused)[0]}: matches none of the node's topic names (topic* params); they are: {', '.join(topics) or '(none)'}")
+        topics = sorted(
+            {t for k, v in params.items() if _is_topic_param(k, v) for t in ([v] if isinstance(v, str) else v)}
+        )
+        raise LaunchFileError(
+            f"{where}.remap.{sorted(unused)[0]}: matches none of the node's topic names (topic* params); they are: {', '.join(topics) or '(none)'}"
+        )
     if composed:
         params = {key: _map_strings(value, _to_inproc) for key, value in params.items()}
     # `is` first: a default that is not JSON-like (an array, say) must not be compared with ==.
-    return {key: value for key, value in params.items() if key in node.params or (value is not defaults[key] and value != defaults[key])}
+    return {
+        key: value
+        for key, value in params.items()
+        if key in node.params or (value is not defaults[key] and value != defaults[key])
+    }
 
 
 def _substitute(value: Any, values: dict[str, str], strict: bool, where: str) -> Any:
@@ -83,7 +100,9 @@ def _substitute(value: Any, values: dict[str, str], strict: bool, where: str) ->
             if word in values:
                 return values[word]
             if strict:
-                raise LaunchFileError(f"{where}: unknown placeholder {whole} in {text!r}; known: {{run_dir}}, {{namespace}}, {{name}} (write {{{{ and }}}} for literal braces)")
+                raise LaunchFileError(
+                    f"{where}: unknown placeholder {whole} in {text!r}; known: {{run_dir}}, {{namespace}}, {{name}} (write {{{{ and }}}} for literal braces)"
+                )
             return whole
 
         return _PLACEHOLDER.sub(replace, text)
@@ -92,7 +111,9 @@ def _substitute(value: Any, values: dict[str, str], strict: bool, where: str) ->
 
 
 def _is_topic_param(key: str, value: Any) -> bool:
-    return key.startswith("topic") and (isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value)))
+    return key.startswith("topic") and (
+        isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value))
+    )
 
 
 def _topic(name: str, remap: Mapping[str, str], namespace: str, unused: set[str]) -> str:
@@ -107,7 +128,7 @@ def _topic(name: str, remap: Mapping[str, str], namespace: str, unused: set[str]
 
 
 def _to_inproc(text: str) -> str:
-    return "inproc://" + text[len("ipc://"):] if text.startswith("ipc://") else text
+    return "inproc://" + text[len("ipc://") :] if text.startswith("ipc://") else text
 
 
 def _map_names(value: str | list[str], fn: Callable[[str], str]) -> str | list[str]:

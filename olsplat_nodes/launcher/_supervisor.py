@@ -170,7 +170,9 @@ class Supervisor:
         slot.restarts += 1
         slot.state = "waiting"
         slot.restart_at = time.monotonic() + node.restart_delay_s
-        self._status(f"{node.name}: restarting in {node.restart_delay_s:g} s (restart {slot.restarts} of {node.max_restarts})")
+        self._status(
+            f"{node.name}: restarting in {node.restart_delay_s:g} s (restart {slot.restarts} of {node.max_restarts})"
+        )
         return None
 
     def _gave_up(self, slot: _Slot) -> int | None:
@@ -202,9 +204,13 @@ class Supervisor:
         for slot in running:
             if slot.child.kill():
                 slot.state = "stopped"
-                self._status(f"{slot.node.name}: did not stop within {self.config.stop_timeout_s:g} s; killed (SIGKILL)")
+                self._status(
+                    f"{slot.node.name}: did not stop within {self.config.stop_timeout_s:g} s; killed (SIGKILL)"
+                )
             else:
-                self._status(f"{slot.node.name}: did not stop within {self.config.stop_timeout_s:g} s; left running (a thread cannot be killed)")
+                self._status(
+                    f"{slot.node.name}: did not stop within {self.config.stop_timeout_s:g} s; left running (a thread cannot be killed)"
+                )
         return all(s.state != "running" for s in self._slots)
 
     def _install_signal_handlers(self):

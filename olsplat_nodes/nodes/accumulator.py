@@ -33,13 +33,17 @@ def split_bank(message: RegionFeatures) -> tuple[np.ndarray, list[np.ndarray]]:
     if labels.ndim != 3 or labels.shape[1:] != (message.height, message.width):
         raise ValueError(f"label maps are {labels.shape}, the image is {message.height}x{message.width}")
     if len(sizes) != len(labels) or (sizes < 0).any() or int(sizes.sum()) != len(features):
-        raise ValueError(f"level sizes {sizes.tolist()} do not match {len(labels)} levels and {len(features)} feature rows")
+        raise ValueError(
+            f"level sizes {sizes.tolist()} do not match {len(labels)} levels and {len(features)} feature rows"
+        )
     if not np.isfinite(features).all():
         raise ValueError("the feature bank holds NaN or infinite values")
     offsets = np.cumsum([0, *sizes.tolist()])
     for level, (label_map, size) in enumerate(zip(labels, sizes)):
         if label_map.min() < -1 or label_map.max() >= size:
-            raise ValueError(f"level {level}: labels span {label_map.min()}..{label_map.max()}, the level has {size} regions")
+            raise ValueError(
+                f"level {level}: labels span {label_map.min()}..{label_map.max()}, the level has {size} regions"
+            )
     return labels, [np.asarray(features[offsets[i] : offsets[i + 1]], np.float32) for i in range(len(sizes))]
 
 
@@ -95,7 +99,9 @@ class AccumulatorNode(Node):
                     if not duplicate:
                         try:
                             if encoder is not None and message.encoder != encoder:
-                                raise ValueError(f"encoder {message.encoder!r}, but this run's store holds {encoder!r} features")
+                                raise ValueError(
+                                    f"encoder {message.encoder!r}, but this run's store holds {encoder!r} features"
+                                )
                             camera = camera_of(message)
                             label_maps, bank = split_bank(message)
                         except ValueError as exc:
@@ -108,15 +114,30 @@ class AccumulatorNode(Node):
                         save_view(p["views"], len(store), camera, message.image)
                         kept = int(add_view(gaussians, camera, label_maps, bank, chosen, store)["kept"])
                         names.add(message.name)
-                    pub.send(p["topic_observations"], seqs.stamp(ObservationsAdded(
-                        stamp_ns=message.stamp_ns, frame_id=message.frame_id, name=message.name, source_seq=message.source_seq,
-                        observations=kept, gaussians=len(gaussians), views_in_store=len(names), duplicate=duplicate,
-                    )))
+                    pub.send(
+                        p["topic_observations"],
+                        seqs.stamp(
+                            ObservationsAdded(
+                                stamp_ns=message.stamp_ns,
+                                frame_id=message.frame_id,
+                                name=message.name,
+                                source_seq=message.source_seq,
+                                observations=kept,
+                                gaussians=len(gaussians),
+                                views_in_store=len(names),
+                                duplicate=duplicate,
+                            )
+                        ),
+                    )
                     stats.count("published")
                     stats.count("duplicates" if duplicate else "views_added")
                     stats.handled(message.stamp_ns, time.perf_counter() - start)
                 if diag is not None:
-                    diag.beat(0, f"{len(names)} views in the store", stats.with_sockets(sub.stats, queue_depth=len(batch), views=len(names)))
+                    diag.beat(
+                        0,
+                        f"{len(names)} views in the store",
+                        stats.with_sockets(sub.stats, queue_depth=len(batch), views=len(names)),
+                    )
             return 130
         finally:
             for socket in (sub, pub, diag):

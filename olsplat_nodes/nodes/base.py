@@ -31,7 +31,9 @@ class Node:
         params = dict(params or {})
         unknown = sorted(set(params) - set(self.DEFAULTS))
         if unknown:
-            raise OlsplatInputError(f"node {name!r} ({type(self).__name__}): unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(self.DEFAULTS))}")
+            raise OlsplatInputError(
+                f"node {name!r} ({type(self).__name__}): unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(self.DEFAULTS))}"
+            )
         self.params = {**self.DEFAULTS, **params}
         self.context = context or zmq.Context.instance()
 
@@ -66,7 +68,14 @@ class NodeStats:
 
         self.window_s = window_s
         self.events: collections.deque = collections.deque()  # (monotonic end, latency s, busy s)
-        self.counts: dict[str, int] = {"received": 0, "handled": 0, "published": 0, "dropped": 0, "bad_messages": 0, "errors": 0}
+        self.counts: dict[str, int] = {
+            "received": 0,
+            "handled": 0,
+            "published": 0,
+            "dropped": 0,
+            "bad_messages": 0,
+            "errors": 0,
+        }
 
     def count(self, key: str, n: int = 1) -> None:
         self.counts[key] = self.counts.get(key, 0) + n

@@ -44,11 +44,21 @@ class GroundMonitorNode(Node):
                 else:
                     for node in reply.nodes:
                         v = node["values"]
-                        log.info("%-16s %-5s rate %.2f Hz latency %.0f ms drops %d", node["node"], LEVEL_NAMES.get(node["level"], node["level"]),
-                                 v.get("rate_hz", 0.0), v.get("latency_ms", 0.0), int(v.get("dropped", 0)) + int(v.get("gaps", 0)))
+                        log.info(
+                            "%-16s %-5s rate %.2f Hz latency %.0f ms drops %d",
+                            node["node"],
+                            LEVEL_NAMES.get(node["level"], node["level"]),
+                            v.get("rate_hz", 0.0),
+                            v.get("latency_ms", 0.0),
+                            int(v.get("dropped", 0)) + int(v.get("gaps", 0)),
+                        )
                     path = Path(p["status_file"])
                     tmp = path.with_name(path.name + ".tmp")
-                    tmp.write_text(json.dumps({"time": time.time(), "map_version": reply.map_version, "nodes": reply.nodes}, default=str))
+                    tmp.write_text(
+                        json.dumps(
+                            {"time": time.time(), "map_version": reply.map_version, "nodes": reply.nodes}, default=str
+                        )
+                    )
                     tmp.replace(path)
                 stop.wait(p["period_s"])
             return 130

@@ -45,10 +45,17 @@ def frame_message(frame, seq: int, stamp_ns: int | None = None) -> ImageFrame:
     ``stamp_ns`` (default: now)."""
     camera = frame.camera
     return ImageFrame(
-        stamp_ns=time.time_ns() if stamp_ns is None else stamp_ns, seq=seq, frame_id="camera", name=frame.name,
-        image=np.ascontiguousarray(frame.image, np.uint8), K=camera.K, D=camera.dist,
+        stamp_ns=time.time_ns() if stamp_ns is None else stamp_ns,
+        seq=seq,
+        frame_id="camera",
+        name=frame.name,
+        image=np.ascontiguousarray(frame.image, np.uint8),
+        K=camera.K,
+        D=camera.dist,
         distortion_model="plumb_bob" if len(camera.dist) else "none",
-        world_from_camera=camera.world_from_camera, width=camera.width, height=camera.height,
+        world_from_camera=camera.world_from_camera,
+        width=camera.width,
+        height=camera.height,
     )
 
 
@@ -73,7 +80,9 @@ class IngestNode(Node):
         p = self.params
         self.stats = NodeStats()
         self.pub = Publisher(self.context, p["frames_out"], bind=True, hwm=p["hwm"])
-        self.acks = Subscriber(self.context, [p["acks_in"], p["map_in"]], [p["topic_observations"], p["topic_map"]], hwm=100)
+        self.acks = Subscriber(
+            self.context, [p["acks_in"], p["map_in"]], [p["topic_observations"], p["topic_map"]], hwm=100
+        )
         self.diag = Diagnostics(self.context, p["diagnostics"], self.name) if p["diagnostics"] else None
         self.seqs = SequenceCounter()
         self.acked = self._load_acknowledged()
@@ -108,7 +117,18 @@ class IngestNode(Node):
             last_eos = 0.0
             while not self.final_map and not stop.is_set():
                 if time.monotonic() - last_eos > 1.0:
-                    self.pub.send(p["topic_frames"], self.seqs.stamp(EndOfStream(stamp_ns=time.time_ns(), frame_id="camera", source=str(p["source"]), frames=len(names), names=names)))
+                    self.pub.send(
+                        p["topic_frames"],
+                        self.seqs.stamp(
+                            EndOfStream(
+                                stamp_ns=time.time_ns(),
+                                frame_id="camera",
+                                source=str(p["source"]),
+                                frames=len(names),
+                                names=names,
+                            )
+                        ),
+                    )
                     last_eos = time.monotonic()
                 self._service(pending, 0.1)
             return 0 if self.final_map else 130
@@ -134,7 +154,9 @@ class IngestNode(Node):
 
     def _send(self, frame) -> None:
         start = time.perf_counter()
-        message = self.seqs.stamp(frame_message(frame, 0, frame.stamp_ns if self.source is not None and self.source.live else None))
+        message = self.seqs.stamp(
+            frame_message(frame, 0, frame.stamp_ns if self.source is not None and self.source.live else None)
+        )
         self.pub.send(self.params["topic_frames"], message)
         self.stats.count("published")
         self.stats.handled(message.stamp_ns, time.perf_counter() - start)
@@ -150,7 +172,9 @@ class IngestNode(Node):
                         f.write(message.name + "\n")
             elif isinstance(message, MapUpdated) and message.final:
                 self.final_map = True
-            elif not isinstance(message, (ObservationsAdded, MapUpdated, EndOfStream)):  # (EndOfStream: forwarded by the accumulator)
+            elif not isinstance(
+                message, (ObservationsAdded, MapUpdated, EndOfStream)
+            ):  # (EndOfStream: forwarded by the accumulator)
                 self.stats.count("bad_messages")
                 log.warning("unexpected %s on %s: dropped", type(message).__name__, " / ".join(self.acks.topics))
         now = time.monotonic()

@@ -32,7 +32,14 @@ log = logging.getLogger(__name__)
 def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray | None, seconds: float) -> QueryReply:
     """The wire answer of a core QueryAnswer: 3D instances (and 2D regions in the view)."""
     instances = [
-        {"id": i, "kind": "3d", "n_gaussians": inst.gaussians, "centroid": list(inst.centre), "box_min": list(inst.box_min), "box_max": list(inst.box_max)}
+        {
+            "id": i,
+            "kind": "3d",
+            "n_gaussians": inst.gaussians,
+            "centroid": list(inst.centre),
+            "box_min": list(inst.box_min),
+            "box_max": list(inst.box_max),
+        }
         for i, inst in enumerate(answer.instances)
     ]
     instances += [
@@ -40,12 +47,19 @@ def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray
         for i, r in enumerate(answer.regions)
     ]
     return QueryReply(
-        stamp_ns=time.time_ns(), frame_id="map", request_id=request.request_id, status="ok",
+        stamp_ns=time.time_ns(),
+        frame_id="map",
+        request_id=request.request_id,
+        status="ok",
         message=f"{int(answer.chosen.sum())} Gaussians pick it over {len(answer.negatives)} negatives",
-        text=answer.text, view=request.view, map_version=map_version, instances=instances,
+        text=answer.text,
+        view=request.view,
+        map_version=map_version,
+        instances=instances,
         heatmap=None if answer.heatmap is None else answer.heatmap.astype(np.float32),
         mask=None if answer.mask is None else answer.mask.astype(np.uint8),
-        image=image, seconds=seconds,
+        image=image,
+        seconds=seconds,
     )
 
 
@@ -54,7 +68,12 @@ class QueryServerNode(Node):
         "map": "",  # the prior Gaussian map (INRIA PLY)
         "map_dir": "{run_dir}/map",
         "views": "{run_dir}/views",
-        "negatives": ["object", "things", "stuff", "texture"],  # query.CANONICAL_NEGATIVES: texts a query must beat, unless the request names its own
+        "negatives": [
+            "object",
+            "things",
+            "stuff",
+            "texture",
+        ],  # query.CANONICAL_NEGATIVES: texts a query must beat, unless the request names its own
         "query_endpoint": "tcp://127.0.0.1:5600",
         "diagnostics_bind": "ipc://{run_dir}/diagnostics.sock",
         "map_in": "ipc://{run_dir}/map.sock",
@@ -79,7 +98,9 @@ class QueryServerNode(Node):
         try:
             server = QueryServer(self.context, p["query_endpoint"], keys=keys)
             opened.append(server)
-            collector = DiagnosticsCollector(self.context, p["diagnostics_bind"], p["stale_after_s"], topic=p["topic_diagnostics"])
+            collector = DiagnosticsCollector(
+                self.context, p["diagnostics_bind"], p["stale_after_s"], topic=p["topic_diagnostics"]
+            )
             opened.append(collector)
             maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
             opened.append(maps)
@@ -120,7 +141,13 @@ class QueryServerNode(Node):
             points = np.random.default_rng(0).uniform(0.0, 5.0, (500, 3))
             instances_in_3d(points, np.ones(len(points), bool))
             centre = np.median(self.gaussians.means, axis=0)
-            camera = Camera("warm-up", 32, 24, intrinsics(30.0, 30.0, 16.0, 12.0), look_at(centre + [0.0, 0.0, 100.0], centre, (0.0, 1.0, 0.0)))
+            camera = Camera(
+                "warm-up",
+                32,
+                24,
+                intrinsics(30.0, 30.0, 16.0, 12.0),
+                look_at(centre + [0.0, 0.0, 100.0], centre, (0.0, 1.0, 0.0)),
+            )
             render_feature_map(self.gaussians, np.zeros((len(self.gaussians), 1), np.float32), camera)
             log.info("query kernels ready in %.1f s", time.perf_counter() - start)
         except Exception:  # a warm-up failure must not take the server down; the query will say more
@@ -138,7 +165,12 @@ class QueryServerNode(Node):
             log.warning("map version %d not loaded: %s", record["version"], exc)
             return
         if len(language_map.features) != len(self.gaussians):
-            log.error("map version %d has %d Gaussians, the prior map %d: ignored", record["version"], len(language_map.features), len(self.gaussians))
+            log.error(
+                "map version %d has %d Gaussians, the prior map %d: ignored",
+                record["version"],
+                len(language_map.features),
+                len(self.gaussians),
+            )
             return
         language_map.features = language_map.features.astype(np.float32)  # once, not per query
         self.language_map, self.version = language_map, record["version"]
@@ -148,10 +180,17 @@ class QueryServerNode(Node):
         start = time.perf_counter()
         self.stats.count("received")
         if isinstance(message, StatusRequest):
-            return StatusReply(stamp_ns=time.time_ns(), request_id=message.request_id, nodes=self._statuses(), map_version=self.version)
+            return StatusReply(
+                stamp_ns=time.time_ns(), request_id=message.request_id, nodes=self._statuses(), map_version=self.version
+            )
         if not isinstance(message, QueryRequest):  # a well-formed message of another kind
             self.stats.count("bad_messages")
-            return QueryReply(stamp_ns=time.time_ns(), request_id=getattr(message, "request_id", ""), status="bad_request", message=f"{type(message).__name__} is not a request")
+            return QueryReply(
+                stamp_ns=time.time_ns(),
+                request_id=getattr(message, "request_id", ""),
+                status="bad_request",
+                message=f"{type(message).__name__} is not a request",
+            )
         reply = self._query(message)
         reply.seconds = time.perf_counter() - start
         self.stats.handled(0, reply.seconds)
@@ -164,7 +203,15 @@ class QueryServerNode(Node):
         from ..scene import select_view
 
         def refuse(status: str, text: str) -> QueryReply:
-            return QueryReply(stamp_ns=time.time_ns(), request_id=request.request_id, status=status, message=text, text=request.text, view=request.view, map_version=self.version)
+            return QueryReply(
+                stamp_ns=time.time_ns(),
+                request_id=request.request_id,
+                status=status,
+                message=text,
+                text=request.text,
+                view=request.view,
+                map_version=self.version,
+            )
 
         text = request.text.strip()
         if not text:
@@ -183,7 +230,9 @@ class QueryServerNode(Node):
             if encoder_name not in self.encoders:
                 self.encoders[encoder_name] = encoder_for_map(self.language_map)
             negatives = request.negatives or self.params["negatives"]
-            answer = answer_query(self.language_map, self.gaussians, self.encoders[encoder_name], text, negatives, camera)
+            answer = answer_query(
+                self.language_map, self.gaussians, self.encoders[encoder_name], text, negatives, camera
+            )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))
         if answer.mask is not None and math.isfinite(request.threshold):  # the caller's own cut on H_q
@@ -207,11 +256,22 @@ class QueryServerNode(Node):
             **{f"diagnostics_{k}": collector.stats[k] for k in ("received", "bad_messages", "gaps")},
             **{f"map_{k}": maps.stats[k] for k in ("received", "bad_messages", "gaps", "reconnects")},
         )
-        values["bad_messages"] = (self.stats.counts["bad_messages"] + server.stats["bad_requests"] + collector.stats["bad_messages"]
-                                  + collector.stats["unexpected"] + maps.stats["bad_messages"])
+        values["bad_messages"] = (
+            self.stats.counts["bad_messages"]
+            + server.stats["bad_requests"]
+            + collector.stats["bad_messages"]
+            + collector.stats["unexpected"]
+            + maps.stats["bad_messages"]
+        )
         return values
 
     def _statuses(self) -> list[dict]:
         """This node's own status first, then every other node's latest (STALE when silent)."""
-        own = {"node": self.name, "level": 0, "message": f"map version {self.version}", "values": self._values(), "age_s": 0.0}
+        own = {
+            "node": self.name,
+            "level": 0,
+            "message": f"map version {self.version}",
+            "values": self._values(),
+            "age_s": 0.0,
+        }
         return [own, *self._transport[1].nodes()]

@@ -116,18 +116,36 @@ class RefinerNode(Node):
                     wait_s = max(p["period_s"], spent * (1.0 - p["max_duty"]) / p["max_duty"])
                     last_announce = 0.0
                 if self.record and time.monotonic() - last_announce > 1.0:
-                    pub.send(p["topic_map"], seqs.stamp(MapUpdated(stamp_ns=time.time_ns(), frame_id="map", **{k: self.record[k] for k in ("version", "path", "views", "observed_gaussians", "encoder", "final")})))
+                    pub.send(
+                        p["topic_map"],
+                        seqs.stamp(
+                            MapUpdated(
+                                stamp_ns=time.time_ns(),
+                                frame_id="map",
+                                **{
+                                    k: self.record[k]
+                                    for k in ("version", "path", "views", "observed_gaussians", "encoder", "final")
+                                },
+                            )
+                        ),
+                    )
                     stats.count("published")
                     last_announce = time.monotonic()
                 if diag is not None:
-                    diag.beat(0, f"map version {self.version}, {self.views_done} views", stats.with_sockets(sub.stats, map_version=self.version, views=self.views_done))
+                    diag.beat(
+                        0,
+                        f"map version {self.version}, {self.views_done} views",
+                        stats.with_sockets(sub.stats, map_version=self.version, views=self.views_done),
+                    )
                 if final and p["exit_on_final"]:
                     time.sleep(0.5)  # subscribers get the last announcement before the socket closes
                     return 0
             return 130
         finally:
             if diag is not None:
-                diag.beat_now(0, "stopping", stats.with_sockets(sub.stats, map_version=self.version, views=self.views_done))
+                diag.beat_now(
+                    0, "stopping", stats.with_sockets(sub.stats, map_version=self.version, views=self.views_done)
+                )
             for socket in (sub, pub, diag):
                 if socket is not None:
                     socket.close()
@@ -141,7 +159,14 @@ class RefinerNode(Node):
         if views == 0 or not encoder_file.exists():
             log.warning("no view in the store yet: no map to write%s", " (the stream ended with none)" if final else "")
             if final:  # announce the end anyway, or the ingest would wait for a final map forever
-                self.record = {"version": self.version, "path": "", "views": 0, "observed_gaussians": 0, "encoder": "", "final": True}
+                self.record = {
+                    "version": self.version,
+                    "path": "",
+                    "views": 0,
+                    "observed_gaussians": 0,
+                    "encoder": "",
+                    "final": True,
+                }
             return
         from ..aggregate.snapshot import LanguageMap
 
@@ -155,7 +180,23 @@ class RefinerNode(Node):
         self.views_done = views
         self.version += 1
         language_map = LanguageMap.from_features(self.features, observed, encoder_file.read_text())
-        self.record = write_snapshot(self.map_dir, self.version, language_map, {
-            "views": views, "observed_gaussians": int(observed.sum()), "encoder": language_map.encoder, "final": final,
-        }, self.params["codebook"] or None)
-        log.info("map version %d: %d views, %d Gaussians observed, %.1f s%s", self.version, views, int(observed.sum()), time.perf_counter() - start, " (final)" if final else "")
+        self.record = write_snapshot(
+            self.map_dir,
+            self.version,
+            language_map,
+            {
+                "views": views,
+                "observed_gaussians": int(observed.sum()),
+                "encoder": language_map.encoder,
+                "final": final,
+            },
+            self.params["codebook"] or None,
+        )
+        log.info(
+            "map version %d: %d views, %d Gaussians observed, %.1f s%s",
+            self.version,
+            views,
+            int(observed.sum()),
+            time.perf_counter() - start,
+            " (final)" if final else "",
+        )

@@ -45,12 +45,22 @@ def encode_frame(frame: ImageFrame, encoder, region_config) -> RegionFeatures:
     levels = propose_regions(image, region_config)
     bank = encode_regions(image, levels, encoder)
     return RegionFeatures(
-        stamp_ns=frame.stamp_ns, seq=frame.seq, frame_id=frame.frame_id, name=frame.name, source_seq=frame.seq,
-        encoder=encoder.name, label_maps=levels.label_maps.astype(np.int32),
+        stamp_ns=frame.stamp_ns,
+        seq=frame.seq,
+        frame_id=frame.frame_id,
+        name=frame.name,
+        source_seq=frame.seq,
+        encoder=encoder.name,
+        label_maps=levels.label_maps.astype(np.int32),
         level_sizes=np.array([len(f) for f in bank.features], np.int32),
-        features=np.concatenate(bank.features).astype(np.float16), image=image,
-        K=frame.K, D=frame.D, distortion_model=frame.distortion_model, world_from_camera=frame.world_from_camera,
-        width=frame.width, height=frame.height,
+        features=np.concatenate(bank.features).astype(np.float16),
+        image=image,
+        K=frame.K,
+        D=frame.D,
+        distortion_model=frame.distortion_model,
+        world_from_camera=frame.world_from_camera,
+        width=frame.width,
+        height=frame.height,
     )
 
 

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import resource
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -67,7 +67,7 @@ class Scene:
     cameras: list[Camera]
 
     @staticmethod
-    def open(folder: str | Path) -> "Scene":
+    def open(folder: str | Path) -> Scene:
         folder = Path(folder)
         ply = folder / "map" / "point_cloud.ply"
         missing = [str(p) for p in (ply, folder / "sparse" / "0", folder / "images") if not p.exists()]
@@ -81,7 +81,9 @@ class Scene:
         if bgr is None:
             raise OlsplatInputError(f"{path}: missing or not an image")
         if bgr.shape[:2] != (camera.height, camera.width):
-            raise OlsplatInputError(f"{path}: {bgr.shape[1]}x{bgr.shape[0]}, but its camera says {camera.width}x{camera.height}")
+            raise OlsplatInputError(
+                f"{path}: {bgr.shape[1]}x{bgr.shape[0]}, but its camera says {camera.width}x{camera.height}"
+            )
         return np.ascontiguousarray(bgr[..., ::-1])
 
 
@@ -116,7 +118,9 @@ def _structural_branch(scene: Scene, gaussians, structure: StructureConfig) -> S
     return StructuralBranch(*_POINT_FEATURES[key], structure)
 
 
-def add_view(gaussians, camera: Camera, label_maps, bank, chosen: Method, store: ObservationStore, branch=None) -> dict[str, float]:
+def add_view(
+    gaussians, camera: Camera, label_maps, bank, chosen: Method, store: ObservationStore, branch=None
+) -> dict[str, float]:
     """One view into the store: render its Top-K, fuse its bank with the 3D branch (if any),
     observe, append. Returns the seconds of each stage (rasterize, fuse, observe, append)."""
     t0 = time.perf_counter()
@@ -130,7 +134,13 @@ def add_view(gaussians, camera: Camera, label_maps, bank, chosen: Method, store:
     t3 = time.perf_counter()
     store.append(camera.name, observations, stacked)
     t4 = time.perf_counter()
-    return {"rasterize": t1 - t0, "fuse": t2 - t1, "observe": t3 - t2, "append": t4 - t3, "kept": float(len(observations))}
+    return {
+        "rasterize": t1 - t0,
+        "fuse": t2 - t1,
+        "observe": t3 - t2,
+        "append": t4 - t3,
+        "kept": float(len(observations)),
+    }
 
 
 def aggregate_scene(

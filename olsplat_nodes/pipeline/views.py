@@ -28,8 +28,12 @@ def save_view(folder: str | Path, index: int, camera: Camera, image_rgb: np.ndar
     if not cv2.imwrite(str(stem) + ".jpg", np.ascontiguousarray(image_rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95]):
         raise OSError(f"{stem}.jpg: cannot write the view's photo")
     record = {
-        "name": camera.name, "width": camera.width, "height": camera.height, "K": camera.K.reshape(-1).tolist(),
-        "dist": camera.dist.tolist(), "world_from_camera": camera.world_from_camera.reshape(-1).tolist(),
+        "name": camera.name,
+        "width": camera.width,
+        "height": camera.height,
+        "K": camera.K.reshape(-1).tolist(),
+        "dist": camera.dist.tolist(),
+        "world_from_camera": camera.world_from_camera.reshape(-1).tolist(),
     }
     tmp = Path(str(stem) + ".json.tmp")
     tmp.write_text(json.dumps(record))

@@ -23,7 +23,9 @@ def _touching(voxel: tuple[int, int, int]):
                     yield (i + di, j + dj, k + dk)
 
 
-def instances_in_3d_bfs(means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20) -> list[Instance3D]:
+def instances_in_3d_bfs(
+    means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20
+) -> list[Instance3D]:
     """``localize.instances_in_3d`` with every distance computed: O(M^2) time, M^2 bits of memory."""
     points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
     points = points[np.isfinite(points).all(1)]
@@ -63,5 +65,12 @@ def instances_in_3d_bfs(means: np.ndarray, selected: np.ndarray, eps: float = 1.
     for cluster in sorted(members):
         inside = points[members[cluster]]
         if len(inside) >= max(min_points, 1):
-            out.append(Instance3D(tuple(map(float, inside.min(0))), tuple(map(float, inside.max(0))), tuple(map(float, inside.mean(0))), len(inside)))
+            out.append(
+                Instance3D(
+                    tuple(map(float, inside.min(0))),
+                    tuple(map(float, inside.max(0))),
+                    tuple(map(float, inside.mean(0))),
+                    len(inside),
+                )
+            )
     return sorted(out, key=lambda instance: -instance.gaussians)  # stable: ties stay in lowest-voxel order

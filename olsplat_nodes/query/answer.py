@@ -56,7 +56,9 @@ def answer_query(
     if not text:
         raise OlsplatInputError("the query text is empty")
     if len(gaussians) != len(language_map.features):
-        raise OlsplatInputError(f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}")
+        raise OlsplatInputError(
+            f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}"
+        )
     negatives = [n for n in (t.strip() for t in negatives) if n and n != text]
     embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
     features = np.asarray(language_map.features, dtype=np.float32)  # no copy when the caller keeps float32

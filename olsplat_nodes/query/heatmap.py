@@ -39,6 +39,8 @@ def argmax_masks(maps: np.ndarray, alpha: np.ndarray, min_alpha: float = 0.5) ->
     return np.stack([(winner == q) & covered for q in range(len(maps))])
 
 
-def relevancy_mask(query_map: np.ndarray, negative_maps: np.ndarray, alpha: np.ndarray, min_alpha: float = 0.5) -> np.ndarray:
+def relevancy_mask(
+    query_map: np.ndarray, negative_maps: np.ndarray, alpha: np.ndarray, min_alpha: float = 0.5
+) -> np.ndarray:
     """[H, W] bool: where the query's heatmap beats every negative's."""
     return (query_map > negative_maps.max(0)) & (alpha > min_alpha) if len(negative_maps) else alpha > min_alpha

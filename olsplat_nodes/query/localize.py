@@ -77,11 +77,19 @@ def regions_in_view(mask: np.ndarray, min_pixels: int = 50) -> list[Region2D]:
     for i in range(1, count):
         x, y, w, h, area = stats[i]
         if area >= min_pixels:
-            out.append(Region2D((int(x), int(y), int(x + w), int(y + h)), (float(centroids[i][0] + 0.5), float(centroids[i][1] + 0.5)), int(area)))
+            out.append(
+                Region2D(
+                    (int(x), int(y), int(x + w), int(y + h)),
+                    (float(centroids[i][0] + 0.5), float(centroids[i][1] + 0.5)),
+                    int(area),
+                )
+            )
     return sorted(out, key=lambda r: -r.pixels)
 
 
-def instances_in_3d(means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20) -> list[Instance3D]:
+def instances_in_3d(
+    means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20
+) -> list[Instance3D]:
     """DBSCAN clusters of the selected Gaussians' centres, largest first (module docstring).
 
     means [N, 3] world metres; selected: [N] bool mask or integer indices; eps: DBSCAN radius
@@ -101,10 +109,7 @@ def instances_in_3d(means: np.ndarray, selected: np.ndarray, eps: float = 1.5, m
     count, low, high, total = _cluster_stats(points, cluster, len(keys))
     order = np.flatnonzero(count >= max(min_points, 1))
     order = order[np.argsort(-count[order], kind="stable")]  # largest first; ties by lowest voxel
-    return [
-        Instance3D(_floats(low[c]), _floats(high[c]), _floats(total[c] / count[c]), int(count[c]))
-        for c in order
-    ]
+    return [Instance3D(_floats(low[c]), _floats(high[c]), _floats(total[c] / count[c]), int(count[c])) for c in order]
 
 
 def _floats(row: np.ndarray) -> tuple[float, float, float]:
@@ -122,7 +127,9 @@ def _voxelise(points: np.ndarray, eps: float):
     lowest, highest = _bounds(points)  # numpy's min(0) on [M, 3] is ten times slower
     dims = np.floor((highest - lowest) / eps).astype(np.int64) + 3  # floor is monotonic
     if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
-        raise ValueError(f"eps={eps!r} m is too small for the selection's extent {np.ptp(points, 0)} m: too many voxels for int64 keys")
+        raise ValueError(
+            f"eps={eps!r} m is too small for the selection's extent {np.ptp(points, 0)} m: too many voxels for int64 keys"
+        )
     point_keys = _voxel_keys(points, lowest, eps, dims)
     order = np.argsort(point_keys)
     point_keys = point_keys[order]

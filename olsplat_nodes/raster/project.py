@@ -79,7 +79,11 @@ def _project_kernel(
         r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
         r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
         r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
-        s0, s1, s2 = math.exp(float(log_scales[i, 0])), math.exp(float(log_scales[i, 1])), math.exp(float(log_scales[i, 2]))
+        s0, s1, s2 = (
+            math.exp(float(log_scales[i, 0])),
+            math.exp(float(log_scales[i, 1])),
+            math.exp(float(log_scales[i, 2])),
+        )
         m00 = (viewmat[0, 0] * r00 + viewmat[0, 1] * r10 + viewmat[0, 2] * r20) * s0
         m01 = (viewmat[0, 0] * r01 + viewmat[0, 1] * r11 + viewmat[0, 2] * r21) * s1
         m02 = (viewmat[0, 0] * r02 + viewmat[0, 1] * r12 + viewmat[0, 2] * r22) * s2

@@ -90,7 +90,7 @@ def rasterize(
         topk_weights=topk_weights if want_topk else None,
         n_evaluations=int(evals[:, 0].sum()),
         n_tile_pairs=int(evals[:, 1].sum()),
-        n_intersections=int(len(slots)),
+        n_intersections=len(slots),
         n_visible=int((projected.radii > 0).sum()),
         seconds=dict(zip(("project", "bin", "composite"), np.diff(clock).tolist())),
     )

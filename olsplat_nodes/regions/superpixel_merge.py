@@ -80,7 +80,10 @@ def propose_regions(image_rgb: np.ndarray, config: RegionConfig = RegionConfig()
     labels = _superpixels(lab_u8, config.superpixel_px)
     n = int(labels.max()) + 1
     sizes = np.bincount(labels.ravel(), minlength=n).astype(np.float64)
-    means = np.stack([np.bincount(labels.ravel(), weights=lab[..., c].ravel(), minlength=n) for c in range(3)], 1) / sizes[:, None]
+    means = (
+        np.stack([np.bincount(labels.ravel(), weights=lab[..., c].ravel(), minlength=n) for c in range(3)], 1)
+        / sizes[:, None]
+    )
     edges = _adjacency(labels, gradient)
     neighbours: list[dict[int, list[float]]] = [dict() for _ in range(n)]
     for (a, b), stats in edges.items():
@@ -126,7 +129,10 @@ def propose_regions(image_rgb: np.ndarray, config: RegionConfig = RegionConfig()
         neighbours[b] = {}
         version[a] += 1
         for c in neighbours[a]:
-            heapq.heappush(heap, (cost(a, c), a, c, version[a], version[c]) if a < c else (cost(c, a), c, a, version[c], version[a]))
+            heapq.heappush(
+                heap,
+                (cost(a, c), a, c, version[a], version[c]) if a < c else (cost(c, a), c, a, version[c], version[a]),
+            )
         alive -= 1
         while pending and alive <= pending[0]:
             snapshot(pending.pop(0))

@@ -36,7 +36,9 @@ class Camera:
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera {self.name!r}: image size must be positive, got {self.width}x{self.height}")
         if not (np.isfinite(self.K).all() and self.K[0, 0] > 0 and self.K[1, 1] > 0):
-            raise ValueError(f"camera {self.name!r}: focal lengths must be positive and finite, got K={self.K.tolist()}")
+            raise ValueError(
+                f"camera {self.name!r}: focal lengths must be positive and finite, got K={self.K.tolist()}"
+            )
         rotation = self.world_from_camera[:3, :3]
         if not np.isfinite(self.world_from_camera).all() or not np.allclose(
             rotation.T @ rotation, np.eye(3), atol=1e-4

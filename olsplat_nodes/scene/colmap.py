@@ -28,7 +28,13 @@ MODELS: dict[str, tuple[int, tuple[str, ...]]] = {
     "FULL_OPENCV": (6, ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")),
 }
 _NAME_BY_ID = {model_id: name for name, (model_id, _) in MODELS.items()}
-_UNSUPPORTED_IDS = {5: "OPENCV_FISHEYE", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE", 9: "RADIAL_FISHEYE", 10: "THIN_PRISM_FISHEYE"}
+_UNSUPPORTED_IDS = {
+    5: "OPENCV_FISHEYE",
+    7: "FOV",
+    8: "SIMPLE_RADIAL_FISHEYE",
+    9: "RADIAL_FISHEYE",
+    10: "THIN_PRISM_FISHEYE",
+}
 _DIST_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # OpenCV's coefficient order
 _N_DIST = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 4, "RADIAL": 4, "OPENCV": 4, "FULL_OPENCV": 8}
 
@@ -47,7 +53,9 @@ def _intrinsics_from_params(model: str, params, where: Path) -> tuple[np.ndarray
 def _params_from_camera(camera: Camera) -> tuple[str, list[float]]:
     """The camera's own COLMAP model when it can hold K and dist exactly, else the simplest that can."""
     if len(camera.dist) > len(_DIST_ORDER):
-        raise ValueError(f"camera {camera.name!r}: {len(camera.dist)} distortion coefficients do not fit a COLMAP model")
+        raise ValueError(
+            f"camera {camera.name!r}: {len(camera.dist)} distortion coefficients do not fit a COLMAP model"
+        )
     values = {"f": camera.fx, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy}
     values.update({name: 0.0 for name in _DIST_ORDER})
     values.update(zip(_DIST_ORDER, map(float, camera.dist)))

@@ -88,7 +88,7 @@ class Gaussians:
         bad |= ~np.isfinite(self.sh).all(axis=(1, 2))
         return bad
 
-    def subset(self, index: np.ndarray) -> "Gaussians":
+    def subset(self, index: np.ndarray) -> Gaussians:
         """A new map holding the Gaussians selected by ``index`` (bool mask or int indices)."""
         return Gaussians(
             means=self.means[index],
@@ -106,7 +106,7 @@ class Gaussians:
         scales: np.ndarray,  # [N, 3] standard deviations
         opacities: np.ndarray,  # [N] in (0, 1)
         quats: np.ndarray | None = None,  # [N, 4] wxyz, identity when None
-    ) -> "Gaussians":
+    ) -> Gaussians:
         """Build a degree-0 map from plain colours, scales and opacities."""
         n = len(means)
         if quats is None:

@@ -44,6 +44,4 @@ def select_view(cameras: list[Camera], view: str | int) -> Camera:
     if index is not None and -len(cameras) <= index < len(cameras):
         return cameras[index]
     sample = ", ".join(c.name for c in cameras[:5]) + (", ..." if len(cameras) > 5 else "")
-    raise OlsplatInputError(
-        f"no view {key!r}: give a name or an index in 0..{len(cameras) - 1} (views: {sample})"
-    )
+    raise OlsplatInputError(f"no view {key!r}: give a name or an index in 0..{len(cameras) - 1} (views: {sample})")

@@ -6,7 +6,15 @@ beside this file). A source is polled: ``read(timeout_s) -> SourceFrame | None``
 """
 
 from .base import ERROR, OK, STALE, WARN, PacedSource, Pacer, Source, SourceFrame
-from .exif import ExifFolderSource, ExifPhoto, camera_rotation, focal_length_px, headings_from_track, pose_priors, read_exif
+from .exif import (
+    ExifFolderSource,
+    ExifPhoto,
+    camera_rotation,
+    focal_length_px,
+    headings_from_track,
+    pose_priors,
+    read_exif,
+)
 from .oak import DepthAISource, camera_from_calibration, crop_intrinsics, discover_devices, trim_distortion
 from .open import SOURCE_DEFAULTS, SOURCE_KINDS, open_source, telemetry_config
 from .replay import ReplaySource

@@ -130,4 +130,8 @@ class PacedSource(Source):
         frame, self._next = self._next, None
         self._pacer.sent()
         self.counts["frames"] += 1
-        return frame if isinstance(frame, SourceFrame) else SourceFrame(frame.seq, frame.stamp_ns, frame.name, frame.image, frame.camera)
+        return (
+            frame
+            if isinstance(frame, SourceFrame)
+            else SourceFrame(frame.seq, frame.stamp_ns, frame.name, frame.image, frame.camera)
+        )

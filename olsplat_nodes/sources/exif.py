@@ -119,7 +119,7 @@ def _stamp(exif_ifd: dict, gps: dict) -> tuple[int | None, str]:
         zone = dt.timezone(sign * dt.timedelta(hours=int(match.group(2)), minutes=int(match.group(3))))
         source = "offset"
     else:
-        zone, source = dt.timezone.utc, "local_as_utc"
+        zone, source = dt.UTC, "local_as_utc"
         try:
             h, m, s = (float(v) for v in gps[7])  # GPSTimeStamp (UTC)
             day = dt.datetime.strptime(str(gps[29]).strip(), "%Y:%m:%d")  # GPSDateStamp
@@ -173,14 +173,18 @@ def read_exif(path: str | Path) -> ExifPhoto:
 def focal_length_px(photo: ExifPhoto, sensor_width_mm: float = 0.0) -> tuple[float, str]:
     """(focal length in pixels of the stored image, which rule gave it); ValueError if none can."""
     if photo.focal_35mm:
-        return photo.focal_35mm * math.hypot(photo.width, photo.height) / math.hypot(36.0, 24.0), "FocalLengthIn35mmFilm"
+        return photo.focal_35mm * math.hypot(photo.width, photo.height) / math.hypot(
+            36.0, 24.0
+        ), "FocalLengthIn35mmFilm"
     if photo.focal_mm and photo.focal_plane_px_per_mm:
         scale = photo.width / photo.exif_width if photo.exif_width else 1.0
         return photo.focal_mm * photo.focal_plane_px_per_mm * scale, "FocalLength+FocalPlaneXResolution"
     if photo.focal_mm and sensor_width_mm > 0:
         return photo.focal_mm * photo.width / sensor_width_mm, "FocalLength+sensor_width_mm"
-    raise ValueError(f"{photo.path.name}: no focal length in pixels can be derived from its EXIF "
-                     f"(FocalLength={photo.focal_mm}, FocalLengthIn35mmFilm={photo.focal_35mm}); set exif_focal_px or exif_sensor_width_mm")
+    raise ValueError(
+        f"{photo.path.name}: no focal length in pixels can be derived from its EXIF "
+        f"(FocalLength={photo.focal_mm}, FocalLengthIn35mmFilm={photo.focal_35mm}); set exif_focal_px or exif_sensor_width_mm"
+    )
 
 
 def headings_from_track(positions_enu: np.ndarray, min_step_m: float = 0.5) -> np.ndarray:
@@ -241,8 +245,16 @@ class ExifFolderSource(PacedSource):
 
     kind = "exif_folder"
 
-    def __init__(self, folder: str | Path, rate_hz: float | None = None, fast: bool = False, *,
-                 reference=None, focal_px: float = 0.0, sensor_width_mm: float = 0.0):
+    def __init__(
+        self,
+        folder: str | Path,
+        rate_hz: float | None = None,
+        fast: bool = False,
+        *,
+        reference=None,
+        focal_px: float = 0.0,
+        sensor_width_mm: float = 0.0,
+    ):
         folder = Path(folder)
         if not folder.is_dir():
             raise OlsplatInputError(f"exif_folder source: {folder} is not a folder")
@@ -253,7 +265,9 @@ class ExifFolderSource(PacedSource):
         if without_gps:
             log.warning("%d photos without EXIF GPS skipped: %s", len(without_gps), ", ".join(without_gps[:5]))
         if not photos:
-            raise OlsplatInputError(f"exif_folder source: no JPEG with EXIF GPS latitude/longitude/altitude in {folder} ({len(files)} JPEG files)")
+            raise OlsplatInputError(
+                f"exif_folder source: no JPEG with EXIF GPS latitude/longitude/altitude in {folder} ({len(files)} JPEG files)"
+            )
         if all(p.stamp_ns is not None for p in photos):
             photos.sort(key=lambda p: (p.stamp_ns, p.path.name))
         self.photos = photos
@@ -262,7 +276,9 @@ class ExifFolderSource(PacedSource):
         self.focal_rules = []
         for photo, pose in zip(photos, self.poses):
             try:
-                f, rule = (float(focal_px), "exif_focal_px") if focal_px > 0 else focal_length_px(photo, sensor_width_mm)
+                f, rule = (
+                    (float(focal_px), "exif_focal_px") if focal_px > 0 else focal_length_px(photo, sensor_width_mm)
+                )
             except ValueError as exc:
                 raise OlsplatInputError(f"exif_folder source: {exc}") from None
             K = np.array([[f, 0.0, photo.width / 2.0], [0.0, f, photo.height / 2.0], [0.0, 0.0, 1.0]])
@@ -270,8 +286,14 @@ class ExifFolderSource(PacedSource):
             self.focal_rules.append(rule)
         super().__init__(self._frames_of(), rate_hz, fast)
         self.counts.update(photos=len(photos), photos_without_gps=len(without_gps), unreadable_images=0)
-        log.info("exif_folder %s: %d photos, world origin (ENU) lat %.7f lon %.7f alt %.2f m; headings from %s; focal from %s",
-                 folder, len(photos), *self.reference, sorted(set(self.heading_sources)), sorted(set(self.focal_rules)))
+        log.info(
+            "exif_folder %s: %d photos, world origin (ENU) lat %.7f lon %.7f alt %.2f m; headings from %s; focal from %s",
+            folder,
+            len(photos),
+            *self.reference,
+            sorted(set(self.heading_sources)),
+            sorted(set(self.focal_rules)),
+        )
 
     def _frames_of(self):
         first = next((p.stamp_ns for p in self.photos if p.stamp_ns is not None), 0)
@@ -284,7 +306,13 @@ class ExifFolderSource(PacedSource):
                 continue
             if image.shape[:2] != (camera.height, camera.width):
                 self.counts["unreadable_images"] += 1
-                log.warning("%s: decodes to %s, header says %dx%d: skipped", photo.path, image.shape[:2], camera.width, camera.height)
+                log.warning(
+                    "%s: decodes to %s, header says %dx%d: skipped",
+                    photo.path,
+                    image.shape[:2],
+                    camera.width,
+                    camera.height,
+                )
                 continue
             stamp = photo.stamp_ns if photo.stamp_ns is not None else first + seq * 1_000_000_000
             # the original bytes decode to this same image only when no EXIF rotation applies

@@ -68,7 +68,9 @@ def trim_distortion(coefficients) -> np.ndarray:
     return d[:length].copy()
 
 
-def camera_from_calibration(calibration, socket, width: int, height: int, world_from_camera=None, name: str = "oak") -> Camera:
+def camera_from_calibration(
+    calibration, socket, width: int, height: int, world_from_camera=None, name: str = "oak"
+) -> Camera:
     """A ``depthai.CalibrationHandler`` -> ``scene.Camera`` for a ``width`` × ``height`` CROP output.
 
     Only the perspective (OpenCV) lens model is supported: a fisheye calibration raises ValueError.
@@ -84,8 +86,15 @@ def camera_from_calibration(calibration, socket, width: int, height: int, world_
     K, w0, h0 = calibration.getDefaultIntrinsics(socket)
     dist = trim_distortion(calibration.getDistortionCoefficients(socket))
     models = {0: "PINHOLE", 4: "OPENCV", 8: "FULL_OPENCV"}
-    return Camera(name, width, height, crop_intrinsics(K, (w0, h0), (width, height)),
-                  np.eye(4) if world_from_camera is None else world_from_camera, dist, models.get(len(dist), "OPENCV_RATIONAL"))
+    return Camera(
+        name,
+        width,
+        height,
+        crop_intrinsics(K, (w0, h0), (width, height)),
+        np.eye(4) if world_from_camera is None else world_from_camera,
+        dist,
+        models.get(len(dist), "OPENCV_RATIONAL"),
+    )
 
 
 def discover_devices(device: str = "") -> list:
@@ -100,8 +109,9 @@ def _stamp_ns(delta: dt.timedelta) -> int:
     return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
 
 
-def open_device_stream(info, socket: str, width: int, height: int, fps: float, frame_timeout_s: float,
-                       closing: threading.Event) -> tuple[Camera, Iterator[tuple[int, int, np.ndarray]]]:
+def open_device_stream(
+    info, socket: str, width: int, height: int, fps: float, frame_timeout_s: float, closing: threading.Event
+) -> tuple[Camera, Iterator[tuple[int, int, np.ndarray]]]:
     """Open ``info``'s camera: (Camera with identity pose, iterator of (seq, steady-clock ns, BGR image)).
 
     The iterator raises RuntimeError when the device stops delivering, and closes the device
@@ -141,7 +151,11 @@ def open_device_stream(info, socket: str, width: int, height: int, fps: float, f
                     if transformation.isValid():
                         K = np.asarray(transformation.getIntrinsicMatrix(), np.float64)
                         if not np.allclose(K, camera.K, rtol=1e-3, atol=0.5):
-                            log.warning("frame intrinsics %s differ from the calibration's %s: using the frame's", K.tolist(), camera.K.tolist())
+                            log.warning(
+                                "frame intrinsics %s differ from the calibration's %s: using the frame's",
+                                K.tolist(),
+                                camera.K.tolist(),
+                            )
                             camera.K = K
                 yield message.getSequenceNum(), _stamp_ns(message.getTimestamp()), message.getCvFrame()
         finally:
@@ -159,26 +173,57 @@ class DepthAISource(Source):
     kind = "depthai"
     live = True
 
-    def __init__(self, device: str = "", socket: str = "CAM_A", width: int = 1280, height: int = 720, fps: float = 10.0, *,
-                 retry_s: float = 3.0, frame_timeout_s: float = 3.0, poses=None, world_from_camera=None, max_pending: int = 30,
-                 discover: Callable[[str], list] = discover_devices, open_stream: Callable = open_device_stream):
+    def __init__(
+        self,
+        device: str = "",
+        socket: str = "CAM_A",
+        width: int = 1280,
+        height: int = 720,
+        fps: float = 10.0,
+        *,
+        retry_s: float = 3.0,
+        frame_timeout_s: float = 3.0,
+        poses=None,
+        world_from_camera=None,
+        max_pending: int = 30,
+        discover: Callable[[str], list] = discover_devices,
+        open_stream: Callable = open_device_stream,
+    ):
         super().__init__()
         import depthai as dai
 
         if not hasattr(dai.CameraBoardSocket, socket):
             raise ValueError(f"depthai_socket must name a dai.CameraBoardSocket (CAM_A, CAM_B, ...), got {socket!r}")
         if width <= 0 or height <= 0 or fps <= 0 or retry_s <= 0:
-            raise ValueError(f"need positive width, height, fps and retry_s, got {width}x{height} at {fps} fps, retry_s={retry_s}")
-        self.device, self.socket, self.width, self.height, self.fps = device, socket, int(width), int(height), float(fps)
+            raise ValueError(
+                f"need positive width, height, fps and retry_s, got {width}x{height} at {fps} fps, retry_s={retry_s}"
+            )
+        self.device, self.socket, self.width, self.height, self.fps = (
+            device,
+            socket,
+            int(width),
+            int(height),
+            float(fps),
+        )
         self.retry_s, self.frame_timeout_s, self.max_pending = float(retry_s), float(frame_timeout_s), int(max_pending)
         self.poses = poses
         self.world_from_camera = np.eye(4) if world_from_camera is None else np.asarray(world_from_camera, np.float64)
         self._discover, self._open = discover, open_stream
-        self.counts.update(discovery_attempts=0, connects=0, disconnects=0, device_frames=0, frames_without_pose=0,
-                           dropped_queue=0, dropped_pending=0, device_seq_gaps=0)
+        self.counts.update(
+            discovery_attempts=0,
+            connects=0,
+            disconnects=0,
+            device_frames=0,
+            frames_without_pose=0,
+            dropped_queue=0,
+            dropped_pending=0,
+            device_seq_gaps=0,
+        )
         self._lock = threading.Lock()
         self._arrived = threading.Condition(self._lock)
-        self._queue: collections.deque = collections.deque()  # (seq, steady ns, BGR image, Camera) from the device thread
+        self._queue: collections.deque = (
+            collections.deque()
+        )  # (seq, steady ns, BGR image, Camera) from the device thread
         self._pending: collections.deque = collections.deque()  # frames waiting for a pose
         self._status = (WARN, "looking for a DepthAI device")
         self._closing = threading.Event()
@@ -204,15 +249,21 @@ class DepthAISource(Source):
                     self._stream(infos[0])
             except Exception as exc:  # a device that fails while opening or streaming: report, retry
                 self.counts["disconnects"] += 1
-                self._set_status(ERROR, f"DepthAI device lost: {type(exc).__name__}: {exc}; retrying every {self.retry_s:g} s")
+                self._set_status(
+                    ERROR, f"DepthAI device lost: {type(exc).__name__}: {exc}; retrying every {self.retry_s:g} s"
+                )
             self._closing.wait(self.retry_s)
 
     def _stream(self, info) -> None:
         device_id = getattr(info, "deviceId", "") or str(info)
         self._set_status(WARN, f"connecting to DepthAI device {device_id}")
-        camera, frames = self._open(info, self.socket, self.width, self.height, self.fps, self.frame_timeout_s, self._closing)
+        camera, frames = self._open(
+            info, self.socket, self.width, self.height, self.fps, self.frame_timeout_s, self._closing
+        )
         self.counts["connects"] += 1
-        self._set_status(OK, f"streaming from DepthAI device {device_id} ({self.width}x{self.height} at {self.fps:g} fps)")
+        self._set_status(
+            OK, f"streaming from DepthAI device {device_id} ({self.width}x{self.height} at {self.fps:g} fps)"
+        )
         last_seq = None
         try:
             for seq, steady_ns, bgr in frames:

@@ -37,7 +37,9 @@ SOURCE_DEFAULTS = {
     "depthai_frame_timeout_s": 3.0,  # depthai: no frame for this long = device lost, reconnect
     "depthai_max_pending": 30,  # depthai: frames kept while waiting for telemetry (oldest dropped beyond)
     "fixed_pose": [],  # depthai without telemetry: 16 numbers, row-major world_from_camera; [] = nadir at the origin, image top north
-    **{f"telemetry_{name}": _yaml_value(default) for name, default in _TELEMETRY_FIELDS.items()},  # telemetry_url "" = no telemetry
+    **{
+        f"telemetry_{name}": _yaml_value(default) for name, default in _TELEMETRY_FIELDS.items()
+    },  # telemetry_url "" = no telemetry
 }
 
 
@@ -79,15 +81,30 @@ def open_source(spec: dict) -> Source:
     if kind == "exif_folder":
         from .exif import ExifFolderSource
 
-        return ExifFolderSource(p["source"], p["rate_hz"] or None, p["fast"], reference=p["exif_reference"] or None,
-                                focal_px=float(p["exif_focal_px"]), sensor_width_mm=float(p["exif_sensor_width_mm"]))
+        return ExifFolderSource(
+            p["source"],
+            p["rate_hz"] or None,
+            p["fast"],
+            reference=p["exif_reference"] or None,
+            focal_px=float(p["exif_focal_px"]),
+            sensor_width_mm=float(p["exif_sensor_width_mm"]),
+        )
     if kind == "depthai":
         from ..telemetry import FlightControllerPoses
         from .oak import DepthAISource
 
         config = telemetry_config(p)
         poses = FlightControllerPoses(config, clock=time.monotonic_ns) if config else None
-        return DepthAISource(p["depthai_device"], p["depthai_socket"], int(p["depthai_width"]), int(p["depthai_height"]),
-                             float(p["depthai_fps"]), retry_s=float(p["depthai_retry_s"]), frame_timeout_s=float(p["depthai_frame_timeout_s"]),
-                             poses=poses, world_from_camera=fixed_world_from_camera(p["fixed_pose"]), max_pending=int(p["depthai_max_pending"]))
+        return DepthAISource(
+            p["depthai_device"],
+            p["depthai_socket"],
+            int(p["depthai_width"]),
+            int(p["depthai_height"]),
+            float(p["depthai_fps"]),
+            retry_s=float(p["depthai_retry_s"]),
+            frame_timeout_s=float(p["depthai_frame_timeout_s"]),
+            poses=poses,
+            world_from_camera=fixed_world_from_camera(p["fixed_pose"]),
+            max_pending=int(p["depthai_max_pending"]),
+        )
     raise ValueError(f"source_kind must be one of {', '.join(SOURCE_KINDS)}, got source_kind={kind!r}")

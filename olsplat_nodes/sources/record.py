@@ -15,9 +15,17 @@ from pathlib import Path
 from .base import Source
 
 
-def record(source: Source, out: str | Path, *, frames: int | None = None, seconds: float | None = None,
-           stop: threading.Event | None = None, jpeg_quality: int = 95, report: Callable[[str], None] | None = None,
-           report_every_s: float = 5.0) -> int:
+def record(
+    source: Source,
+    out: str | Path,
+    *,
+    frames: int | None = None,
+    seconds: float | None = None,
+    stop: threading.Event | None = None,
+    jpeg_quality: int = 95,
+    report: Callable[[str], None] | None = None,
+    report_every_s: float = 5.0,
+) -> int:
     """Write the source's frames to ``out`` until it is done, ``frames`` were written, ``seconds``
     passed or ``stop`` is set; returns the number written (0: no file is left behind)."""
     from olsplat_sim.replay_log import encode_jpeg, write_mcap

@@ -24,5 +24,7 @@ def pool_regions_reference(positions, features, camera, depth, label_maps, n_reg
                 members[level][labels[row, col]].append(features[k])
     out = []
     for level, n in enumerate(n_regions):
-        out.append(np.array([np.mean(m, axis=0) if m else np.zeros(features.shape[1]) for m in members[level]], np.float32))
+        out.append(
+            np.array([np.mean(m, axis=0) if m else np.zeros(features.shape[1]) for m in members[level]], np.float32)
+        )
     return out

@@ -19,8 +19,8 @@ from ..scene import Camera, Gaussians
 from .descriptors import geometric_descriptors
 from .distill import DistillConfig, OnlineDistiller, fuse_regions
 from .minkunet import load_minkunet, minkunet_point_features
-from .pooling import Visibility, pool_regions, visible_pixels
 from .points import StructuralPoints, structural_points
+from .pooling import Visibility, pool_regions, visible_pixels
 
 
 @dataclass(frozen=True)
@@ -41,16 +41,22 @@ class StructuralBranch:
         self.losses: list[float] = []  # mean distillation loss per view
 
     @staticmethod
-    def build(gaussians: Gaussians, camera_centres: np.ndarray, config: StructureConfig = StructureConfig()) -> "StructuralBranch":
+    def build(
+        gaussians: Gaussians, camera_centres: np.ndarray, config: StructureConfig = StructureConfig()
+    ) -> StructuralBranch:
         """Point set and point features of a map (once per map); camera centres [V, 3] give "up"."""
         points = structural_points(gaussians, config.tau_o, config.voxel)
         if config.minkunet is not None:
-            features = minkunet_point_features(load_minkunet(config.minkunet), points.positions, points.opacity, points.voxel)
+            features = minkunet_point_features(
+                load_minkunet(config.minkunet), points.positions, points.opacity, points.voxel
+            )
         else:
             features = geometric_descriptors(points, np.asarray(camera_centres, np.float64))
         return StructuralBranch(points, features, config)
 
-    def fuse_view(self, camera: Camera, depth: np.ndarray, label_maps: np.ndarray, bank: list[np.ndarray]) -> list[np.ndarray]:
+    def fuse_view(
+        self, camera: Camera, depth: np.ndarray, label_maps: np.ndarray, bank: list[np.ndarray]
+    ) -> list[np.ndarray]:
         """The view's fused region bank (one [R_l, D] array per level), training h on the way."""
         visible = visible_pixels(self.points.positions, camera, depth, self.points.voxel, self.config.visibility)
         pooled, counts = pool_regions(self.features, visible, label_maps, [len(b) for b in bank])
@@ -61,4 +67,6 @@ class StructuralBranch:
         self.losses.append(self.distiller.update(f3d, f2d))
         if not self.distiller.ready:
             return bank
-        return [fuse_regions(b, self.distiller.project(p), c, self.config.lambda_f) for b, p, c in zip(bank, pooled, counts)]
+        return [
+            fuse_regions(b, self.distiller.project(p), c, self.config.lambda_f) for b, p, c in zip(bank, pooled, counts)
+        ]

@@ -60,7 +60,9 @@ def height_above_ground(positions: np.ndarray, up: np.ndarray, cell: float, wind
     np.minimum.at(lowest, (cells[:, 0], cells[:, 1]), height)
     filled = np.where(np.isfinite(lowest), lowest, height.max()).astype(np.float32)  # empty cells never are ground
     kernel = np.ones((2 * window_cells + 1, 2 * window_cells + 1), np.uint8)
-    ground = cv2.dilate(cv2.erode(filled, kernel, borderType=cv2.BORDER_REPLICATE), kernel, borderType=cv2.BORDER_REPLICATE)
+    ground = cv2.dilate(
+        cv2.erode(filled, kernel, borderType=cv2.BORDER_REPLICATE), kernel, borderType=cv2.BORDER_REPLICATE
+    )
     return height - ground[cells[:, 0], cells[:, 1]]
 
 
@@ -85,7 +87,12 @@ def geometric_descriptors(points: StructuralPoints, camera_centres: np.ndarray) 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(positions))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
     verticality = np.abs(np.asarray(cloud.normals) @ up)
-    columns = [height[:, None] / max(altitude, 1e-12), verticality[:, None], _eigen_features(cloud, 16), _eigen_features(cloud, 48)]
+    columns = [
+        height[:, None] / max(altitude, 1e-12),
+        verticality[:, None],
+        _eigen_features(cloud, 16),
+        _eigen_features(cloud, 48),
+    ]
     for radius in (3.0 * voxel, 6.0 * voxel):
         fpfh = o3d.pipelines.registration.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius, 64))
         columns.append(np.asarray(fpfh.data).T / 100.0)

@@ -34,7 +34,9 @@ class OnlineDistiller:
 
         self.config, self.in_dim, self.out_dim = config, in_dim, out_dim
         generator = torch.Generator().manual_seed(config.seed)
-        self.model = torch.nn.Sequential(torch.nn.Linear(in_dim, config.hidden), torch.nn.ReLU(), torch.nn.Linear(config.hidden, out_dim))
+        self.model = torch.nn.Sequential(
+            torch.nn.Linear(in_dim, config.hidden), torch.nn.ReLU(), torch.nn.Linear(config.hidden, out_dim)
+        )
         with torch.no_grad():
             for p in self.model.parameters():  # seeded initialisation, independent of torch's global state
                 p.copy_(torch.empty(p.shape).uniform_(-1, 1, generator=generator) / np.sqrt(p.shape[-1]))
@@ -69,7 +71,11 @@ class OnlineDistiller:
         f3d, f2d = f3d.astype(np.float32), f2d.astype(np.float32)
         losses = []
         for _ in range(self.config.steps_per_view):
-            old = self.rng.integers(0, len(self.memory_3d), min(self.config.batch, len(self.memory_3d))) if len(self.memory_3d) else np.zeros(0, int)
+            old = (
+                self.rng.integers(0, len(self.memory_3d), min(self.config.batch, len(self.memory_3d)))
+                if len(self.memory_3d)
+                else np.zeros(0, int)
+            )
             x = torch.from_numpy(np.vstack([f3d, self.memory_3d[old]]))
             y = torch.from_numpy(np.vstack([f2d, self.memory_2d[old]]))
             loss = (1.0 - torch.nn.functional.cosine_similarity(self.model(x), y, dim=1)).mean()
@@ -90,23 +96,34 @@ class OnlineDistiller:
 
     def save(self, path: str | Path) -> None:
         arrays = {f"param_{i}": p.detach().numpy() for i, p in enumerate(self.model.parameters())}
-        np.savez(path, in_dim=self.in_dim, out_dim=self.out_dim, seen=self.seen, **arrays, **{f"config_{k}": v for k, v in asdict(self.config).items()})
+        np.savez(
+            path,
+            in_dim=self.in_dim,
+            out_dim=self.out_dim,
+            seen=self.seen,
+            **arrays,
+            **{f"config_{k}": v for k, v in asdict(self.config).items()},
+        )
 
     @staticmethod
-    def load(path: str | Path) -> "OnlineDistiller":
+    def load(path: str | Path) -> OnlineDistiller:
         import torch
 
         path = Path(path)
         try:
             data = np.load(path)
-            config = DistillConfig(**{k[len("config_") :]: data[k].item() for k in data.files if k.startswith("config_")})
+            config = DistillConfig(
+                **{k[len("config_") :]: data[k].item() for k in data.files if k.startswith("config_")}
+            )
             distiller = OnlineDistiller(int(data["in_dim"]), int(data["out_dim"]), config)
             params = list(distiller.model.parameters())
             with torch.no_grad():
                 for i, p in enumerate(params):
                     value = data[f"param_{i}"]
                     if value.shape != tuple(p.shape):
-                        raise SceneFormatError(path, f"parameter {i} has shape {value.shape}, expected {tuple(p.shape)}")
+                        raise SceneFormatError(
+                            path, f"parameter {i} has shape {value.shape}, expected {tuple(p.shape)}"
+                        )
                     p.copy_(torch.from_numpy(value))
             distiller.seen = int(data["seen"])
             return distiller

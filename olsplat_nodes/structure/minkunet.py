@@ -69,7 +69,9 @@ class BasicBlock(nn.Module):  # "BasicConvolutionBlock" / "BasicDeconvolutionBlo
 class ResidualBlock(nn.Module):
     def __init__(self, c_in: int, c_out: int):
         super().__init__()
-        self.net = nn.Sequential(Conv(c_in, c_out, 3), BatchNorm(c_out), ReLU(), Conv(c_out, c_out, 3), BatchNorm(c_out))
+        self.net = nn.Sequential(
+            Conv(c_in, c_out, 3), BatchNorm(c_out), ReLU(), Conv(c_out, c_out, 3), BatchNorm(c_out)
+        )
         self.downsample = nn.Sequential() if c_in == c_out else nn.Sequential(Conv(c_in, c_out, 1), BatchNorm(c_out))
 
     def forward(self, x: SparseTensor) -> SparseTensor:
@@ -90,8 +92,16 @@ class MinkUNet(nn.Module):
         self.stem = nn.Sequential(*_conv_bn_relu(in_channels, cs[0], 3, 1), *_conv_bn_relu(cs[0], cs[0], 3, 1))
         for i, (a, b) in enumerate([(cs[0], cs[1]), (cs[1], cs[2]), (cs[2], cs[3]), (cs[3], cs[4])], start=1):
             setattr(self, f"stage{i}", nn.Sequential(BasicBlock(a, a), ResidualBlock(a, b), ResidualBlock(b, b)))
-        for i, (a, b, skip) in enumerate([(cs[4], cs[5], cs[3]), (cs[5], cs[6], cs[2]), (cs[6], cs[7], cs[1]), (cs[7], cs[8], cs[0])], start=1):
-            setattr(self, f"up{i}", nn.ModuleList([BasicBlock(a, b, transpose=True), nn.Sequential(ResidualBlock(b + skip, b), ResidualBlock(b, b))]))
+        for i, (a, b, skip) in enumerate(
+            [(cs[4], cs[5], cs[3]), (cs[5], cs[6], cs[2]), (cs[6], cs[7], cs[1]), (cs[7], cs[8], cs[0])], start=1
+        ):
+            setattr(
+                self,
+                f"up{i}",
+                nn.ModuleList(
+                    [BasicBlock(a, b, transpose=True), nn.Sequential(ResidualBlock(b + skip, b), ResidualBlock(b, b))]
+                ),
+            )
         self.eval()
 
     def forward(self, x: SparseTensor) -> SparseTensor:
@@ -126,7 +136,11 @@ def load_minkunet(path: str | Path, in_channels: int = 4, cr: float = 1.0) -> Mi
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
-    wrong = [f"{k} {tuple(state[k].shape)} (expected {tuple(expected[k].shape)})" for k in expected if k in state and tuple(state[k].shape) != tuple(expected[k].shape)]
+    wrong = [
+        f"{k} {tuple(state[k].shape)} (expected {tuple(expected[k].shape)})"
+        for k in expected
+        if k in state and tuple(state[k].shape) != tuple(expected[k].shape)
+    ]
     if missing or unexpected or wrong:
         parts = [f"{len(missing)} missing keys (first: {', '.join(missing[:3])})" if missing else "",
                  f"{len(unexpected)} unexpected keys (first: {', '.join(unexpected[:3])})" if unexpected else "",

@@ -23,7 +23,9 @@ class Visibility:
     voxels: float = 2.0  # ... plus this many voxels (the point set's own resolution)
 
 
-def visible_pixels(positions: np.ndarray, camera: Camera, depth: np.ndarray, voxel: float, visibility: Visibility = Visibility()):
+def visible_pixels(
+    positions: np.ndarray, camera: Camera, depth: np.ndarray, voxel: float, visibility: Visibility = Visibility()
+):
     """(point indices [V], rows [V], cols [V]) of the points visible in the view.
 
     positions [P, 3] world; depth [H, W] rendered expected camera z (0 = nothing rendered);

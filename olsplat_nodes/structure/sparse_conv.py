@@ -74,7 +74,7 @@ class SparseTensor:
     def table(self) -> CoordinateTable:
         return self.levels[self.stride][1]
 
-    def with_feats(self, feats: torch.Tensor) -> "SparseTensor":
+    def with_feats(self, feats: torch.Tensor) -> SparseTensor:
         return SparseTensor(self.coords, feats, self.stride, self.levels)
 
 

@@ -15,9 +15,17 @@ class TelemetryConfig:
     dialect: str = "all"  # pymavlink dialect the checksums are verified with
     attitude: Literal["ATTITUDE", "ATTITUDE_QUATERNION"] = "ATTITUDE"  # which attitude message to use
     position: Literal["local", "global"] = "local"  # LOCAL_POSITION_NED, or GLOBAL_POSITION_INT around `reference`
-    reference: tuple[float, float, float] | None = None  # (lat deg, lon deg, alt m AMSL) of the world origin; None = first fix
-    mount_rpy_deg: tuple[float, float, float] = (0.0, -90.0, 0.0)  # camera-body angles w.r.t. the vehicle (default nadir)
-    mount_matrix: tuple[float, ...] | None = None  # 9 numbers, row-major body_from_camera (OpenCV axes); overrides the angles
+    reference: tuple[float, float, float] | None = (
+        None  # (lat deg, lon deg, alt m AMSL) of the world origin; None = first fix
+    )
+    mount_rpy_deg: tuple[float, float, float] = (
+        0.0,
+        -90.0,
+        0.0,
+    )  # camera-body angles w.r.t. the vehicle (default nadir)
+    mount_matrix: tuple[float, ...] | None = (
+        None  # 9 numbers, row-major body_from_camera (OpenCV axes); overrides the angles
+    )
     lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # camera centre in body FRD, metres
     tolerance_s: float = 0.1  # a frame needs a sample of each track this close on both sides
     max_wait_s: float = 1.0  # a frame still waiting for a later sample after this long (host clock) is rejected
@@ -37,13 +45,17 @@ class TelemetryConfig:
         if self.reference is not None and len(self.reference) != 3:
             raise ValueError(f"reference must be (lat_deg, lon_deg, alt_m), got reference={self.reference!r}")
         if len(self.mount_rpy_deg) != 3 or (self.mount_matrix is not None and len(self.mount_matrix) != 9):
-            raise ValueError(f"need 3 mount angles and 9 matrix entries, got mount_rpy_deg={self.mount_rpy_deg!r}, mount_matrix={self.mount_matrix!r}")
+            raise ValueError(
+                f"need 3 mount angles and 9 matrix entries, got mount_rpy_deg={self.mount_rpy_deg!r}, mount_matrix={self.mount_matrix!r}"
+            )
         if not (self.tolerance_s > 0 and self.max_wait_s >= 0 and self.baudrate > 0):
-            raise ValueError(f"need tolerance_s > 0, max_wait_s >= 0, baudrate > 0, got {self.tolerance_s}, {self.max_wait_s}, {self.baudrate}")
+            raise ValueError(
+                f"need tolerance_s > 0, max_wait_s >= 0, baudrate > 0, got {self.tolerance_s}, {self.max_wait_s}, {self.baudrate}"
+            )
         self.mount()  # a bad rotation or lever arm fails here, at configuration time
 
     @classmethod
-    def from_params(cls, params: dict) -> "TelemetryConfig":
+    def from_params(cls, params: dict) -> TelemetryConfig:
         """From a launch file's dict; unknown keys raise ValueError naming them."""
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(params) - known)
@@ -53,5 +65,7 @@ class TelemetryConfig:
 
     def mount(self) -> CameraMount:
         if self.mount_matrix is not None:
-            return CameraMount([self.mount_matrix[0:3], self.mount_matrix[3:6], self.mount_matrix[6:9]], self.lever_arm_m)
+            return CameraMount(
+                [self.mount_matrix[0:3], self.mount_matrix[3:6], self.mount_matrix[6:9]], self.lever_arm_m
+            )
         return CameraMount.from_angles(*self.mount_rpy_deg, lever_arm_m=self.lever_arm_m)

@@ -81,7 +81,9 @@ def slerp(q0, q1, s: float) -> np.ndarray:
     return (np.sin((1.0 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
 
 
-def interpolate_position(stamps_ns, positions, stamp_ns: int, tolerance_ns: int) -> tuple[Status, str, np.ndarray | None]:
+def interpolate_position(
+    stamps_ns, positions, stamp_ns: int, tolerance_ns: int
+) -> tuple[Status, str, np.ndarray | None]:
     """positions [N, 3] at stamps_ns [N] -> (status, reason, [3] linear interpolation or None)."""
     status, reason, i0, i1, s = bracket(stamps_ns, stamp_ns, tolerance_ns)
     if status != "ok":
@@ -171,8 +173,18 @@ class PoseBuffer:
         tolerance_ns = int(round(self.tolerance_s * 1e9))
         att_stamps, att_values = self._tracks["attitude"]
         pos_stamps, pos_values = self._tracks["position"]
-        att = interpolate_attitude(np.fromiter(att_stamps, np.int64, len(att_stamps)), list(att_values) or np.zeros((0, 4)), stamp_ns, tolerance_ns)
-        pos = interpolate_position(np.fromiter(pos_stamps, np.int64, len(pos_stamps)), list(pos_values) or np.zeros((0, 3)), stamp_ns, tolerance_ns)
+        att = interpolate_attitude(
+            np.fromiter(att_stamps, np.int64, len(att_stamps)),
+            list(att_values) or np.zeros((0, 4)),
+            stamp_ns,
+            tolerance_ns,
+        )
+        pos = interpolate_position(
+            np.fromiter(pos_stamps, np.int64, len(pos_stamps)),
+            list(pos_values) or np.zeros((0, 3)),
+            stamp_ns,
+            tolerance_ns,
+        )
         for wanted in ("rejected", "wait"):
             for track, (status, reason, _) in (("attitude", att), ("position", pos)):
                 if status == wanted:

@@ -45,8 +45,12 @@ def load_dialect(name: str = "all"):
         dialect = importlib.import_module(f"pymavlink.dialects.v20.{name}")
     except ImportError as exc:
         if not isinstance(exc, ModuleNotFoundError) or exc.name != f"pymavlink.dialects.v20.{name}":
-            raise ImportError("pymavlink is needed for flight-controller telemetry: pip install pymavlink==2.4.50") from exc
-        raise ValueError(f"unknown MAVLink dialect, got dialect={name!r} (e.g. 'all', 'common', 'ardupilotmega')") from None
+            raise ImportError(
+                "pymavlink is needed for flight-controller telemetry: pip install pymavlink==2.4.50"
+            ) from exc
+        raise ValueError(
+            f"unknown MAVLink dialect, got dialect={name!r} (e.g. 'all', 'common', 'ardupilotmega')"
+        ) from None
     if dialect.MAVLINK_IGNORE_CRC:
         log.warning("MAV_IGNORE_CRC is set in the environment: pymavlink does not verify checksums")
     return dialect
@@ -110,7 +114,13 @@ class MavlinkDecoder:
             return False
         if name == "BAD_DATA" or name.startswith("UNKNOWN_"):
             self._lose_sync()
-            key = "unknown_frames" if name.startswith("UNKNOWN_") else "bad_crc" if "CRC" in message.reason else "bad_frames"
+            key = (
+                "unknown_frames"
+                if name.startswith("UNKNOWN_")
+                else "bad_crc"
+                if "CRC" in message.reason
+                else "bad_frames"
+            )
             self.stats[key] += 1
             self._rewind(bytes(message.get_msgbuf()))
             return False
@@ -237,7 +247,7 @@ class MavlinkReader:
             self.port.close()
             self.port = None
 
-    def __enter__(self) -> "MavlinkReader":
+    def __enter__(self) -> MavlinkReader:
         return self
 
     def __exit__(self, *exc) -> None:

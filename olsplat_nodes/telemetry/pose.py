@@ -63,7 +63,12 @@ def euler_to_quat(roll, pitch, yaw) -> np.ndarray:
     half = [np.asarray(a, np.float64) / 2.0 for a in (roll, pitch, yaw)]
     (cr, cp, cy), (sr, sp, sy) = [np.cos(a) for a in half], [np.sin(a) for a in half]
     return np.stack(
-        [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy],
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ],
         -1,
     )
 
@@ -101,7 +106,9 @@ class CameraMount:
         object.__setattr__(self, "lever_arm_m", arm)
 
     @classmethod
-    def from_angles(cls, roll_deg: float = 0.0, pitch_deg: float = -90.0, yaw_deg: float = 0.0, lever_arm_m=(0.0, 0.0, 0.0)) -> "CameraMount":
+    def from_angles(
+        cls, roll_deg: float = 0.0, pitch_deg: float = -90.0, yaw_deg: float = 0.0, lever_arm_m=(0.0, 0.0, 0.0)
+    ) -> CameraMount:
         """Mount from camera-body angles in degrees (default: nadir) and a lever arm."""
         return cls(mount_rotation(roll_deg, pitch_deg, yaw_deg), lever_arm_m)
 
@@ -129,7 +136,11 @@ def _ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
     h = np.asarray(alt_m, np.float64)
     n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(phi) ** 2)  # prime vertical radius
     return np.stack(
-        [(n + h) * np.cos(phi) * np.cos(lam), (n + h) * np.cos(phi) * np.sin(lam), (n * (1.0 - WGS84_E2) + h) * np.sin(phi)],
+        [
+            (n + h) * np.cos(phi) * np.cos(lam),
+            (n + h) * np.cos(phi) * np.sin(lam),
+            (n * (1.0 - WGS84_E2) + h) * np.sin(phi),
+        ],
         -1,
     )
 

@@ -122,7 +122,7 @@ class FlightControllerPoses:
         if self.reader is not None:
             self.reader.close()
 
-    def __enter__(self) -> "FlightControllerPoses":
+    def __enter__(self) -> FlightControllerPoses:
         return self
 
     def __exit__(self, *exc) -> None:

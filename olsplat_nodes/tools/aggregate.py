@@ -15,9 +15,13 @@ def add_parser(subparsers) -> None:
     agg.add_argument("--encoders", default="shipped", help="'shipped' (default), shipped names or exported folders")
     agg.add_argument("--weights", help="fusion weights, e.g. 0.6,0.4")
     agg.add_argument("--out", required=True, type=Path, help="output folder (store + language_map.npz)")
-    agg.add_argument("--codebook", type=int, metavar="K", help="store the map as K-centre codebook codes (~100x smaller; K=1024 is a good choice)")
+    agg.add_argument(
+        "--codebook",
+        type=int,
+        metavar="K",
+        help="store the map as K-centre codebook codes (~100x smaller; K=1024 is a good choice)",
+    )
     agg.set_defaults(run=run_aggregate)
-
 
 
 def run_aggregate(args: argparse.Namespace) -> int:
@@ -31,7 +35,9 @@ def run_aggregate(args: argparse.Namespace) -> int:
     encoder = encoder_from_spec(args.encoders, args.weights)
     if args.codebook is not None and not 2 <= args.codebook <= 65_534:
         raise OlsplatInputError(f"--codebook must be between 2 and 65534 centres, got {args.codebook}")
-    stats = aggregate_scene(scene, args.method, encoder, args.out, lambda xs: tqdm(xs, desc=args.method, unit="view"), args.codebook)
+    stats = aggregate_scene(
+        scene, args.method, encoder, args.out, lambda xs: tqdm(xs, desc=args.method, unit="view"), args.codebook
+    )
     print(f"{args.method}: {len(scene.cameras)} views in {stats['seconds']:.1f} s ({stats['views_per_second']:.2f} views/s), "
           f"peak memory {stats['peak_rss_mb']:.0f} MB, {stats['observed_gaussians']:,} Gaussians observed -> {args.out}")  # fmt: skip
     return 0

@@ -24,7 +24,9 @@ DEMO_QUERIES = ("red roof buildings", "road", "trees", "cars")
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("demo", help="simulated flight streamed through the node graph, queried from the ground")
+    parser = subparsers.add_parser(
+        "demo", help="simulated flight streamed through the node graph, queried from the ground"
+    )
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default: out)")
     parser.add_argument("--preset", default="small", help="simulator preset of the flight (default: small, 60 frames)")
     parser.add_argument("--seed", type=int, default=0)
@@ -44,7 +46,11 @@ def ensure_flight(folder: Path, preset: str, seed: int) -> dict:
     summary = folder / "scene.json"
     if summary.exists():
         made = json.loads(summary.read_text())
-        if made.get("preset", {}).get("name") == preset and made.get("seed") == seed and (folder / "replay.mcap").exists():
+        if (
+            made.get("preset", {}).get("name") == preset
+            and made.get("seed") == seed
+            and (folder / "replay.mcap").exists()
+        ):
             print(f"flight: reusing {folder} ({preset}, seed {seed})")
             return made
     if preset not in PRESETS:
@@ -72,14 +78,33 @@ class Ground:
 
         negatives = [t for t in self.texts if t != text]
         start = time.perf_counter()
-        reply = self.client.request(QueryRequest(request_id=uuid.uuid4().hex[:12], text=text, view=view, heatmap=bool(view), threshold=float("nan"), negatives=negatives))
+        reply = self.client.request(
+            QueryRequest(
+                request_id=uuid.uuid4().hex[:12],
+                text=text,
+                view=view,
+                heatmap=bool(view),
+                threshold=float("nan"),
+                negatives=negatives,
+            )
+        )
         found = [i for i in reply.instances if i["kind"] == "3d"]
-        self.log.append({
-            "phase": phase, "text": text, "view": view, "status": reply.status, "map_version": reply.map_version,
-            "instances_3d": len(found), "regions_2d": len(reply.instances) - len(found),
-            "round_trip_s": round(time.perf_counter() - start, 3), "server_s": round(reply.seconds, 3),
-        })
-        print(f"  ground: {text!r:22} map v{reply.map_version:<3d} {reply.status:6s} {len(found):3d} instances in 3D  ({self.log[-1]['round_trip_s']:.2f} s)")
+        self.log.append(
+            {
+                "phase": phase,
+                "text": text,
+                "view": view,
+                "status": reply.status,
+                "map_version": reply.map_version,
+                "instances_3d": len(found),
+                "regions_2d": len(reply.instances) - len(found),
+                "round_trip_s": round(time.perf_counter() - start, 3),
+                "server_s": round(reply.seconds, 3),
+            }
+        )
+        print(
+            f"  ground: {text!r:22} map v{reply.map_version:<3d} {reply.status:6s} {len(found):3d} instances in 3D  ({self.log[-1]['round_trip_s']:.2f} s)"
+        )
         return reply
 
     def status(self):
@@ -106,7 +131,9 @@ def run(args: argparse.Namespace) -> int:
 
     out: Path = args.out
     if not args.launch.exists():
-        raise OlsplatInputError(f"{args.launch}: launch file not found (run the demo from the repository root, or give --launch)")
+        raise OlsplatInputError(
+            f"{args.launch}: launch file not found (run the demo from the repository root, or give --launch)"
+        )
     started = time.perf_counter()
     flight = out / "flight"
     made = ensure_flight(flight, args.preset, args.seed)
@@ -117,16 +144,22 @@ def run(args: argparse.Namespace) -> int:
     endpoint = f"tcp://127.0.0.1:{args.port}"
     ply = str((flight / "map" / "point_cloud.ply").resolve())
     overrides = [
-        f"ingest.source={(flight / 'replay.mcap').resolve()}", f"query_server.map={ply}", f"accumulator.map={ply}",
-        f"refiner.map={ply}", f"query_server.query_endpoint={endpoint}",
-        "refiner.exit_on_final=false", "launch.exit_when=[]",  # the demo asks its last queries, then stops the graph
+        f"ingest.source={(flight / 'replay.mcap').resolve()}",
+        f"query_server.map={ply}",
+        f"accumulator.map={ply}",
+        f"refiner.map={ply}",
+        f"query_server.query_endpoint={endpoint}",
+        "refiner.exit_on_final=false",
+        "launch.exit_when=[]",  # the demo asks its last queries, then stops the graph
     ]
     config = load_launch(args.launch, overrides=overrides, run_dir=str(run_dir))
     supervisor = Supervisor(config)
     exit_code: list[int] = []
     thread = threading.Thread(target=lambda: exit_code.append(supervisor.run()), daemon=True)
     thread.start()
-    print(f"graph: {len(config.nodes)} nodes launched (logs in {run_dir / 'logs'}); streaming {made.get('views', '?')} frames")
+    print(
+        f"graph: {len(config.nodes)} nodes launched (logs in {run_dir / 'logs'}); streaming {made.get('views', '?')} frames"
+    )
     ground = Ground(endpoint, texts)
     asked_version = 0
     record = None
@@ -147,14 +180,25 @@ def run(args: argparse.Namespace) -> int:
         else:
             raise OlsplatInputError(f"the flight was not processed within {args.timeout:.0f} s; see {run_dir / 'logs'}")
         stream_seconds = time.perf_counter() - started
-        print(f"final map: version {record['version']}, {record['views']} views, {record['observed_gaussians']:,} Gaussians observed")
+        print(
+            f"final map: version {record['version']}, {record['views']} views, {record['observed_gaussians']:,} Gaussians observed"
+        )
         view = sorted((flight / "annotations").glob("*.json"))[0].stem  # an annotated view
         pictures = out / "ground"
         for text in DEMO_QUERIES:
             reply = ground.ask(text, view=view, phase="final")
             if reply.status == "ok" and reply.heatmap is not None:
                 boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]
-                write_query_pictures(pictures, reply.view or view, text, reply.image, reply.heatmap, (reply.heatmap != 0).astype("float32"), reply.mask, boxes)
+                write_query_pictures(
+                    pictures,
+                    reply.view or view,
+                    text,
+                    reply.image,
+                    reply.heatmap,
+                    (reply.heatmap != 0).astype("float32"),
+                    reply.mask,
+                    boxes,
+                )
         status = ground.status()
         print_status(status, as_json=False)
     finally:
@@ -163,11 +207,13 @@ def run(args: argparse.Namespace) -> int:
     nodes = {n["node"]: n["values"] for n in status.nodes}
     summary = {
         "flight": {"preset": args.preset, "seed": args.seed, "frames": made.get("views")},
-        "frames_aggregated": record["views"], "map_version": record["version"],
+        "frames_aggregated": record["views"],
+        "map_version": record["version"],
         "drops": {name: int(v.get("dropped", 0)) + int(v.get("gaps", 0)) for name, v in nodes.items()},
         "bad_messages": {name: int(v.get("bad_messages", 0)) for name, v in nodes.items()},
         "node_latency_ms": {name: round(float(np.mean(ground.latency_ms.get(name, [0.0]))), 1) for name in nodes},
-        "stream_seconds": round(stream_seconds, 1), "total_seconds": round(time.perf_counter() - started, 1),
+        "stream_seconds": round(stream_seconds, 1),
+        "total_seconds": round(time.perf_counter() - started, 1),
         "queries": ground.log,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -178,13 +224,21 @@ def run(args: argparse.Namespace) -> int:
 
 def write_summary_md(path: Path, s: dict) -> None:
     lines = [
-        "# olsplat demo", "",
+        "# olsplat demo",
+        "",
         f"Flight: {s['flight']['preset']} preset, seed {s['flight']['seed']}, {s['flight']['frames']} frames; "
         f"{s['frames_aggregated']} aggregated into map version {s['map_version']} in {s['stream_seconds']} s "
-        f"(total {s['total_seconds']} s).", "",
-        "| node | drops | bad messages | mean latency while streaming, ms |", "|---|---|---|---|",
-        *[f"| {n} | {s['drops'][n]} | {s['bad_messages'][n]} | {s['node_latency_ms'][n]} |" for n in s["drops"]], "",
-        "| phase | query | view | map version | status | 3D instances | 2D regions | round trip s |", "|---|---|---|---|---|---|---|---|",
-        *[f"| {q['phase']} | {q['text']} | {q['view']} | {q['map_version']} | {q['status']} | {q['instances_3d']} | {q['regions_2d']} | {q['round_trip_s']} |" for q in s["queries"]],
+        f"(total {s['total_seconds']} s).",
+        "",
+        "| node | drops | bad messages | mean latency while streaming, ms |",
+        "|---|---|---|---|",
+        *[f"| {n} | {s['drops'][n]} | {s['bad_messages'][n]} | {s['node_latency_ms'][n]} |" for n in s["drops"]],
+        "",
+        "| phase | query | view | map version | status | 3D instances | 2D regions | round trip s |",
+        "|---|---|---|---|---|---|---|---|",
+        *[
+            f"| {q['phase']} | {q['text']} | {q['view']} | {q['map_version']} | {q['status']} | {q['instances_3d']} | {q['regions_2d']} | {q['round_trip_s']} |"
+            for q in s["queries"]
+        ],
     ]
     path.write_text("\n".join(lines) + "\n")

@@ -63,7 +63,15 @@ def _overlay(image_rgb: np.ndarray, label_maps: np.ndarray) -> np.ndarray:
         edge[:, 1:] |= labels[:, 1:] != labels[:, :-1]
         edge[1:, :] |= labels[1:, :] != labels[:-1, :]
         panel[edge] = (0, 230, 255)
-        cv2.putText(panel, f"level {level}: {labels.max() + 1} regions", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
+        cv2.putText(
+            panel,
+            f"level {level}: {labels.max() + 1} regions",
+            (8, 22),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.6,
+            (255, 255, 255),
+            2,
+        )
         panels.append(panel)
     return np.concatenate(panels, axis=1)
 

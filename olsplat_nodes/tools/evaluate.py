@@ -12,15 +12,34 @@ def add_parser(subparsers) -> None:
     from ..pipeline import METHODS
 
     ev = subparsers.add_parser("eval", help="aggregate with several methods and score them on the annotations")
-    ev.add_argument("--scene", required=True, type=Path, action="append", help="a scene folder; repeat for several scenes")
-    ev.add_argument("--methods", default="outlangsplat,projection,topk,vala", help=f"comma-separated, from: {', '.join(METHODS)}")
+    ev.add_argument(
+        "--scene", required=True, type=Path, action="append", help="a scene folder; repeat for several scenes"
+    )
+    ev.add_argument(
+        "--methods", default="outlangsplat,projection,topk,vala", help=f"comma-separated, from: {', '.join(METHODS)}"
+    )
     ev.add_argument("--encoders", default="shipped")
     ev.add_argument("--weights", help="lambda_2D fusion weights, e.g. 0.6,0.4")
-    ev.add_argument("--features", choices=("2d", "2d3d"), default="2d", help="the methods' input: 2D region features, or fused with the 3D branch")
+    ev.add_argument(
+        "--features",
+        choices=("2d", "2d3d"),
+        default="2d",
+        help="the methods' input: 2D region features, or fused with the 3D branch",
+    )
     ev.add_argument("--lambda-f", type=float, default=0.7, help="2D share of the 2D-3D fusion (paper: 0.7)")
-    ev.add_argument("--minkunet", type=Path, help="3D branch: a MinkUNet checkpoint (SegContrast layout) instead of geometric descriptors")
-    ev.add_argument("--feature-ablation", action="store_true", help="also run the paper's Table 6 (each encoder, 2D fusion, 2D-3D fusion)")
-    ev.add_argument("--fusion-sweep", action="store_true", help="also run the paper's Table 7 (lambda_2D x lambda_f, 12 runs)")
+    ev.add_argument(
+        "--minkunet",
+        type=Path,
+        help="3D branch: a MinkUNet checkpoint (SegContrast layout) instead of geometric descriptors",
+    )
+    ev.add_argument(
+        "--feature-ablation",
+        action="store_true",
+        help="also run the paper's Table 6 (each encoder, 2D fusion, 2D-3D fusion)",
+    )
+    ev.add_argument(
+        "--fusion-sweep", action="store_true", help="also run the paper's Table 7 (lambda_2D x lambda_f, 12 runs)"
+    )
     ev.add_argument("--work", type=Path, help="folder for the per-run maps (default: SCENE/eval)")
     ev.add_argument("--json", type=Path, help="write the results here")
     ev.add_argument("--md", type=Path, help="write the paper's tables (Markdown) here")
@@ -59,11 +78,15 @@ def run(args: argparse.Namespace) -> int:
         raise OlsplatInputError(f"{args.minkunet}: no such MinkUNet checkpoint")
     weights = tuple(float(w) for w in args.weights.split(",")) if args.weights else None
     structure = StructureConfig(lambda_f=args.lambda_f, minkunet=args.minkunet)
-    runs = plan_runs(names, args.encoders, weights, args.features == "2d3d", args.feature_ablation, args.fusion_sweep, structure)
+    runs = plan_runs(
+        names, args.encoders, weights, args.features == "2d3d", args.feature_ablation, args.fusion_sweep, structure
+    )
     encoders = {}
     for r in runs:  # every encoder is loaded before any work
         if (r.encoders, r.weights) not in encoders:
-            encoders[r.encoders, r.weights] = encoder_from_spec(r.encoders, ",".join(map(str, r.weights)) if r.weights else None)
+            encoders[r.encoders, r.weights] = encoder_from_spec(
+                r.encoders, ",".join(map(str, r.weights)) if r.weights else None
+            )
     titles = [s.folder.name for s in scenes]
     if len(set(titles)) < len(titles):
         titles = [str(s.folder) for s in scenes]
@@ -77,7 +100,14 @@ def run(args: argparse.Namespace) -> int:
             if key not in done:
                 out = work / _folder_name(r.label)
                 shutil.rmtree(out, ignore_errors=True)
-                stats = aggregate_scene(scene, r.method, encoder, out, lambda xs, n=r.label: tqdm(xs, desc=n, unit="view"), structure=r.structure)
+                stats = aggregate_scene(
+                    scene,
+                    r.method,
+                    encoder,
+                    out,
+                    lambda xs, n=r.label: tqdm(xs, desc=n, unit="view"),
+                    structure=r.structure,
+                )
                 language_map = LanguageMap.load(out / "language_map.npz")
                 scores = evaluate_map(scene, language_map, encoder)
                 done[key] = ({**scores, "seconds": stats["seconds"], "peak_rss_mb": stats["peak_rss_mb"]}, language_map)
@@ -89,7 +119,9 @@ def run(args: argparse.Namespace) -> int:
                   f"{scores['loc40']:5.1f} {scores['loc50']:5.1f} {scores['loc60']:5.1f}  ({scores['seconds']:.0f} s)")  # fmt: skip
         if args.figures:
             folder = args.figures / title if len(scenes) > 1 else args.figures
-            files = qualitative_figures(scene, maps, encoders[runs[0].encoders, runs[0].weights], folder, args.figure_views)
+            files = qualitative_figures(
+                scene, maps, encoders[runs[0].encoders, runs[0].weights], folder, args.figure_views
+            )
             print(f"{title}: {len(files)} figures -> {folder}")
     tables = paper_tables(results)
     print()

@@ -22,7 +22,12 @@ def add_parser(subparsers) -> None:
     query.add_argument("--view", default="", help="answer with a heatmap and mask over this view (name or index)")
     query.add_argument("--out", type=Path, help="write the heatmap and mask PNGs here (needs --view)")
     query.add_argument("--negatives", help="comma-separated texts to beat (default: the server's)")
-    query.add_argument("--threshold", type=float, default=math.nan, help="mask = heatmap above this cosine (default: beat every negative)")
+    query.add_argument(
+        "--threshold",
+        type=float,
+        default=math.nan,
+        help="mask = heatmap above this cosine (default: beat every negative)",
+    )
     query.add_argument("--json", action="store_true", help="print the answer as JSON")
     status = commands.add_parser("status", help="print every node's latest diagnostics")
     status.add_argument("--json", action="store_true", help="print the statuses as JSON")
@@ -48,7 +53,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
     except zmq.ZMQError as exc:  # a malformed endpoint (no port, unknown transport): same exit as an unreachable one
-        print(f"olsplat ground {args.ground_command}: error: cannot connect to {args.connect}: {zmq.strerror(exc.errno)}", file=sys.stderr)
+        print(
+            f"olsplat ground {args.ground_command}: error: cannot connect to {args.connect}: {zmq.strerror(exc.errno)}",
+            file=sys.stderr,
+        )
         return 2
     request_id = uuid.uuid4().hex[:12]
     try:
@@ -58,7 +66,16 @@ def run(args: argparse.Namespace) -> int:
         if args.out and not args.view:
             raise OlsplatInputError("--out writes pictures over a view: give --view too")
         negatives = [t.strip() for t in args.negatives.split(",") if t.strip()] if args.negatives else []
-        reply = client.request(QueryRequest(request_id=request_id, text=args.text, view=args.view, heatmap=bool(args.view), threshold=args.threshold, negatives=negatives))
+        reply = client.request(
+            QueryRequest(
+                request_id=request_id,
+                text=args.text,
+                view=args.view,
+                heatmap=bool(args.view),
+                threshold=args.threshold,
+                negatives=negatives,
+            )
+        )
         return print_answer(reply, args.json, args.out)
     except NoReply as exc:
         print(f"olsplat ground {args.ground_command}: error: {exc}", file=sys.stderr)
@@ -84,10 +101,20 @@ def print_status(reply, as_json: bool) -> int:
 
 def print_answer(reply, as_json: bool, out: Path | None) -> int:
     if as_json:
-        print(json.dumps({
-            "status": reply.status, "message": reply.message, "text": reply.text, "view": reply.view,
-            "map_version": reply.map_version, "instances": reply.instances, "seconds": reply.seconds,
-        }, indent=1))
+        print(
+            json.dumps(
+                {
+                    "status": reply.status,
+                    "message": reply.message,
+                    "text": reply.text,
+                    "view": reply.view,
+                    "map_version": reply.map_version,
+                    "instances": reply.instances,
+                    "seconds": reply.seconds,
+                },
+                indent=1,
+            )
+        )
     if reply.status != "ok":
         if not as_json:
             print(f'"{reply.text}": {reply.status}: {reply.message}')
@@ -95,10 +122,14 @@ def print_answer(reply, as_json: bool, out: Path | None) -> int:
     if not as_json:
         found3d = [i for i in reply.instances if i["kind"] == "3d"]
         found2d = [i for i in reply.instances if i["kind"] == "2d"]
-        print(f'"{reply.text}" (map version {reply.map_version}, {reply.seconds:.2f} s): {reply.message}; {len(found3d)} instances in 3D')
+        print(
+            f'"{reply.text}" (map version {reply.map_version}, {reply.seconds:.2f} s): {reply.message}; {len(found3d)} instances in 3D'
+        )
         for inst in found3d[:20]:
             c, lo, hi = inst["centroid"], inst["box_min"], inst["box_max"]
-            print(f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst['n_gaussians']} Gaussians")
+            print(
+                f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst['n_gaussians']} Gaussians"
+            )
         if reply.view:
             print(f"view {reply.view}: {len(found2d)} regions")
             for inst in found2d[:20]:

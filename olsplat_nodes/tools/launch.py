@@ -15,7 +15,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="NODE.PARAM=VALUE",
                         help="override a node parameter (value parsed as YAML: 2, true, [a, b]); "
                              "launch.KEY=VALUE sets a top-level key, e.g. launch.compose=true; repeatable")  # fmt: skip
-    parser.add_argument("--run-dir", type=Path, help="where the run writes (logs, sockets, outputs); overrides the file's run_dir")
+    parser.add_argument(
+        "--run-dir", type=Path, help="where the run writes (logs, sockets, outputs); overrides the file's run_dir"
+    )
     parser.set_defaults(run=run)
 
 

@@ -12,7 +12,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--scene", required=True, type=Path, help="the scene the map was made from")
     parser.add_argument("text", help='what to find, e.g. "red roof buildings"')
     parser.add_argument("--view", help="view to render (name or index; default: the first)")
-    parser.add_argument("--negatives", help="comma-separated texts to beat (default: the scene's other queries, else canonical)")
+    parser.add_argument(
+        "--negatives", help="comma-separated texts to beat (default: the scene's other queries, else canonical)"
+    )
     parser.add_argument("--out", type=Path, help="write heatmap and mask PNGs here")
     parser.set_defaults(run=run)
 
@@ -42,15 +44,21 @@ def run(args: argparse.Namespace) -> int:
         negatives = list(CANONICAL_NEGATIVES)
     camera = select_view(scene.cameras, args.view if args.view is not None else 0)
     answer = answer_query(language_map, gaussians, encoder_for_map(language_map), text, negatives, camera)
-    print(f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; {len(answer.instances)} instances in 3D')
+    print(
+        f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; {len(answer.instances)} instances in 3D'
+    )
     for i, inst in enumerate(answer.instances[:20]):
         c, lo, hi = inst.centre, inst.box_min, inst.box_max
-        print(f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians")
+        print(
+            f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
+        )
     print(f"view {camera.name}: {int(answer.mask.sum()):,} pixels, {len(answer.regions)} regions")
     for i, region in enumerate(answer.regions[:20]):
         print(f"  2D #{i}: box {region.box}, {region.pixels} px")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-        paths = write_query_pictures(args.out, camera.name, text, scene.image(camera), answer.heatmap, answer.alpha, answer.mask, answer.regions)
+        paths = write_query_pictures(
+            args.out, camera.name, text, scene.image(camera), answer.heatmap, answer.alpha, answer.mask, answer.regions
+        )
         print(f"pictures -> {', '.join(str(p) for p in paths)}")
     return 0

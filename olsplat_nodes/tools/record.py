@@ -13,8 +13,11 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("record", help="save the frames of a camera source (replay, exif_folder, depthai) to an MCAP replay log",
-                                   description="Exit code: 0 when frames were written, 1 when none were (the source's status is printed).")
+    parser = subparsers.add_parser(
+        "record",
+        help="save the frames of a camera source (replay, exif_folder, depthai) to an MCAP replay log",
+        description="Exit code: 0 when frames were written, 1 when none were (the source's status is printed).",
+    )
     parser.add_argument("--source-kind", default="replay", help="replay | exif_folder | depthai (default replay)")
     parser.add_argument("--source", default="", help="replay log or folder (replay, exif_folder)")
     parser.add_argument("--set", dest="params", action="append", default=[], metavar="PARAM=VALUE",
@@ -23,7 +26,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--out", required=True, type=Path, help="the MCAP replay log to write")
     parser.add_argument("--frames", type=int, help="stop after this many frames")
     parser.add_argument("--seconds", type=float, help="stop after this many seconds")
-    parser.add_argument("--jpeg-quality", type=int, default=95, help="for frames without original JPEG bytes (default 95)")
+    parser.add_argument(
+        "--jpeg-quality", type=int, default=95, help="for frames without original JPEG bytes (default 95)"
+    )
     parser.set_defaults(run=run)
 
 
@@ -50,7 +55,11 @@ def run(args: argparse.Namespace) -> int:
     from ..sources import open_source
     from ..sources.record import record
 
-    params = {"source_kind": args.source_kind, **({"source": args.source} if args.source else {}), **parse_params(args.params)}
+    params = {
+        "source_kind": args.source_kind,
+        **({"source": args.source} if args.source else {}),
+        **parse_params(args.params),
+    }
     if params["source_kind"] in ("replay", "exif_folder") and "fast" not in params and "rate_hz" not in params:
         params["fast"] = True
     if (args.frames is not None and args.frames <= 0) or (args.seconds is not None and args.seconds <= 0):
@@ -60,11 +69,22 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise OlsplatInputError(str(exc)) from None
     stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set()) if threading.current_thread() is threading.main_thread() else None
+    previous = (
+        signal.signal(signal.SIGINT, lambda *_: stop.set())
+        if threading.current_thread() is threading.main_thread()
+        else None
+    )
     try:
         with source:
-            count = record(source, args.out, frames=args.frames, seconds=args.seconds, stop=stop, jpeg_quality=args.jpeg_quality,
-                           report=lambda line: print(f"olsplat record: {line}", flush=True))
+            count = record(
+                source,
+                args.out,
+                frames=args.frames,
+                seconds=args.seconds,
+                stop=stop,
+                jpeg_quality=args.jpeg_quality,
+                report=lambda line: print(f"olsplat record: {line}", flush=True),
+            )
             level, message = source.status()
     finally:
         if previous is not None:

@@ -47,5 +47,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.png:
         write_png(args.png, rgb_to_bgr8(result.rgb))
-    print(f"rendered {camera.name} ({camera.width}x{camera.height}, {result.n_visible} Gaussians in view) -> {args.out}")
+    print(
+        f"rendered {camera.name} ({camera.width}x{camera.height}, {result.n_visible} Gaussians in view) -> {args.out}"
+    )
     return 0

@@ -10,14 +10,14 @@ from .pubsub import Publisher, Subscriber
 from .query import QUERY_TOPIC, NoReply, QueryClient, QueryServer
 
 __all__ = [
-    "Publisher",
-    "Subscriber",
-    "QueryServer",
-    "QueryClient",
-    "NoReply",
+    "DIAGNOSTICS_TOPIC",
+    "QUERY_TOPIC",
     "Diagnostics",
     "DiagnosticsCollector",
+    "NoReply",
+    "Publisher",
+    "QueryClient",
+    "QueryServer",
+    "Subscriber",
     "curve",
-    "QUERY_TOPIC",
-    "DIAGNOSTICS_TOPIC",
 ]

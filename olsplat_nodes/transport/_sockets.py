@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import zmq
 
@@ -21,8 +21,14 @@ def as_list(endpoints: str | Iterable[str]) -> list[str]:
     return items
 
 
-def make_socket(context: zmq.Context, kind: int, *, max_bytes: int | None = None, sndhwm: int | None = None,
-                rcvhwm: int | None = None) -> zmq.Socket:
+def make_socket(
+    context: zmq.Context,
+    kind: int,
+    *,
+    max_bytes: int | None = None,
+    sndhwm: int | None = None,
+    rcvhwm: int | None = None,
+) -> zmq.Socket:
     """A socket with linger 0 (closing never hangs on unsent messages: the graph is lossy by design),
     the given high-water marks, and MAXMSGSIZE so that libzmq refuses an oversized frame instead of
     allocating it."""
@@ -45,7 +51,7 @@ def attach(sock: zmq.Socket, endpoints: list[str], bind: bool) -> list[str]:
         try:
             if bind:
                 if endpoint.startswith("ipc://"):
-                    Path(endpoint[len("ipc://"):]).parent.mkdir(parents=True, exist_ok=True)
+                    Path(endpoint[len("ipc://") :]).parent.mkdir(parents=True, exist_ok=True)
                 sock.bind(endpoint)
                 resolved.append(sock.last_endpoint.decode())
             else:

@@ -6,7 +6,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import zmq
 
@@ -17,7 +18,12 @@ from .pubsub import Subscriber
 
 log = logging.getLogger(__name__)
 DIAGNOSTICS_TOPIC = "diagnostics"
-LEVEL_NAMES = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR", DiagnosticStatus.STALE: "STALE"}
+LEVEL_NAMES = {
+    DiagnosticStatus.OK: "OK",
+    DiagnosticStatus.WARN: "WARN",
+    DiagnosticStatus.ERROR: "ERROR",
+    DiagnosticStatus.STALE: "STALE",
+}
 
 
 class Diagnostics:
@@ -25,8 +31,16 @@ class Diagnostics:
     from the node's loop as often as convenient); ``beat_now`` always sends (state changes,
     shutdown). Levels: ``DiagnosticStatus.OK/WARN/ERROR`` (0/1/2; STALE is the collector's)."""
 
-    def __init__(self, context: zmq.Context, endpoint: str, node_name: str, period_s: float = 1.0, *,
-                 topic: str = DIAGNOSTICS_TOPIC, hwm: int = 10):
+    def __init__(
+        self,
+        context: zmq.Context,
+        endpoint: str,
+        node_name: str,
+        period_s: float = 1.0,
+        *,
+        topic: str = DIAGNOSTICS_TOPIC,
+        hwm: int = 10,
+    ):
         self.node_name, self.period_s, self.topic = node_name, float(period_s), topic
         self.socket = make_socket(context, zmq.PUB, sndhwm=hwm)
         try:
@@ -46,8 +60,15 @@ class Diagnostics:
 
     def beat_now(self, level: int, message: str = "", values: Mapping[str, Any] | None = None) -> bool:
         """Send now; True if libzmq took it (PUB drops at the high-water mark)."""
-        status = DiagnosticStatus(stamp_ns=time.time_ns(), seq=self.seq, frame_id=self.node_name, node=self.node_name,
-                                  level=int(level), message=message, values=dict(values or {}))
+        status = DiagnosticStatus(
+            stamp_ns=time.time_ns(),
+            seq=self.seq,
+            frame_id=self.node_name,
+            node=self.node_name,
+            level=int(level),
+            message=message,
+            values=dict(values or {}),
+        )
         frames = encode(status, self.topic)
         self.seq += 1
         self._last_sent = time.monotonic()
@@ -73,8 +94,16 @@ class DiagnosticsCollector:
     ``age_s`` (seconds since it arrived), level forced to STALE when older than ``stale_after_s``
     (three missed beats at the default 1 s period) — the shape ``StatusReply.nodes`` carries."""
 
-    def __init__(self, context: zmq.Context, endpoint: str, stale_after_s: float = 3.0, *,
-                 topic: str = DIAGNOSTICS_TOPIC, hwm: int = 1000, max_bytes: int = 1 << 20):
+    def __init__(
+        self,
+        context: zmq.Context,
+        endpoint: str,
+        stale_after_s: float = 3.0,
+        *,
+        topic: str = DIAGNOSTICS_TOPIC,
+        hwm: int = 1000,
+        max_bytes: int = 1 << 20,
+    ):
         self.stale_after_s = float(stale_after_s)
         self.subscriber = Subscriber(context, endpoint, [topic], hwm=hwm, bind=True, max_bytes=max_bytes)
         self.endpoint = self.subscriber.endpoint

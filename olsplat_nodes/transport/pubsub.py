@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 import zmq
 from zmq.utils.monitor import parse_monitor_message
@@ -75,8 +76,16 @@ class Subscriber:
     messages after connecting (ZeroMQ's slow joiner).
     """
 
-    def __init__(self, context: zmq.Context, endpoints: str | Iterable[str], topics: str | Iterable[str] | None,
-                 hwm: int = 4, bind: bool = False, *, max_bytes: int = DEFAULT_MAX_BYTES):
+    def __init__(
+        self,
+        context: zmq.Context,
+        endpoints: str | Iterable[str],
+        topics: str | Iterable[str] | None,
+        hwm: int = 4,
+        bind: bool = False,
+        *,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+    ):
         self.max_bytes = int(max_bytes)
         self.topics = None if topics is None else frozenset(as_list(topics))
         self.socket = make_socket(context, zmq.SUB, rcvhwm=hwm, max_bytes=self.max_bytes)
@@ -94,8 +103,15 @@ class Subscriber:
         self._poller.register(self.socket, zmq.POLLIN)
         if self._monitor is not None:
             self._poller.register(self._monitor, zmq.POLLIN)
-        self.stats = {"received": 0, "bad_messages": 0, "gaps": 0, "duplicates": 0, "seq_resets": 0, "other_topics": 0,
-                      "reconnects": 0}
+        self.stats = {
+            "received": 0,
+            "bad_messages": 0,
+            "gaps": 0,
+            "duplicates": 0,
+            "seq_resets": 0,
+            "other_topics": 0,
+            "reconnects": 0,
+        }
         self.gaps_by_stream: Counter[tuple[str, str, str]] = Counter()
         self.bad_by_error: Counter[str] = Counter()  # WireError class name -> count
         self._last_seq: dict[tuple[str, str, str], int] = {}
@@ -119,7 +135,9 @@ class Subscriber:
                     pass
                 self.socket.connect(target)
                 self.stats["reconnects"] += 1
-            log.info("subscriber: connection to %s dropped (oversized frame or peer restart); connecting again", endpoint)
+            log.info(
+                "subscriber: connection to %s dropped (oversized frame or peer restart); connecting again", endpoint
+            )
 
     def _accept(self, frames: list) -> tuple[str, Any] | None:
         try:

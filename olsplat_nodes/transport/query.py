@@ -53,11 +53,21 @@ class QueryServer:
     ``stats``: requests (returned by poll), bad_requests, replies, dropped_replies (peer gone or
     its queue full), auth_failures (handshakes refused by CURVE, seen by a socket monitor)."""
 
-    def __init__(self, context: zmq.Context, endpoint: str, keys: ServerKeys | None = None, *,
-                 max_bytes: int = DEFAULT_MAX_BYTES, accept: tuple[type, ...] = (QueryRequest, StatusRequest), hwm: int = 100):
+    def __init__(
+        self,
+        context: zmq.Context,
+        endpoint: str,
+        keys: ServerKeys | None = None,
+        *,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        accept: tuple[type, ...] = (QueryRequest, StatusRequest),
+        hwm: int = 100,
+    ):
         self.context, self.keys, self.max_bytes, self.accept = context, keys, int(max_bytes), tuple(accept)
         self.socket = make_socket(context, zmq.ROUTER, max_bytes=self.max_bytes, sndhwm=hwm, rcvhwm=hwm)
-        self._monitor = self.socket.get_monitor_socket(zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
+        self._monitor = self.socket.get_monitor_socket(
+            zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+        )
         self._keys_applied = False
         try:
             if keys is not None:
@@ -159,8 +169,16 @@ class QueryClient:
     ``stats``: requests, replies, timeouts, bad_replies (undecodable), stale_replies (an id we
     no longer wait for), resets."""
 
-    def __init__(self, context: zmq.Context, endpoint: str, timeout_s: float = 5.0, keys: ClientKeys | None = None, *,
-                 max_bytes: int = DEFAULT_MAX_BYTES, retries: int = 0):
+    def __init__(
+        self,
+        context: zmq.Context,
+        endpoint: str,
+        timeout_s: float = 5.0,
+        keys: ClientKeys | None = None,
+        *,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        retries: int = 0,
+    ):
         if timeout_s <= 0:
             raise ValueError(f"timeout_s must be positive, got {timeout_s!r}")
         self.context, self.endpoint, self.timeout_s, self.keys = context, endpoint, float(timeout_s), keys
@@ -223,7 +241,13 @@ class QueryClient:
                 self.stats["replies"] += 1
                 return reply
             self.stats["timeouts"] += 1
-            log.info("no reply from %s within %g s (attempt %d of %d)", self.endpoint, self.timeout_s, attempt + 1, self.retries + 1)
+            log.info(
+                "no reply from %s within %g s (attempt %d of %d)",
+                self.endpoint,
+                self.timeout_s,
+                attempt + 1,
+                self.retries + 1,
+            )
             self._reset()
         raise NoReply(self.endpoint, self.timeout_s)
 

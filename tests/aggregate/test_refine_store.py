@@ -54,7 +54,9 @@ def test_min_retained_views_equals_the_dense_equations(min_retained):
     owner, view = np.nonzero(strength)
     got, _ = refine_observations(owner, strength[owner, view], features[owner, view], n, config)
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
-    plain = refine_dense(features, strength, AggregationConfig(iterations=3, beta=(2.0, 4.0, 8.0), min_retained_views=None))
+    plain = refine_dense(
+        features, strength, AggregationConfig(iterations=3, beta=(2.0, 4.0, 8.0), min_retained_views=None)
+    )
     initial = refine_dense(features, strength, AggregationConfig(iterations=0))
     kept_initial = np.all(np.isclose(got, initial), axis=1) & ~np.all(np.isclose(plain, initial), axis=1)
     assert 0 < kept_initial.sum() < n  # some Gaussians fall back to F0, the others are refined
@@ -72,7 +74,9 @@ def test_min_retained_views_keeps_the_mean_of_two_disagreeing_groups():
     config = AggregationConfig(iterations=3, beta=(2.0, 4.0, 8.0), min_retained_views=None)
     f0, _ = refine_observations(owner, strength, features, 2, AggregationConfig(iterations=0))
     f3, _ = refine_observations(owner, strength, features, 2, config)
-    gated, _ = refine_observations(owner, strength, features, 2, replace(config, min_retained_views=0.7))  # kept: 3 of 5 vs 4 of 5
+    gated, _ = refine_observations(
+        owner, strength, features, 2, replace(config, min_retained_views=0.7)
+    )  # kept: 3 of 5 vs 4 of 5
     assert not np.allclose(f3[0], f0[0])
     np.testing.assert_allclose(gated[0], f0[0], rtol=1e-6)
     np.testing.assert_allclose(gated[1], f3[1], rtol=1e-6)
@@ -146,5 +150,7 @@ def test_streaming_cosine_update():
     F, count = streaming_cosine(np.zeros(3, int), np.array([0, 1, 2]), np.ones(3), f, 1)
     np.testing.assert_allclose(F[0], [1.0, 0.0])  # the opposed third view agrees 0: weight 0
     assert count[0] == 3
-    F, _ = streaming_cosine(np.zeros(2, int), np.array([0, 1]), np.array([1.0, 3.0]), np.array([[1.0, 0.0], [0.0, 1.0]]), 1)
+    F, _ = streaming_cosine(
+        np.zeros(2, int), np.array([0, 1]), np.array([1.0, 3.0]), np.array([[1.0, 0.0], [0.0, 1.0]]), 1
+    )
     np.testing.assert_allclose(F[0], [1.0 / 2.5, 1.5 / 2.5])  # second view: weight 3 * (1 + 0) / 2

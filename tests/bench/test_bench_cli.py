@@ -20,12 +20,31 @@ def test_aggregation_query_and_compression_benchmarks_print_their_figures(tiny, 
 
     assert main(["aggregate", "--scene", str(scene), "--out", str(tmp_path / "m")]) == 0
     capsys.readouterr()
-    assert main(["bench", "query", "--map", str(tmp_path / "m" / "language_map.npz"), "--scene", str(scene), "--repeats", "5", "--heatmap-repeats", "2"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "query",
+                "--map",
+                str(tmp_path / "m" / "language_map.npz"),
+                "--scene",
+                str(scene),
+                "--repeats",
+                "5",
+                "--heatmap-repeats",
+                "2",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert re.search(r"relevance\s+p50\s+\d+\.\d ms\s+p95\s+\d+\.\d ms\s+\(5 queries\)", out), out
     assert re.search(r"heatmap\s+p50\s+\d+\.\d ms", out)
 
-    assert main(["bench", "compression", "--scene", str(scene), "--aggregated", str(tmp_path / "m"), "--codebooks", "16"]) == 0
+    assert (
+        main(["bench", "compression", "--scene", str(scene), "--aggregated", str(tmp_path / "m"), "--codebooks", "16"])
+        == 0
+    )
     out = capsys.readouterr().out
     for form in ("float32", "float16", "codebook 16"):
         assert re.search(rf"{form}\s+\d+\.\d B/Gaussian\s+mIoU\s+\d+\.\d", out), out
@@ -55,9 +74,27 @@ def test_robustness_benchmark_runs(tiny, tmp_path, capsys):
     shutil.copytree(tiny[0], scene)
     assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5"]) == 0
     assert re.search(r"p 0\.50\s+topk\s+mIoU\s+\d+\.\d", capsys.readouterr().out)
-    assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5", "--features", "2d,2d3d"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "robustness",
+                "--scene",
+                str(scene),
+                "--methods",
+                "topk",
+                "--confusion",
+                "0.5",
+                "--features",
+                "2d,2d3d",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
-    assert re.search(r"p 0\.50\s+topk 2d\s+mIoU\s+\d+\.\d", out) and re.search(r"p 0\.50\s+topk 2d3d\s+mIoU\s+\d+\.\d", out), out
+    assert re.search(r"p 0\.50\s+topk 2d\s+mIoU\s+\d+\.\d", out) and re.search(
+        r"p 0\.50\s+topk 2d3d\s+mIoU\s+\d+\.\d", out
+    ), out
     assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--features", "3d"]) == 1
     assert "--features" in capsys.readouterr().err
 
@@ -67,5 +104,7 @@ def test_structure_benchmark_runs(tiny, tmp_path, capsys):
     shutil.copytree(tiny[0], scene)
     assert main(["bench", "structure", "--scene", str(scene), "--views", "3", "--minkunet"]) == 0
     out = capsys.readouterr().out
-    assert re.search(r"geometric descriptors \d+\.\d s \(75 dims\)", out) and re.search(r"MinkUNet \(random weights\) \d+\.\d s \(96 dims\)", out), out
+    assert re.search(r"geometric descriptors \d+\.\d s \(75 dims\)", out) and re.search(
+        r"MinkUNet \(random weights\) \d+\.\d s \(96 dims\)", out
+    ), out
     assert re.search(r"per view: \d+\.\d+ s", out)

@@ -53,7 +53,10 @@ def test_fusion_is_the_weighted_similarity(encoders):
     crops = [rng.integers(0, 256, (3, 32, 32, 3), dtype=np.uint8), rng.integers(0, 256, (3, 48, 48, 3), dtype=np.uint8)]
     texts = ["the road", "road"]
     image_f, text_f = fused.encode_crops(crops), fused.encode_text(texts)
-    expected = 0.6 * a.encode_images(crops[0]) @ a.encode_text(texts).T + 0.4 * b.encode_images(crops[1]) @ b.encode_text(texts).T
+    expected = (
+        0.6 * a.encode_images(crops[0]) @ a.encode_text(texts).T
+        + 0.4 * b.encode_images(crops[1]) @ b.encode_text(texts).T
+    )
     np.testing.assert_allclose(image_f @ text_f.T, expected, atol=1e-5)
     summed = FusedEncoder([a, a], [0.6, 0.4], mode="sum")
     assert summed.dim == a.dim

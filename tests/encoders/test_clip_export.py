@@ -69,7 +69,9 @@ def test_config_is_read_off_the_tensors(checkpoint):
 def test_tokenizer_on_a_known_vocabulary(vocab):
     tokenizer = ClipTokenizer(vocab, context_length=8)
     assert tokenizer.vocab_size == 519
-    np.testing.assert_array_equal(tokenizer(["The  ROAD", "road"]), [[517, 513, 516, 518, 0, 0, 0, 0], [517, 516, 518, 0, 0, 0, 0, 0]])
+    np.testing.assert_array_equal(
+        tokenizer(["The  ROAD", "road"]), [[517, 513, 516, 518, 0, 0, 0, 0], [517, 516, 518, 0, 0, 0, 0, 0]]
+    )
     long = tokenizer(["the " * 20])[0]
     assert long[0] == 517 and long[-1] == 518 and (long[1:-1] == 513).all()
 
@@ -98,7 +100,22 @@ def test_tokenizer_matches_clips_bpe():
 
 def test_export_and_onnxruntime_agree_with_torch(checkpoint, vocab, tmp_path):
     out = tmp_path / "encoder"
-    assert main(["export-clip", "--checkpoint", str(checkpoint), "--vocab", str(vocab), "--out", str(out), "--name", "tiny-clip"]) == 0
+    assert (
+        main(
+            [
+                "export-clip",
+                "--checkpoint",
+                str(checkpoint),
+                "--vocab",
+                str(vocab),
+                "--out",
+                str(out),
+                "--name",
+                "tiny-clip",
+            ]
+        )
+        == 0
+    )
     encoder = OnnxEncoder(out)
     assert (encoder.name, encoder.dim, encoder.input_size) == ("tiny-clip", 16, 32)
     model = load_clip(str(checkpoint))
@@ -124,7 +141,20 @@ def test_bad_checkpoints_and_folders(checkpoint, vocab, tmp_path, capsys):
     with pytest.raises(ValueError, match=r"shapes\.pt: tensor shapes do not match"):
         load_clip(str(tmp_path / "shapes.pt"))
     (tmp_path / "junk.pt").write_bytes(b"junk")
-    assert main(["export-clip", "--checkpoint", str(tmp_path / "junk.pt"), "--vocab", str(vocab), "--out", str(tmp_path / "x")]) == 1
+    assert (
+        main(
+            [
+                "export-clip",
+                "--checkpoint",
+                str(tmp_path / "junk.pt"),
+                "--vocab",
+                str(vocab),
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 1
+    )
     assert "junk.pt: not a readable PyTorch checkpoint" in capsys.readouterr().err
 
     out = tmp_path / "encoder"

@@ -18,8 +18,16 @@ def test_overall_is_the_mean_over_scenes():
 
 def test_tables_bold_the_best_and_list_every_scene():
     results = {
-        "a": {"outlangsplat": _scores(60, 50, 70), "projection": _scores(55, 52, 70), "outlangsplat-noquality": _scores(58, 49, 60)},
-        "b": {"outlangsplat": _scores(70, 40, 80), "projection": _scores(65, 41, 79), "outlangsplat-noquality": _scores(66, 39, 75)},
+        "a": {
+            "outlangsplat": _scores(60, 50, 70),
+            "projection": _scores(55, 52, 70),
+            "outlangsplat-noquality": _scores(58, 49, 60),
+        },
+        "b": {
+            "outlangsplat": _scores(70, 40, 80),
+            "projection": _scores(65, 41, 79),
+            "outlangsplat-noquality": _scores(66, 39, 75),
+        },
     }
     text = paper_tables(results)
     assert "| a | **53.0**/50.0/**47.0** | 55.0/**52.0**/49.0 |" not in text  # loc40 = loc50 + 3: 53 vs 55
@@ -44,7 +52,10 @@ def test_feature_and_sweep_tables():
     text = paper_tables({"s": runs})
     assert "| 0.5 | 0.6/0.7 | 61.0/62.0 | " in text and "| 0.6 | 0.6/0.7 | 62.0/**63.0** | " in text
     feature_table = text.split("paper Table 6")[1]
-    assert "| Metrics | olsplat-cnn64 | 2D-3D fusion |" in feature_table and "| mIoU ↑ | 50.0 | **58.0** |" in feature_table
+    assert (
+        "| Metrics | olsplat-cnn64 | 2D-3D fusion |" in feature_table
+        and "| mIoU ↑ | 50.0 | **58.0** |" in feature_table
+    )
     assert "lambda_2D" not in text.split("paper Table 6")[0]  # sweep runs stay out of the method tables
 
 

@@ -23,7 +23,16 @@ class Ticker(Node):
     "raise" raises), later runs go on normally. With ``wait_for`` (a path) it starts ticking
     only once that file exists (another node is up)."""
 
-    DEFAULTS = {"ticks": 3, "period_s": 0.01, "exit_code": 0, "crash_once": "", "crash_how": "exit", "topic": "ticks", "note": "", "wait_for": ""}
+    DEFAULTS = {
+        "ticks": 3,
+        "period_s": 0.01,
+        "exit_code": 0,
+        "crash_once": "",
+        "crash_how": "exit",
+        "topic": "ticks",
+        "note": "",
+        "wait_for": "",
+    }
 
     def run(self, stop: threading.Event) -> int:
         p = self.params

@@ -37,7 +37,9 @@ def test_a_signal_to_the_launcher_stops_every_child_and_sets_the_exit_code(tmp_p
                                 stderr=subprocess.STDOUT, text=True)  # fmt: skip
     try:
         pid_files = [run / f"{name}.pid" for name in names]
-        pids = wait_for(lambda: all(p.exists() for p in pid_files) and [int(p.read_text()) for p in pid_files], what="three nodes")
+        pids = wait_for(
+            lambda: all(p.exists() for p in pid_files) and [int(p.read_text()) for p in pid_files], what="three nodes"
+        )
         launcher.send_signal(sig)
         out, _ = launcher.communicate(timeout=15)
     finally:
@@ -51,7 +53,9 @@ def test_a_signal_to_the_launcher_stops_every_child_and_sets_the_exit_code(tmp_p
 
 
 def test_launch_runs_a_file_to_its_end_with_overrides(tmp_path, capsys):
-    path = write_launch(tmp_path, [{"name": "ticker", "exec": f"{NODES}:Ticker", "params": {"ticks": 50}}], exit_when=["ticker"])
+    path = write_launch(
+        tmp_path, [{"name": "ticker", "exec": f"{NODES}:Ticker", "params": {"ticks": 50}}], exit_when=["ticker"]
+    )
     assert main(["launch", str(path), "--set", "ticker.ticks=2", "--set", "ticker.note=from-cli"]) == 0
     assert "ticker: exited with code 0" in capsys.readouterr().out
     log = (tmp_path / "run" / "logs" / "ticker.log").read_text()

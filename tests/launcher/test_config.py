@@ -7,7 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from olsplat_nodes.launcher import LaunchConfig, LaunchFileError, load_launch, parse_launch, resolve_launch, resolve_params
+from olsplat_nodes.launcher import (
+    LaunchConfig,
+    LaunchFileError,
+    load_launch,
+    parse_launch,
+    resolve_launch,
+    resolve_params,
+)
 
 from .conftest import NODES, write_launch
 
@@ -85,7 +92,9 @@ def test_unreadable_and_non_mapping_files(tmp_path):
     with pytest.raises(LaunchFileError, match="list.yaml: the launch file must be a mapping"):
         load_launch(tmp_path / "list.yaml")
     (tmp_path / "date.yaml").write_text(f"nodes: [{{name: a, exec: '{NODES}:Ticker', params: {{note: 2024-01-02}}}}]\n")
-    with pytest.raises(LaunchFileError, match=r"date.yaml: nodes\[0\] \(a\).params.note: unsupported value .*quote dates"):
+    with pytest.raises(
+        LaunchFileError, match=r"date.yaml: nodes\[0\] \(a\).params.note: unsupported value .*quote dates"
+    ):
         load_launch(tmp_path / "date.yaml")
 
 
@@ -137,7 +146,9 @@ def test_unknown_placeholder_and_unknown_param_are_errors(tmp_path):
     with pytest.raises(LaunchFileError, match=r"f.yaml: nodes\[0\] \(a\).params.note: unknown placeholder \{rundir\}"):
         resolve_launch(config, tmp_path)
     config = parse_launch({"nodes": [dict(TICKER, params={"tiks": 2})]}, source="f.yaml")
-    with pytest.raises(LaunchFileError, match=r"f.yaml: nodes\[0\] \(a\).params.tiks: unknown parameter of .*Ticker; known: crash_how"):
+    with pytest.raises(
+        LaunchFileError, match=r"f.yaml: nodes\[0\] \(a\).params.tiks: unknown parameter of .*Ticker; known: crash_how"
+    ):
         resolve_launch(config, tmp_path)
     config = parse_launch({"nodes": [dict(TICKER, exec="tests.launcher.nowhere:Ticker")]}, source="f.yaml")
     with pytest.raises(LaunchFileError, match=r"f.yaml: nodes\[0\] \(a\).exec: .*cannot load"):
@@ -158,9 +169,14 @@ def test_remap_then_namespace_applies_to_topic_params_only(tmp_path):
     assert params_of(dict(talker, remap={"chatter": "/global"}), namespace="fleet")["topic_out"] == "global"
     assert params_of(dict(talker, params={"topic_out": "other"}), namespace="ns")["topic_out"] == "ns/other"
     # Only topic* params are names: the endpoint is not namespaced, and nothing changed is not passed.
-    assert params_of(dict(talker, params={"period_s": 0.02})) == {"endpoint": f"ipc://{tmp_path.resolve()}/talk.sock", "period_s": 0.02}
+    assert params_of(dict(talker, params={"period_s": 0.02})) == {
+        "endpoint": f"ipc://{tmp_path.resolve()}/talk.sock",
+        "period_s": 0.02,
+    }
     # A remap that matches nothing is a typo.
-    with pytest.raises(LaunchFileError, match=r"remap.chat: matches none of the node's topic names .*they are: chatter"):
+    with pytest.raises(
+        LaunchFileError, match=r"remap.chat: matches none of the node's topic names .*they are: chatter"
+    ):
         params_of(dict(talker, remap={"chat": "x"}))
     # Composed: ipc:// endpoints become inproc:// with the same path.
     assert params_of(talker, composed=True)["endpoint"] == f"inproc://{tmp_path.resolve()}/talk.sock"

@@ -62,7 +62,9 @@ def test_kill_9_of_a_running_child_is_noticed_and_the_node_restarted(tmp_path):
     first = int(wait_for(lambda: pid_file.exists() and pid_file.read_text(), what="victim's pid file"))
     assert running.supervisor.pids == {"victim": first}
     os.kill(first, signal.SIGKILL)
-    second = int(wait_for(lambda: pid_file.read_text() != str(first) and pid_file.read_text(), what="a restarted victim"))
+    second = int(
+        wait_for(lambda: pid_file.read_text() != str(first) and pid_file.read_text(), what="a restarted victim")
+    )
     assert second != first
     (run / "release").touch()
     assert running.wait() == 0

@@ -42,29 +42,116 @@ def sample_messages() -> list[tuple[str, object]]:
     label_maps = rng.integers(-1, 3, (2, 6, 8), dtype=np.int32)
     out = [
         ("image", ImageFrame(stamp_ns=stamp, seq=12, frame_id="uav1/cam0", name="v000.png", **_camera(rng, 6, 8))),
-        ("image-empty-D-no-distortion", ImageFrame(name="ü-ñame", **{**_camera(rng, 1, 1), "D": np.zeros(0), "distortion_model": "none"})),
+        (
+            "image-empty-D-no-distortion",
+            ImageFrame(name="ü-ñame", **{**_camera(rng, 1, 1), "D": np.zeros(0), "distortion_model": "none"}),
+        ),
         ("image-zero-size", ImageFrame(**{**_camera(rng, 0, 0), "D": np.zeros(0)})),
         ("eos", EndOfStream(seq=3, source="replay", frames=2, names=["a", "b"])),
         ("eos-empty", EndOfStream()),
-        ("regions-f16", RegionFeatures(seq=1, name="v000", source_seq=12, encoder="olsplat-cnn64:x", label_maps=label_maps, level_sizes=levels,
-                                       features=rng.normal(size=(8, 16)).astype(np.float16), **_camera(rng, 6, 8))),
-        ("regions-f32-empty", RegionFeatures(label_maps=np.zeros((0, 6, 8), np.int32), level_sizes=np.zeros(0, np.int32),
-                                             features=np.zeros((0, 512), np.float32), **_camera(rng, 6, 8))),
-        ("observations", ObservationsAdded(seq=9, name="v000", source_seq=1, observations=123456, gaussians=999, views_in_store=4, duplicate=True)),
-        ("map", MapUpdated(version=5, path="/run/map/v5.npz", views=4, observed_gaussians=12_000_000, encoder="e", final=True)),
-        ("query", QueryRequest(request_id="r1", text="red roof buildings", view="v000", heatmap=False, threshold=0.4, negatives=["road", "tree"])),
+        (
+            "regions-f16",
+            RegionFeatures(
+                seq=1,
+                name="v000",
+                source_seq=12,
+                encoder="olsplat-cnn64:x",
+                label_maps=label_maps,
+                level_sizes=levels,
+                features=rng.normal(size=(8, 16)).astype(np.float16),
+                **_camera(rng, 6, 8),
+            ),
+        ),
+        (
+            "regions-f32-empty",
+            RegionFeatures(
+                label_maps=np.zeros((0, 6, 8), np.int32),
+                level_sizes=np.zeros(0, np.int32),
+                features=np.zeros((0, 512), np.float32),
+                **_camera(rng, 6, 8),
+            ),
+        ),
+        (
+            "observations",
+            ObservationsAdded(
+                seq=9, name="v000", source_seq=1, observations=123456, gaussians=999, views_in_store=4, duplicate=True
+            ),
+        ),
+        (
+            "map",
+            MapUpdated(
+                version=5, path="/run/map/v5.npz", views=4, observed_gaussians=12_000_000, encoder="e", final=True
+            ),
+        ),
+        (
+            "query",
+            QueryRequest(
+                request_id="r1",
+                text="red roof buildings",
+                view="v000",
+                heatmap=False,
+                threshold=0.4,
+                negatives=["road", "tree"],
+            ),
+        ),
         ("query-nan", QueryRequest(request_id="r2", text="road")),
-        ("reply-full", QueryReply(request_id="r1", status="ok", text="road", view="v000", map_version=5,
-                                  instances=[{"id": 0, "score": 0.9, "n_gaussians": 10, "centroid": [1.0, 2.0, 3.0], "box2d": [0, 1, 2, 3], "extra": None}],
-                                  heatmap=rng.random((6, 8), dtype=np.float32), mask=(rng.random((6, 8)) > 0.5).astype(np.uint8),
-                                  image=rng.integers(0, 256, (6, 8, 3), dtype=np.uint8), seconds=0.125)),
+        (
+            "reply-full",
+            QueryReply(
+                request_id="r1",
+                status="ok",
+                text="road",
+                view="v000",
+                map_version=5,
+                instances=[
+                    {
+                        "id": 0,
+                        "score": 0.9,
+                        "n_gaussians": 10,
+                        "centroid": [1.0, 2.0, 3.0],
+                        "box2d": [0, 1, 2, 3],
+                        "extra": None,
+                    }
+                ],
+                heatmap=rng.random((6, 8), dtype=np.float32),
+                mask=(rng.random((6, 8)) > 0.5).astype(np.uint8),
+                image=rng.integers(0, 256, (6, 8, 3), dtype=np.uint8),
+                seconds=0.125,
+            ),
+        ),
         ("reply-none-arrays", QueryReply(request_id="r2", status="no_map", message="no snapshot yet")),
-        ("reply-empty-arrays", QueryReply(heatmap=np.zeros((0, 0), np.float32), mask=np.zeros((0, 4), np.uint8), image=None)),
+        (
+            "reply-empty-arrays",
+            QueryReply(heatmap=np.zeros((0, 0), np.float32), mask=np.zeros((0, 4), np.uint8), image=None),
+        ),
         ("status-request", StatusRequest(request_id="s1")),
-        ("status-reply", StatusReply(request_id="s1", map_version=2,
-                                     nodes=[{"node": "ingest", "level": 0, "values": {"rate_hz": 2.5, "drops": 1}, "age_s": 0.3, "nested": {"a": [1, [2, {"b": None}]]}}])),
-        ("diagnostics", DiagnosticStatus(stamp_ns=stamp, seq=2**63 - 1, node="accumulator", level=DiagnosticStatus.WARN, message="slow",
-                                         values={"rate_hz": 1.5, "latency_ms": 250, "drops": 3, "state": "running", "ok": True})),
+        (
+            "status-reply",
+            StatusReply(
+                request_id="s1",
+                map_version=2,
+                nodes=[
+                    {
+                        "node": "ingest",
+                        "level": 0,
+                        "values": {"rate_hz": 2.5, "drops": 1},
+                        "age_s": 0.3,
+                        "nested": {"a": [1, [2, {"b": None}]]},
+                    }
+                ],
+            ),
+        ),
+        (
+            "diagnostics",
+            DiagnosticStatus(
+                stamp_ns=stamp,
+                seq=2**63 - 1,
+                node="accumulator",
+                level=DiagnosticStatus.WARN,
+                message="slow",
+                values={"rate_hz": 1.5, "latency_ms": 250, "drops": 3, "state": "running", "ok": True},
+            ),
+        ),
     ]
     return out
 
@@ -76,7 +163,13 @@ def assert_same(a, b) -> None:
         x, y = getattr(a, f.name), getattr(b, f.name)
         if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
             assert isinstance(x, np.ndarray) and isinstance(y, np.ndarray), f.name
-            assert x.dtype.newbyteorder("<") == y.dtype and x.shape == y.shape, (f.name, x.dtype, y.dtype, x.shape, y.shape)
+            assert x.dtype.newbyteorder("<") == y.dtype and x.shape == y.shape, (
+                f.name,
+                x.dtype,
+                y.dtype,
+                x.shape,
+                y.shape,
+            )
             assert np.array_equal(x, y), f.name
         elif isinstance(x, float) and math.isnan(x):
             assert isinstance(y, float) and math.isnan(y), f.name

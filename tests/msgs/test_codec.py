@@ -86,7 +86,12 @@ def test_encode_normalises_layout_and_byte_order():
 
 
 def test_encode_converts_numpy_scalars_and_tuples():
-    msg = DiagnosticStatus(seq=np.int64(4), node="n", level=np.int32(1), values={"rate_hz": np.float32(2.5), "drops": np.int64(3), "v": np.arange(2)})
+    msg = DiagnosticStatus(
+        seq=np.int64(4),
+        node="n",
+        level=np.int32(1),
+        values={"rate_hz": np.float32(2.5), "drops": np.int64(3), "v": np.arange(2)},
+    )
     _, back = decode(encode(msg, "diagnostics"))
     assert back.seq == 4 and back.level == 1 and type(back.level) is int
     assert back.values == {"rate_hz": 2.5, "drops": 3, "v": [0, 1]}
@@ -96,7 +101,9 @@ def test_encode_converts_numpy_scalars_and_tuples():
 
 
 def _image(**changes):
-    fields = dict(image=np.zeros((2, 3, 3), np.uint8), K=np.eye(3), D=np.zeros(0), world_from_camera=np.eye(4), width=3, height=2)
+    fields = dict(
+        image=np.zeros((2, 3, 3), np.uint8), K=np.eye(3), D=np.zeros(0), world_from_camera=np.eye(4), width=3, height=2
+    )
     fields.update(changes)
     return ImageFrame(**fields)
 
@@ -115,9 +122,19 @@ def _image(**changes):
         (_image(stamp_ns=2**63), TypeError, "ImageFrame.stamp_ns"),
         (_image(frame_id=None), TypeError, "ImageFrame.frame_id"),
         (_image(width=2**63), ValueError, "ImageFrame.width"),
-        (RegionFeatures(label_maps=np.zeros((1, 2, 3), np.int32), level_sizes=np.zeros(1, np.int32), features=np.zeros((1, 4), np.float64),
-                        image=np.zeros((2, 3, 3), np.uint8), K=np.eye(3), D=np.zeros(0), world_from_camera=np.eye(4)),
-         TypeError, "expected float16 or float32"),
+        (
+            RegionFeatures(
+                label_maps=np.zeros((1, 2, 3), np.int32),
+                level_sizes=np.zeros(1, np.int32),
+                features=np.zeros((1, 4), np.float64),
+                image=np.zeros((2, 3, 3), np.uint8),
+                K=np.eye(3),
+                D=np.zeros(0),
+                world_from_camera=np.eye(4),
+            ),
+            TypeError,
+            "expected float16 or float32",
+        ),
         (QueryReply(status="fine"), ValueError, "QueryReply.status: 'fine' is not one of"),
         (DiagnosticStatus(level=7), ValueError, "DiagnosticStatus.level"),
         (DiagnosticStatus(values={1: 2}), TypeError, "keys must be str"),

@@ -15,8 +15,31 @@ from olsplat_msgs import MESSAGES, WireError, decode, encode
 from .samples import sample_messages
 
 ENCODED = [encode(m, "topic") for _, m in sample_messages()]
-WEIRD_VALUES = [None, True, -1, 0, 2**63, 2**64 - 1, -(2**63), 1.5, float("nan"), "", "x" * 300, b"\x00", [], {}, [1, "a"], {"a": {"b": []}},
-                "<f4", "|u1", "<f8", [0], [2**62, 2**62], [-1, 3], msgpack.ExtType(1, b"")]
+WEIRD_VALUES = [
+    None,
+    True,
+    -1,
+    0,
+    2**63,
+    2**64 - 1,
+    -(2**63),
+    1.5,
+    float("nan"),
+    "",
+    "x" * 300,
+    b"\x00",
+    [],
+    {},
+    [1, "a"],
+    {"a": {"b": []}},
+    "<f4",
+    "|u1",
+    "<f8",
+    [0],
+    [2**62, 2**62],
+    [-1, 3],
+    msgpack.ExtType(1, b""),
+]
 
 
 def _check(frames, max_bytes=1 << 20):

@@ -23,9 +23,18 @@ from olsplat_msgs import (
 
 
 def _region_frames() -> list[bytes]:
-    msg = RegionFeatures(name="v", label_maps=np.zeros((2, 2, 3), np.int32), level_sizes=np.array([1, 1], np.int32),
-                         features=np.ones((2, 4), np.float16), image=np.zeros((2, 3, 3), np.uint8), K=np.eye(3), D=np.zeros(0),
-                         world_from_camera=np.eye(4), width=3, height=2)
+    msg = RegionFeatures(
+        name="v",
+        label_maps=np.zeros((2, 2, 3), np.int32),
+        level_sizes=np.array([1, 1], np.int32),
+        features=np.ones((2, 4), np.float16),
+        image=np.zeros((2, 3, 3), np.uint8),
+        K=np.eye(3),
+        D=np.zeros(0),
+        world_from_camera=np.eye(4),
+        width=3,
+        height=2,
+    )
     return encode(msg, "regions")
 
 
@@ -82,10 +91,25 @@ CASES = [
     ("truncated-header", [STATUS[0], STATUS[1][:-3]], MalformedMessage, "not a valid msgpack"),
     ("trailing-bytes", [STATUS[0], STATUS[1] + b"\x00"], MalformedMessage, "not a valid msgpack"),
     ("header-not-map", [STATUS[0], msgpack.packb([1, 2])], MalformedMessage, "expected a msgpack map"),
-    ("ext-type", [STATUS[0], msgpack.packb({"schema": msgpack.ExtType(5, b"x")})], MalformedMessage, "extension type 5"),
+    (
+        "ext-type",
+        [STATUS[0], msgpack.packb({"schema": msgpack.ExtType(5, b"x")})],
+        MalformedMessage,
+        "extension type 5",
+    ),
     ("schema-missing", _with_header(STATUS, _delete("schema")), MalformedMessage, "'schema' must be a string"),
-    ("schema-bin", _with_header(STATUS, _set("schema", b"olsplat_msgs/StatusRequest")), MalformedMessage, "'schema' must be a string"),
-    ("unknown-schema", _with_header(STATUS, _set("schema", "olsplat_msgs/Teleport")), UnknownSchema, "olsplat_msgs/Teleport"),
+    (
+        "schema-bin",
+        _with_header(STATUS, _set("schema", b"olsplat_msgs/StatusRequest")),
+        MalformedMessage,
+        "'schema' must be a string",
+    ),
+    (
+        "unknown-schema",
+        _with_header(STATUS, _set("schema", "olsplat_msgs/Teleport")),
+        UnknownSchema,
+        "olsplat_msgs/Teleport",
+    ),
     ("foreign-schema", _with_header(STATUS, _set("schema", "sensor_msgs/Image")), UnknownSchema, "sensor_msgs/Image"),
     ("version-2", _with_header(STATUS, _set("version", 2)), UnsupportedVersion, "version 2"),
     ("version-0", _with_header(STATUS, _set("version", 0)), UnsupportedVersion, "version 0"),
@@ -98,39 +122,173 @@ CASES = [
     ("seq-bool", _with_header(STATUS, _set("seq", True)), MalformedMessage, "StatusRequest.seq"),
     ("frame-id-int", _with_header(STATUS, _set("frame_id", 3)), MalformedMessage, "StatusRequest.frame_id"),
     ("fields-not-map", _with_header(STATUS, _set("fields", [])), MalformedMessage, "'fields' must be a map"),
-    ("field-missing", _with_header(STATUS, _delete("fields.request_id")), MalformedMessage, "missing fields ['request_id']"),
-    ("field-extra", _with_header(STATUS, _set("fields.priority", 1)), MalformedMessage, "unexpected fields ['priority']"),
-    ("field-str-is-int", _with_header(STATUS, _set("fields.request_id", 5)), MalformedMessage, "StatusRequest.request_id: expected str"),
-    ("field-int-is-str", _with_header(REGIONS, _set("fields.width", "3")), MalformedMessage, "RegionFeatures.width: expected int"),
-    ("field-int-is-bool", _with_header(REGIONS, _set("fields.width", True)), MalformedMessage, "RegionFeatures.width: expected int"),
-    ("field-float-is-str", _with_header(REPLY, _set("fields.seconds", "1")), MalformedMessage, "QueryReply.seconds: expected float"),
+    (
+        "field-missing",
+        _with_header(STATUS, _delete("fields.request_id")),
+        MalformedMessage,
+        "missing fields ['request_id']",
+    ),
+    (
+        "field-extra",
+        _with_header(STATUS, _set("fields.priority", 1)),
+        MalformedMessage,
+        "unexpected fields ['priority']",
+    ),
+    (
+        "field-str-is-int",
+        _with_header(STATUS, _set("fields.request_id", 5)),
+        MalformedMessage,
+        "StatusRequest.request_id: expected str",
+    ),
+    (
+        "field-int-is-str",
+        _with_header(REGIONS, _set("fields.width", "3")),
+        MalformedMessage,
+        "RegionFeatures.width: expected int",
+    ),
+    (
+        "field-int-is-bool",
+        _with_header(REGIONS, _set("fields.width", True)),
+        MalformedMessage,
+        "RegionFeatures.width: expected int",
+    ),
+    (
+        "field-float-is-str",
+        _with_header(REPLY, _set("fields.seconds", "1")),
+        MalformedMessage,
+        "QueryReply.seconds: expected float",
+    ),
     ("field-nil", _with_header(REPLY, _set("fields.message", None)), MalformedMessage, "QueryReply.message: None"),
-    ("field-choice", _with_header(REPLY, _set("fields.status", "maybe")), MalformedMessage, "QueryReply.status: 'maybe' is not one of"),
-    ("field-list-of-int", _with_header(REPLY, _set("fields.instances", [1])), MalformedMessage, "QueryReply.instances[0]: expected dict"),
-    ("field-list-is-map", _with_header(REPLY, _set("fields.instances", {})), MalformedMessage, "QueryReply.instances: expected list[dict]"),
-    ("field-bin-inside", _with_header(REPLY, _set("fields.instances", [{"a": b"x"}])), MalformedMessage, "QueryReply.instances[0].a"),
+    (
+        "field-choice",
+        _with_header(REPLY, _set("fields.status", "maybe")),
+        MalformedMessage,
+        "QueryReply.status: 'maybe' is not one of",
+    ),
+    (
+        "field-list-of-int",
+        _with_header(REPLY, _set("fields.instances", [1])),
+        MalformedMessage,
+        "QueryReply.instances[0]: expected dict",
+    ),
+    (
+        "field-list-is-map",
+        _with_header(REPLY, _set("fields.instances", {})),
+        MalformedMessage,
+        "QueryReply.instances: expected list[dict]",
+    ),
+    (
+        "field-bin-inside",
+        _with_header(REPLY, _set("fields.instances", [{"a": b"x"}])),
+        MalformedMessage,
+        "QueryReply.instances[0].a",
+    ),
     ("arrays-not-list", _with_header(REPLY, _set("arrays", {})), MalformedMessage, "'arrays' must list 3 entries"),
-    ("arrays-too-few", _with_header(REPLY, lambda h: h["arrays"].pop()), MalformedMessage, "'arrays' must list 3 entries"),
-    ("array-entry-not-map", _with_header(REPLY, _set("arrays.1", "mask")), MalformedMessage, "QueryReply.mask: array entry must be a map"),
-    ("array-entry-extra-key", _with_header(REPLY, _set("arrays.1.order", "C")), MalformedMessage, "QueryReply.mask: array entry must be a map"),
-    ("array-order-swapped", _with_header(REPLY, lambda h: h["arrays"].reverse()), MalformedMessage, "QueryReply.heatmap: array entry named 'image'"),
-    ("dtype-unknown", _with_header(REPLY, _set("arrays.1.dtype", "<c8")), MalformedMessage, "QueryReply.mask: dtype '<c8' is not a wire dtype"),
-    ("dtype-big-endian", _with_header(REGIONS, _set("arrays.2.dtype", ">f2")), MalformedMessage, "RegionFeatures.features: dtype '>f2' is not a wire dtype"),
-    ("dtype-object", _with_header(REPLY, _set("arrays.1.dtype", "|O")), MalformedMessage, "QueryReply.mask: dtype '|O'"),
-    ("dtype-not-allowed", _with_header(REGIONS, _set("arrays.2.dtype", "<f8")), MalformedMessage, "RegionFeatures.features: dtype '<f8' not allowed, expected float16 or float32"),
-    ("dtype-not-str", _with_header(REPLY, _set("arrays.1.dtype", 1)), MalformedMessage, "QueryReply.mask: dtype must be a string"),
+    (
+        "arrays-too-few",
+        _with_header(REPLY, lambda h: h["arrays"].pop()),
+        MalformedMessage,
+        "'arrays' must list 3 entries",
+    ),
+    (
+        "array-entry-not-map",
+        _with_header(REPLY, _set("arrays.1", "mask")),
+        MalformedMessage,
+        "QueryReply.mask: array entry must be a map",
+    ),
+    (
+        "array-entry-extra-key",
+        _with_header(REPLY, _set("arrays.1.order", "C")),
+        MalformedMessage,
+        "QueryReply.mask: array entry must be a map",
+    ),
+    (
+        "array-order-swapped",
+        _with_header(REPLY, lambda h: h["arrays"].reverse()),
+        MalformedMessage,
+        "QueryReply.heatmap: array entry named 'image'",
+    ),
+    (
+        "dtype-unknown",
+        _with_header(REPLY, _set("arrays.1.dtype", "<c8")),
+        MalformedMessage,
+        "QueryReply.mask: dtype '<c8' is not a wire dtype",
+    ),
+    (
+        "dtype-big-endian",
+        _with_header(REGIONS, _set("arrays.2.dtype", ">f2")),
+        MalformedMessage,
+        "RegionFeatures.features: dtype '>f2' is not a wire dtype",
+    ),
+    (
+        "dtype-object",
+        _with_header(REPLY, _set("arrays.1.dtype", "|O")),
+        MalformedMessage,
+        "QueryReply.mask: dtype '|O'",
+    ),
+    (
+        "dtype-not-allowed",
+        _with_header(REGIONS, _set("arrays.2.dtype", "<f8")),
+        MalformedMessage,
+        "RegionFeatures.features: dtype '<f8' not allowed, expected float16 or float32",
+    ),
+    (
+        "dtype-not-str",
+        _with_header(REPLY, _set("arrays.1.dtype", 1)),
+        MalformedMessage,
+        "QueryReply.mask: dtype must be a string",
+    ),
     ("rank-mismatch", _with_header(REPLY, _set("arrays.1.shape", [4])), MalformedMessage, "QueryReply.mask: rank 1"),
-    ("fixed-dim-mismatch", _with_header(REGIONS, _set("arrays.4.shape", [9])), MalformedMessage, "RegionFeatures.K: rank 1"),
-    ("fixed-dim-value", _with_header(REGIONS, _set("arrays.4.shape", [1, 9])), MalformedMessage, "RegionFeatures.K: shape [1, 9], axis 0 must be 3"),
-    ("shape-negative", _with_header(REPLY, _set("arrays.1.shape", [-2, -2])), MalformedMessage, "QueryReply.mask: shape must be a list of non-negative ints"),
-    ("shape-bool", _with_header(REPLY, _set("arrays.1.shape", [True, 4])), MalformedMessage, "QueryReply.mask: shape must be a list"),
+    (
+        "fixed-dim-mismatch",
+        _with_header(REGIONS, _set("arrays.4.shape", [9])),
+        MalformedMessage,
+        "RegionFeatures.K: rank 1",
+    ),
+    (
+        "fixed-dim-value",
+        _with_header(REGIONS, _set("arrays.4.shape", [1, 9])),
+        MalformedMessage,
+        "RegionFeatures.K: shape [1, 9], axis 0 must be 3",
+    ),
+    (
+        "shape-negative",
+        _with_header(REPLY, _set("arrays.1.shape", [-2, -2])),
+        MalformedMessage,
+        "QueryReply.mask: shape must be a list of non-negative ints",
+    ),
+    (
+        "shape-bool",
+        _with_header(REPLY, _set("arrays.1.shape", [True, 4])),
+        MalformedMessage,
+        "QueryReply.mask: shape must be a list",
+    ),
     ("buffer-short", [*REPLY[:3], REPLY[3][:-1], REPLY[4]], MalformedMessage, "QueryReply.mask: frame has 3 bytes"),
     ("buffer-long", [*REPLY[:3], REPLY[3] + b"\x00", REPLY[4]], MalformedMessage, "QueryReply.mask: frame has 5 bytes"),
-    ("buffer-huge-shape", _with_header(REPLY, _set("arrays.1.shape", [2**40, 2**40])), MalformedMessage, "QueryReply.mask: frame has 4 bytes"),
-    ("required-array-nil", _with_header(REGIONS, _set("arrays.0", {"name": "label_maps", "dtype": None, "shape": None})),
-     MalformedMessage, "RegionFeatures.label_maps: nil (None), but the array is required"),
-    ("nil-with-bytes", [*REPLY[:2], b"\x00", *REPLY[3:]], MalformedMessage, "QueryReply.heatmap: None array with a 1-byte frame"),
-    ("nil-dtype-only", _with_header(REPLY, _set("arrays.0.shape", [1, 1])), MalformedMessage, "QueryReply.heatmap: dtype and shape must both be nil"),
+    (
+        "buffer-huge-shape",
+        _with_header(REPLY, _set("arrays.1.shape", [2**40, 2**40])),
+        MalformedMessage,
+        "QueryReply.mask: frame has 4 bytes",
+    ),
+    (
+        "required-array-nil",
+        _with_header(REGIONS, _set("arrays.0", {"name": "label_maps", "dtype": None, "shape": None})),
+        MalformedMessage,
+        "RegionFeatures.label_maps: nil (None), but the array is required",
+    ),
+    (
+        "nil-with-bytes",
+        [*REPLY[:2], b"\x00", *REPLY[3:]],
+        MalformedMessage,
+        "QueryReply.heatmap: None array with a 1-byte frame",
+    ),
+    (
+        "nil-dtype-only",
+        _with_header(REPLY, _set("arrays.0.shape", [1, 1])),
+        MalformedMessage,
+        "QueryReply.heatmap: dtype and shape must both be nil",
+    ),
 ]
 
 
@@ -144,7 +302,10 @@ def test_decode_rejects(frames, error, words):
 
 
 def test_too_large_is_checked_before_parsing():
-    frames = encode(ImageFrame(image=np.zeros((10, 10, 3), np.uint8), K=np.eye(3), D=np.zeros(0), world_from_camera=np.eye(4)), "frames")
+    frames = encode(
+        ImageFrame(image=np.zeros((10, 10, 3), np.uint8), K=np.eye(3), D=np.zeros(0), world_from_camera=np.eye(4)),
+        "frames",
+    )
     total = sum(len(f) for f in frames)
     assert decode(frames, max_bytes=total)[1].image.shape == (10, 10, 3)
     with pytest.raises(MessageTooLarge, match=f"{total + 0} bytes exceeds max_bytes={total - 1}"):

@@ -31,7 +31,8 @@ def test_class_fields_match_schema_field_by_field(name):
     cls = MESSAGES[f"olsplat_msgs/{name}"]
     got = [(f.name, f.type) for f in dataclasses.fields(cls)]
     want = [(f.name, f.type) for f in SCHEMA.common] + [
-        (f.name, ("np.ndarray | None" if f.optional else "np.ndarray") if f.is_array else f.type) for f in SCHEMA.messages[name].fields
+        (f.name, ("np.ndarray | None" if f.optional else "np.ndarray") if f.is_array else f.type)
+        for f in SCHEMA.messages[name].fields
     ]
     assert got == want
     instance = cls()
@@ -103,8 +104,16 @@ def test_worked_example_bytes_match_the_encoder():
 
 def test_worked_example_with_arrays_matches_the_encoder():
     text = README.read_text(encoding="utf-8")
-    msg = QueryReply(seq=1, frame_id="query_server", request_id="r2", text="road", view="v000", map_version=3,
-                     mask=np.array([[0, 1, 1], [0, 0, 1]], np.uint8), seconds=0.25)
+    msg = QueryReply(
+        seq=1,
+        frame_id="query_server",
+        request_id="r2",
+        text="road",
+        view="v000",
+        map_version=3,
+        mask=np.array([[0, 1, 1], [0, 0, 1]], np.uint8),
+        seconds=0.25,
+    )
     frames = encode(msg, "query")
     header = json.loads(_fenced_after(text, "<!-- worked example: QueryReply header -->"))
     assert header == msgpack.unpackb(frames[1])

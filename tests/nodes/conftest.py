@@ -10,8 +10,9 @@ import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -53,9 +54,17 @@ def read_rgb(path: Path) -> np.ndarray:
 
 def image_frame(camera, image: np.ndarray, seq: int = 1, name: str | None = None) -> ImageFrame:
     return ImageFrame(
-        stamp_ns=time.time_ns(), seq=seq, frame_id="camera", name=name or camera.name, image=image, K=camera.K,
-        D=np.asarray(camera.dist, np.float64), distortion_model="plumb_bob" if len(camera.dist) else "none",
-        world_from_camera=camera.world_from_camera, width=camera.width, height=camera.height,
+        stamp_ns=time.time_ns(),
+        seq=seq,
+        frame_id="camera",
+        name=name or camera.name,
+        image=image,
+        K=camera.K,
+        D=np.asarray(camera.dist, np.float64),
+        distortion_model="plumb_bob" if len(camera.dist) else "none",
+        world_from_camera=camera.world_from_camera,
+        width=camera.width,
+        height=camera.height,
     )
 
 
@@ -107,9 +116,18 @@ def tiny_run(tiny, region_features, tmp_path_factory):
     add_view(gaussians, camera, label_maps, bank, chosen, store)
     features, observed = store.refine(None, chosen.aggregation, only_touched=False)
     language_map = LanguageMap.from_features(features, observed, region_features.encoder)
-    write_snapshot(run / "map", 1, language_map, {
-        "views": 1, "observed_gaussians": int(observed.sum()), "encoder": language_map.encoder, "final": True,
-    }, None)
+    write_snapshot(
+        run / "map",
+        1,
+        language_map,
+        {
+            "views": 1,
+            "observed_gaussians": int(observed.sum()),
+            "encoder": language_map.encoder,
+            "final": True,
+        },
+        None,
+    )
     return run
 
 
@@ -117,8 +135,13 @@ def tiny_run(tiny, region_features, tmp_path_factory):
 # waiting
 
 
-def wait_for(condition: Callable[[], Any], timeout_s: float, what: str, step: Callable[[], Any] | None = None,
-             interval_s: float = 0.02):
+def wait_for(
+    condition: Callable[[], Any],
+    timeout_s: float,
+    what: str,
+    step: Callable[[], Any] | None = None,
+    interval_s: float = 0.02,
+):
     """Call ``step`` (if any) and ``condition`` until the latter is truthy; fail naming ``what``."""
     deadline = time.monotonic() + timeout_s
     while True:
@@ -255,8 +278,14 @@ class Heartbeats(Tap):
         beats = [m for m in self.of_type(DiagnosticStatus) if m.node == node]
         return dict(beats[-1].values) if beats else {}
 
-    def wait(self, node: str, condition: Callable[[dict], bool], timeout_s: float, what: str,
-             step: Callable[[], Any] | None = None) -> dict:
+    def wait(
+        self,
+        node: str,
+        condition: Callable[[dict], bool],
+        timeout_s: float,
+        what: str,
+        step: Callable[[], Any] | None = None,
+    ) -> dict:
         """Wait for a heartbeat of ``node`` whose values satisfy ``condition`` (calling ``step``,
         if given, on the way); returns those values."""
         deadline = time.monotonic() + timeout_s
@@ -269,7 +298,9 @@ class Heartbeats(Tap):
             if found is not None:
                 return found
             if time.monotonic() > deadline:
-                pytest.fail(f"timed out after {timeout_s} s waiting for a heartbeat of {node} with {what}; last values: {beats[-1:]}")
+                pytest.fail(
+                    f"timed out after {timeout_s} s waiting for a heartbeat of {node} with {what}; last values: {beats[-1:]}"
+                )
 
 
 # ---------------------------------------------------------------------------------------------

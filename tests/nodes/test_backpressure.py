@@ -23,25 +23,43 @@ def test_slow_encoder_drops_and_counts_frames_and_still_encodes_the_last(ctx, so
     frames = Publisher(ctx, f"ipc://{sockdir}/frames.sock", bind=True, hwm=4)
     beats = Heartbeats(ctx)
     regions = Tap(ctx, f"ipc://{sockdir}/regions.sock", ["regions"])
-    node = RegionEncoderNode("region_encoder", {
-        "latest_wins": True, "hwm": 4,
-        "frames_in": f"ipc://{sockdir}/frames.sock", "regions_out": f"ipc://{sockdir}/regions.sock", "diagnostics": beats.endpoint,
-    })
+    node = RegionEncoderNode(
+        "region_encoder",
+        {
+            "latest_wins": True,
+            "hwm": 4,
+            "frames_in": f"ipc://{sockdir}/frames.sock",
+            "regions_out": f"ipc://{sockdir}/regions.sock",
+            "diagnostics": beats.endpoint,
+        },
+    )
     burst = [image_frame(camera, image, seq=i + 1, name=f"f{i:03d}.jpg") for i in range(BURST)]
     try:
         with NodeThread(node) as running:
-            wait_for(lambda: regions.got(EndOfStream), 20, "the encoder to forward EndOfStream",
-                     step=every(0.1, lambda: frames.send("frames", EndOfStream(frame_id="sync", source="test"))))
+            wait_for(
+                lambda: regions.got(EndOfStream),
+                20,
+                "the encoder to forward EndOfStream",
+                step=every(0.1, lambda: frames.send("frames", EndOfStream(frame_id="sync", source="test"))),
+            )
             for frame in burst:  # as fast as possible: nothing waits for the encoder
                 frames.send("frames", frame)
             # the sender's own queue may have been full when the last frame went out (PUB drops
             # what does not fit); a camera keeps sending, so the newest frame comes again
             last = burst[-1].name
-            wait_for(lambda: last in [m.name for m in regions.got(RegionFeatures)], 30, f"the encoding of {last}",
-                     step=every(0.5, lambda: frames.send("frames", burst[-1])))
+            wait_for(
+                lambda: last in [m.name for m in regions.got(RegionFeatures)],
+                30,
+                f"the encoding of {last}",
+                step=every(0.5, lambda: frames.send("frames", burst[-1])),
+            )
             encoded = sorted({m.name for m in regions.of_type(RegionFeatures)})
-            values = beats.wait("region_encoder", lambda v: v.get("published", 0) >= len(regions.of_type(RegionFeatures)), 10,
-                                "the last encoding counted")
+            values = beats.wait(
+                "region_encoder",
+                lambda v: v.get("published", 0) >= len(regions.of_type(RegionFeatures)),
+                10,
+                "the last encoding counted",
+            )
             running.assert_running()
         # every frame of the burst was either encoded or counted as a drop: skipped by latest-wins
         # (`dropped`) or lost between the sockets (`gaps` in seq); the queue never held the burst

@@ -19,12 +19,35 @@ import time
 import pytest
 import zmq
 
-from olsplat_msgs import (DiagnosticStatus, EndOfStream, ImageFrame, MapUpdated, ObservationsAdded, QueryReply,
-                          QueryRequest, RegionFeatures, StatusReply, StatusRequest, decode, encode)
+from olsplat_msgs import (
+    DiagnosticStatus,
+    EndOfStream,
+    ImageFrame,
+    MapUpdated,
+    ObservationsAdded,
+    QueryReply,
+    QueryRequest,
+    RegionFeatures,
+    StatusReply,
+    StatusRequest,
+    decode,
+    encode,
+)
 from olsplat_nodes.transport import QueryClient
 
-from .conftest import (Heartbeats, NodeThread, Tap, bad_variants, every, image_frame, oversized, raw_socket, send,
-                       send_msg, wait_for)
+from .conftest import (
+    Heartbeats,
+    NodeThread,
+    Tap,
+    bad_variants,
+    every,
+    image_frame,
+    oversized,
+    raw_socket,
+    send,
+    send_msg,
+    wait_for,
+)
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -44,7 +67,9 @@ def send_all_bad(pub: zmq.Socket, good: list[bytes], *more_bad) -> int:
 # accumulator: regions_in
 
 
-def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(ctx, sockdir, tmp_path, tiny, tiny_camera, region_features):
+def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(
+    ctx, sockdir, tmp_path, tiny, tiny_camera, region_features
+):
     from olsplat_nodes.aggregate import ObservationStore
     from olsplat_nodes.nodes.accumulator import AccumulatorNode
 
@@ -52,26 +77,43 @@ def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(ctx, sockd
     regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
     beats = Heartbeats(ctx)
     observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
-    node = AccumulatorNode("accumulator", {
-        "map": str(scene / "map" / "point_cloud.ply"), "store": str(tmp_path / "store"), "views": str(tmp_path / "views"),
-        "regions_in": f"ipc://{sockdir}/regions.sock", "observations_out": f"ipc://{sockdir}/observations.sock",
-        "diagnostics": beats.endpoint,
-    })
+    node = AccumulatorNode(
+        "accumulator",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "store": str(tmp_path / "store"),
+            "views": str(tmp_path / "views"),
+            "regions_in": f"ipc://{sockdir}/regions.sock",
+            "observations_out": f"ipc://{sockdir}/observations.sock",
+            "diagnostics": beats.endpoint,
+        },
+    )
     try:
         with NodeThread(node) as running:
             # in sync once an EndOfStream comes back on the observations topic
-            wait_for(lambda: observations.got(EndOfStream), 20, "the accumulator to forward EndOfStream",
-                     step=every(0.1, lambda: send_msg(regions, EndOfStream(frame_id="sync", source="test"), "regions")))
+            wait_for(
+                lambda: observations.got(EndOfStream),
+                20,
+                "the accumulator to forward EndOfStream",
+                step=every(0.1, lambda: send_msg(regions, EndOfStream(frame_id="sync", source="test"), "regions")),
+            )
 
             good = encode(region_features, "regions")
             wrong_type = encode(image_frame(*tiny_camera), "regions")  # an ImageFrame on `regions`
-            inconsistent = encode(dataclasses.replace(region_features, name="inconsistent", width=321), "regions")  # labels 320 wide
+            inconsistent = encode(
+                dataclasses.replace(region_features, name="inconsistent", width=321), "regions"
+            )  # labels 320 wide
             bad = send_all_bad(regions, good, wrong_type, inconsistent)
             send(regions, good)
 
             added = wait_for(lambda: observations.got(ObservationsAdded), 30, "ObservationsAdded for the valid view")
             ack = added[0]
-            assert ack.name == region_features.name and not ack.duplicate and ack.views_in_store == 1 and ack.observations > 0
+            assert (
+                ack.name == region_features.name
+                and not ack.duplicate
+                and ack.views_in_store == 1
+                and ack.observations > 0
+            )
             values = beats.wait("accumulator", lambda v: v.get("bad_messages", 0) >= bad, 10, f"bad_messages >= {bad}")
             assert values["bad_messages"] == bad, values
             running.assert_running()
@@ -79,8 +121,12 @@ def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(ctx, sockd
             # one frame over the size limit: the connection is dropped and made again; the view
             # sent again afterwards is acknowledged (as a duplicate: never added twice)
             send(regions, oversized("regions"))
-            wait_for(lambda: len(observations.got(ObservationsAdded)) >= 2, 20,
-                     "an acknowledgement after the oversized message", step=every(0.2, lambda: send(regions, good)))
+            wait_for(
+                lambda: len(observations.got(ObservationsAdded)) >= 2,
+                20,
+                "an acknowledgement after the oversized message",
+                step=every(0.2, lambda: send(regions, good)),
+            )
             assert observations.of_type(ObservationsAdded)[-1].duplicate
             values = beats.wait("accumulator", lambda v: v.get("reconnects", 0) >= 1, 10, "reconnects >= 1")
             assert values["bad_messages"] == bad
@@ -103,31 +149,48 @@ def test_region_encoder_counts_bad_frames_and_still_encodes_the_valid_one(ctx, s
     frames = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/frames.sock", bind=True)
     beats = Heartbeats(ctx)
     regions = Tap(ctx, f"ipc://{sockdir}/regions.sock", ["regions"])
-    node = RegionEncoderNode("region_encoder", {
-        "latest_wins": False,  # every frame in order: the inconsistent frame must be looked at, not skipped
-        "frames_in": f"ipc://{sockdir}/frames.sock", "regions_out": f"ipc://{sockdir}/regions.sock", "diagnostics": beats.endpoint,
-    })
+    node = RegionEncoderNode(
+        "region_encoder",
+        {
+            "latest_wins": False,  # every frame in order: the inconsistent frame must be looked at, not skipped
+            "frames_in": f"ipc://{sockdir}/frames.sock",
+            "regions_out": f"ipc://{sockdir}/regions.sock",
+            "diagnostics": beats.endpoint,
+        },
+    )
     try:
         with NodeThread(node) as running:
-            wait_for(lambda: regions.got(EndOfStream), 20, "the encoder to forward EndOfStream",
-                     step=every(0.1, lambda: send_msg(frames, EndOfStream(frame_id="sync", source="test"), "frames")))
+            wait_for(
+                lambda: regions.got(EndOfStream),
+                20,
+                "the encoder to forward EndOfStream",
+                step=every(0.1, lambda: send_msg(frames, EndOfStream(frame_id="sync", source="test"), "frames")),
+            )
 
             good = encode(image_frame(camera, image, seq=1, name="good.jpg"), "frames")
             wrong_type = encode(ObservationsAdded(name="x"), "frames")
-            inconsistent = encode(image_frame(camera, image[:, :300].copy(), seq=2, name="cropped.jpg"), "frames")  # 300 wide, camera says 320
+            inconsistent = encode(
+                image_frame(camera, image[:, :300].copy(), seq=2, name="cropped.jpg"), "frames"
+            )  # 300 wide, camera says 320
             bad = send_all_bad(frames, good, wrong_type, inconsistent)
             send(frames, good)
 
             out = wait_for(lambda: regions.got(RegionFeatures), 30, "RegionFeatures for the valid frame")
             assert [m.name for m in out] == ["good.jpg"]
             assert out[0].label_maps.shape[1:] == (240, 320) and len(out[0].features) == out[0].level_sizes.sum()
-            values = beats.wait("region_encoder", lambda v: v.get("bad_messages", 0) >= bad, 10, f"bad_messages >= {bad}")
+            values = beats.wait(
+                "region_encoder", lambda v: v.get("bad_messages", 0) >= bad, 10, f"bad_messages >= {bad}"
+            )
             assert values["bad_messages"] == bad, values
             running.assert_running()
 
             send(frames, oversized("frames"))
-            wait_for(lambda: len(regions.got(RegionFeatures)) >= 2, 20, "RegionFeatures after the oversized message",
-                     step=every(0.2, lambda: send(frames, good)))  # answered from the node's cache of recent results
+            wait_for(
+                lambda: len(regions.got(RegionFeatures)) >= 2,
+                20,
+                "RegionFeatures after the oversized message",
+                step=every(0.2, lambda: send(frames, good)),
+            )  # answered from the node's cache of recent results
             values = beats.wait("region_encoder", lambda v: v.get("reconnects", 0) >= 1, 10, "reconnects >= 1")
             assert values["bad_messages"] == bad
             running.assert_running()
@@ -151,19 +214,32 @@ def test_refiner_counts_bad_observations_and_still_writes_the_final_map(ctx, soc
     observations = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/observations.sock", bind=True)
     beats = Heartbeats(ctx)
     maps = Tap(ctx, f"ipc://{sockdir}/map.sock", ["map"])
-    node = RefinerNode("refiner", {
-        "map": str(scene / "map" / "point_cloud.ply"), "store": str(tmp_path / "store"), "map_dir": str(tmp_path / "map"),
-        "period_s": 3600.0,  # no periodic pass: only EndOfStream makes a map here
-        "observations_in": f"ipc://{sockdir}/observations.sock", "map_out": f"ipc://{sockdir}/map.sock", "diagnostics": beats.endpoint,
-    })
+    node = RefinerNode(
+        "refiner",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "store": str(tmp_path / "store"),
+            "map_dir": str(tmp_path / "map"),
+            "period_s": 3600.0,  # no periodic pass: only EndOfStream makes a map here
+            "observations_in": f"ipc://{sockdir}/observations.sock",
+            "map_out": f"ipc://{sockdir}/map.sock",
+            "diagnostics": beats.endpoint,
+        },
+    )
     seq = iter(range(1, 10_000))
 
     def ack():
-        send_msg(observations, ObservationsAdded(seq=next(seq), frame_id="camera", name="frame_0003.jpg", views_in_store=1), "observations")
+        send_msg(
+            observations,
+            ObservationsAdded(seq=next(seq), frame_id="camera", name="frame_0003.jpg", views_in_store=1),
+            "observations",
+        )
 
     try:
         with NodeThread(node) as running:
-            beats.wait("refiner", lambda v: v.get("received", 0) >= 1, 20, "received >= 1 (in sync)", step=every(0.1, ack))
+            beats.wait(
+                "refiner", lambda v: v.get("received", 0) >= 1, 20, "received >= 1 (in sync)", step=every(0.1, ack)
+            )
 
             good = encode(ObservationsAdded(seq=5000, frame_id="camera", name="frame_0003.jpg"), "observations")
             wrong_type = encode(MapUpdated(version=9, path="/nowhere"), "observations")
@@ -172,13 +248,27 @@ def test_refiner_counts_bad_observations_and_still_writes_the_final_map(ctx, soc
             assert values["bad_messages"] == bad, values
 
             send(observations, oversized("observations"))
-            beats.wait("refiner", lambda v: v.get("reconnects", 0) >= 1 and v.get("received", 0) > values["received"], 20,
-                       "a reconnect and a valid message after it", step=every(0.1, ack))
+            beats.wait(
+                "refiner",
+                lambda v: v.get("reconnects", 0) >= 1 and v.get("received", 0) > values["received"],
+                20,
+                "a reconnect and a valid message after it",
+                step=every(0.1, ack),
+            )
             running.assert_running()
 
             # the valid end of the stream: one final pass, MapUpdated(final) and exit 0
-            wait_for(lambda: any(m.final for m in maps.got(MapUpdated)), 30, "the final MapUpdated",
-                     step=every(0.3, lambda: send_msg(observations, EndOfStream(seq=1, frame_id="camera", source="test", frames=1), "observations")))
+            wait_for(
+                lambda: any(m.final for m in maps.got(MapUpdated)),
+                30,
+                "the final MapUpdated",
+                step=every(
+                    0.3,
+                    lambda: send_msg(
+                        observations, EndOfStream(seq=1, frame_id="camera", source="test", frames=1), "observations"
+                    ),
+                ),
+            )
             assert running.join(10) == 0
         record = latest_map(tmp_path / "map")
         assert record["final"] and record["views"] == 1 and record["version"] == 1
@@ -189,7 +279,6 @@ def test_refiner_counts_bad_observations_and_still_writes_the_final_map(ctx, soc
     finally:
         for sock in (observations, beats, maps):
             sock.close()
-
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,11 +293,20 @@ def test_ingest_counts_bad_acks_and_map_announcements_and_still_delivers_every_f
     maps = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/map.sock", bind=True)
     beats = Heartbeats(ctx)
     frames = Tap(ctx, f"ipc://{sockdir}/frames.sock", ["frames"])
-    node = IngestNode("ingest", {
-        "source": str(scene / "replay.mcap"), "fast": True, "window": 2, "ack_timeout_s": 0.5,  # unacknowledged frames come again soon
-        "frames_out": f"ipc://{sockdir}/frames.sock", "acks_in": f"ipc://{sockdir}/acks.sock", "map_in": f"ipc://{sockdir}/map.sock",
-        "state_file": str(tmp_path / "acknowledged.txt"), "diagnostics": beats.endpoint,
-    })
+    node = IngestNode(
+        "ingest",
+        {
+            "source": str(scene / "replay.mcap"),
+            "fast": True,
+            "window": 2,
+            "ack_timeout_s": 0.5,  # unacknowledged frames come again soon
+            "frames_out": f"ipc://{sockdir}/frames.sock",
+            "acks_in": f"ipc://{sockdir}/acks.sock",
+            "map_in": f"ipc://{sockdir}/map.sock",
+            "state_file": str(tmp_path / "acknowledged.txt"),
+            "diagnostics": beats.endpoint,
+        },
+    )
     seqs = {"ack": iter(range(1, 100_000)), "map": iter(range(1, 100_000))}
 
     def ack_all():  # acknowledge every frame seen so far, as the accumulator would
@@ -221,14 +319,28 @@ def test_ingest_counts_bad_acks_and_map_announcements_and_still_delivers_every_f
     try:
         with NodeThread(node) as running:
             # acks link in sync: a frame was acknowledged; then the map link: a MapUpdated arrived
-            beats.wait("ingest", lambda v: v.get("acknowledged", 0) >= 1, 20, "a first acknowledgement", step=every(0.2, ack_all))
+            beats.wait(
+                "ingest",
+                lambda v: v.get("acknowledged", 0) >= 1,
+                20,
+                "a first acknowledgement",
+                step=every(0.2, ack_all),
+            )
             received = beats.wait("ingest", lambda v: True, 5, "a heartbeat")["received"]
-            beats.wait("ingest", lambda v: v.get("received", 0) > received + 1, 20, "a MapUpdated", step=every(0.1, announce))
+            beats.wait(
+                "ingest", lambda v: v.get("received", 0) > received + 1, 20, "a MapUpdated", step=every(0.1, announce)
+            )
 
-            bad = send_all_bad(acks, encode(ObservationsAdded(seq=90_000, name="frame_0000.jpg"), "observations"),
-                               encode(StatusRequest(request_id="x"), "observations"))
-            bad += send_all_bad(maps, encode(MapUpdated(seq=90_000, version=7, path="/m.npz"), "map"),
-                                encode(StatusRequest(request_id="y"), "map"))
+            bad = send_all_bad(
+                acks,
+                encode(ObservationsAdded(seq=90_000, name="frame_0000.jpg"), "observations"),
+                encode(StatusRequest(request_id="x"), "observations"),
+            )
+            bad += send_all_bad(
+                maps,
+                encode(MapUpdated(seq=90_000, version=7, path="/m.npz"), "map"),
+                encode(StatusRequest(request_id="y"), "map"),
+            )
             values = beats.wait("ingest", lambda v: v.get("bad_messages", 0) >= bad, 10, f"bad_messages >= {bad}")
             assert values["bad_messages"] == bad, values
             running.assert_running()
@@ -239,13 +351,26 @@ def test_ingest_counts_bad_acks_and_map_announcements_and_still_delivers_every_f
             beats.wait("ingest", lambda v: v.get("reconnects", 0) >= 2, 20, "reconnects >= 2", step=every(0.2, ack_all))
 
             # valid acknowledgements: every frame is delivered; then the final map ends the node with 0
-            beats.wait("ingest", lambda v: v.get("acknowledged", 0) == summary["views"] and v.get("in_flight") == 0, 30,
-                       "every frame acknowledged", step=every(0.2, ack_all))
+            beats.wait(
+                "ingest",
+                lambda v: v.get("acknowledged", 0) == summary["views"] and v.get("in_flight") == 0,
+                30,
+                "every frame acknowledged",
+                step=every(0.2, ack_all),
+            )
             wait_for(lambda: frames.got(EndOfStream), 10, "EndOfStream after the last frame")
-            wait_for(lambda: not running.running, 10, "ingest to exit after the final map", step=every(0.2, lambda: announce(final=True)))
+            wait_for(
+                lambda: not running.running,
+                10,
+                "ingest to exit after the final map",
+                step=every(0.2, lambda: announce(final=True)),
+            )
             assert running.join(5) == 0
-        assert sorted({m.name for m in frames.of_type(ImageFrame)}) == frames.of_type(EndOfStream)[-1].names == sorted(
-            (tmp_path / "acknowledged.txt").read_text().split())
+        assert (
+            sorted({m.name for m in frames.of_type(ImageFrame)})
+            == frames.of_type(EndOfStream)[-1].names
+            == sorted((tmp_path / "acknowledged.txt").read_text().split())
+        )
         final = beats.wait("ingest", lambda v: v.get("acknowledged") == summary["views"], 5, "the last heartbeat")
         assert final["bad_messages"] == bad
     finally:
@@ -281,7 +406,9 @@ def _replies(dealer: zmq.Socket, count: int, timeout_s: float) -> list:
     return replies
 
 
-def test_query_server_answers_bad_requests_counts_bad_input_on_every_socket_and_keeps_serving(ctx, sockdir, tmp_path, tiny, tiny_run):
+def test_query_server_answers_bad_requests_counts_bad_input_on_every_socket_and_keeps_serving(
+    ctx, sockdir, tmp_path, tiny, tiny_run
+):
     import shutil
 
     from olsplat_nodes.nodes.query_server import QueryServerNode
@@ -289,10 +416,17 @@ def test_query_server_answers_bad_requests_counts_bad_input_on_every_socket_and_
     scene, _ = tiny
     query = f"ipc://{sockdir}/query.sock"
     maps = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/map.sock", bind=True)
-    node = QueryServerNode("query_server", {
-        "map": str(scene / "map" / "point_cloud.ply"), "map_dir": str(tmp_path / "map"), "views": str(tiny_run / "views"),
-        "query_endpoint": query, "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock", "map_in": f"ipc://{sockdir}/map.sock",
-    })
+    node = QueryServerNode(
+        "query_server",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "map_dir": str(tmp_path / "map"),
+            "views": str(tiny_run / "views"),
+            "query_endpoint": query,
+            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
+            "map_in": f"ipc://{sockdir}/map.sock",
+        },
+    )
     dealer = heartbeat = None
     try:
         with NodeThread(node) as running:
@@ -311,7 +445,9 @@ def test_query_server_answers_bad_requests_counts_bad_input_on_every_socket_and_
             for frames in bad_requests:
                 send(dealer, frames)
             replies = _replies(dealer, len(bad_requests), timeout_s=10)
-            assert {r.status for r in replies} == {"bad_request"} and all(isinstance(r, QueryReply) and r.message for r in replies)
+            assert {r.status for r in replies} == {"bad_request"} and all(
+                isinstance(r, QueryReply) and r.message for r in replies
+            )
             send(dealer, [b"", *encode(QueryRequest(request_id="fine", text="road"), "query")])
             [answer] = _replies(dealer, 1, timeout_s=5)
             assert answer.request_id == "fine" and answer.status == "no_map"
@@ -328,31 +464,62 @@ def test_query_server_answers_bad_requests_counts_bad_input_on_every_socket_and_
             seq = iter(range(1, 10_000))
 
             def beat(node_name="probe"):
-                send_msg(heartbeat, DiagnosticStatus(seq=next(seq), frame_id=node_name, node=node_name, message="fine"), "diagnostics")
+                send_msg(
+                    heartbeat,
+                    DiagnosticStatus(seq=next(seq), frame_id=node_name, node=node_name, message="fine"),
+                    "diagnostics",
+                )
 
-            wait_for(lambda: "probe" in [n["node"] for n in _status(query, ctx).nodes], 10, "the probe's heartbeat", step=every(0.1, beat))
+            wait_for(
+                lambda: "probe" in [n["node"] for n in _status(query, ctx).nodes],
+                10,
+                "the probe's heartbeat",
+                step=every(0.1, beat),
+            )
             before = _own(_status(query, ctx))
-            collector_bad = send_all_bad(heartbeat, encode(DiagnosticStatus(seq=9000, node="bad"), "diagnostics"),
-                                         encode(StatusRequest(), "diagnostics"))
+            collector_bad = send_all_bad(
+                heartbeat,
+                encode(DiagnosticStatus(seq=9000, node="bad"), "diagnostics"),
+                encode(StatusRequest(), "diagnostics"),
+            )
             beat("after")
-            wait_for(lambda: "after" in [n["node"] for n in _status(query, ctx).nodes], 10, "the heartbeat after the bad ones")
+            wait_for(
+                lambda: "after" in [n["node"] for n in _status(query, ctx).nodes],
+                10,
+                "the heartbeat after the bad ones",
+            )
             values = _own(_status(query, ctx))
-            assert values["diagnostics_bad_messages"] - before["diagnostics_bad_messages"] == collector_bad - 1  # the StatusRequest decodes:
-            assert values["bad_messages"] - before["bad_messages"] == collector_bad                             # the node counts that one
+            assert (
+                values["diagnostics_bad_messages"] - before["diagnostics_bad_messages"] == collector_bad - 1
+            )  # the StatusRequest decodes:
+            assert values["bad_messages"] - before["bad_messages"] == collector_bad  # the node counts that one
             assert "bad" not in [n["node"] for n in _status(query, ctx).nodes]
 
             # -- map_in: garbage on the map topic, then the real snapshot and its announcement
             def announce():
-                send_msg(maps, MapUpdated(seq=next(seq), frame_id="map", version=1, path=str(tmp_path / "map"), views=1), "map")
+                send_msg(
+                    maps,
+                    MapUpdated(seq=next(seq), frame_id="map", version=1, path=str(tmp_path / "map"), views=1),
+                    "map",
+                )
 
-            wait_for(lambda: _own(_status(query, ctx))["map_received"] >= 1, 10, "a MapUpdated", step=every(0.1, announce))
+            wait_for(
+                lambda: _own(_status(query, ctx))["map_received"] >= 1, 10, "a MapUpdated", step=every(0.1, announce)
+            )
             before = _own(_status(query, ctx))
             map_bad = send_all_bad(maps, encode(MapUpdated(seq=9000, version=5), "map"), encode(StatusRequest(), "map"))
             send(maps, oversized("map"))
             shutil.copytree(tiny_run / "map", tmp_path / "staging")
             (tmp_path / "staging").rename(tmp_path / "map")  # appears at once, as the refiner's atomic writes do
-            wait_for(lambda: _status(query, ctx).map_version == 1, 10, "the map to be loaded", step=every(0.2, announce))
-            wait_for(lambda: _own(_status(query, ctx))["map_reconnects"] >= 1, 10, "a reconnect on map_in", step=every(0.2, announce))
+            wait_for(
+                lambda: _status(query, ctx).map_version == 1, 10, "the map to be loaded", step=every(0.2, announce)
+            )
+            wait_for(
+                lambda: _own(_status(query, ctx))["map_reconnects"] >= 1,
+                10,
+                "a reconnect on map_in",
+                step=every(0.2, announce),
+            )
             values = _own(_status(query, ctx))
             assert values["bad_messages"] - before["bad_messages"] == map_bad
             assert values["map_bad_messages"] - before["map_bad_messages"] == map_bad - 1

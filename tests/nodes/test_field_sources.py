@@ -30,19 +30,36 @@ def no_device():
 
 def test_ingest_without_camera_heartbeats_the_error_and_keeps_running(ctx, sockdir, no_device):
     beats = Heartbeats(ctx)
-    node = IngestNode("ingest", {
-        "source_kind": "depthai", "depthai_retry_s": 0.2, "lossless": False, "diagnostics": beats.endpoint,
-        "frames_out": f"ipc://{sockdir}/f.sock", "acks_in": f"ipc://{sockdir}/a.sock", "map_in": f"ipc://{sockdir}/m.sock", "state_file": "",
-    }, ctx)
+    node = IngestNode(
+        "ingest",
+        {
+            "source_kind": "depthai",
+            "depthai_retry_s": 0.2,
+            "lossless": False,
+            "diagnostics": beats.endpoint,
+            "frames_out": f"ipc://{sockdir}/f.sock",
+            "acks_in": f"ipc://{sockdir}/a.sock",
+            "map_in": f"ipc://{sockdir}/m.sock",
+            "state_file": "",
+        },
+        ctx,
+    )
     try:
         with NodeThread(node) as thread:
+
             def errors():
                 beats.poll(50)
-                return [m for m in beats.of_type(DiagnosticStatus) if m.node == "ingest" and m.level == DiagnosticStatus.ERROR]
+                return [
+                    m
+                    for m in beats.of_type(DiagnosticStatus)
+                    if m.node == "ingest" and m.level == DiagnosticStatus.ERROR
+                ]
 
             wait_for(lambda: len(errors()) >= 3, 20, "three ERROR heartbeats")
             status = errors()[-1]
-            assert status.message.startswith("no DepthAI device found") and status.values["source_discovery_attempts"] >= 1
+            assert (
+                status.message.startswith("no DepthAI device found") and status.values["source_discovery_attempts"] >= 1
+            )
             thread.assert_running()
         assert thread.code == 130
     finally:
@@ -53,15 +70,31 @@ def test_ingest_streams_geotagged_photos(ctx, sockdir, tmp_path):
     for i, (lat, lon, alt) in enumerate(TRACK):
         write_photo(tmp_path / f"IMG_{i}.jpg", lat, lon, alt, f"2024:05:01 10:00:{i:02d}", seed=i)
     tap = Tap(ctx, f"ipc://{sockdir}/f.sock", ["frames"])
-    node = IngestNode("ingest", {
-        "source_kind": "exif_folder", "source": str(tmp_path), "rate_hz": 2.0, "lossless": False,
-        "frames_out": f"ipc://{sockdir}/f.sock", "acks_in": f"ipc://{sockdir}/a.sock", "map_in": f"ipc://{sockdir}/m.sock", "state_file": "",
-    }, ctx)
+    node = IngestNode(
+        "ingest",
+        {
+            "source_kind": "exif_folder",
+            "source": str(tmp_path),
+            "rate_hz": 2.0,
+            "lossless": False,
+            "frames_out": f"ipc://{sockdir}/f.sock",
+            "acks_in": f"ipc://{sockdir}/a.sock",
+            "map_in": f"ipc://{sockdir}/m.sock",
+            "state_file": "",
+        },
+        ctx,
+    )
     try:
         with NodeThread(node):
-            frames = wait_for(lambda: tap.got(ImageFrame), 20, "photos on the frame topic")  # (a slow joiner may miss the first)
+            frames = wait_for(
+                lambda: tap.got(ImageFrame), 20, "photos on the frame topic"
+            )  # (a slow joiner may miss the first)
         frame = frames[0]
-        assert frame.name.startswith("IMG_") and frame.image.shape == (120, 160, 3) and frame.world_from_camera[2, 2] == pytest.approx(-1)
+        assert (
+            frame.name.startswith("IMG_")
+            and frame.image.shape == (120, 160, 3)
+            and frame.world_from_camera[2, 2] == pytest.approx(-1)
+        )
     finally:
         tap.close()
 
@@ -82,26 +115,40 @@ def test_field_drone_launch_without_camera(tiny, tmp_path, no_device):
     port = _free_port()
     ply = scene / "map" / "point_cloud.ply"
     overrides = [
-        "launch.compose=true", "launch.stop_timeout_s=20",
-        f"query_server.query_endpoint=tcp://127.0.0.1:{port}", f"query_server.server_secret={keys / 'drone.key_secret'}",
-        f"query_server.allow_dir={keys / 'allowed'}", f"query_server.map={ply}", f"accumulator.map={ply}", f"refiner.map={ply}",
-        "ingest.depthai_retry_s=0.5", f"ingest.telemetry_url={tmp_path / 'no_autopilot_tty'}",
+        "launch.compose=true",
+        "launch.stop_timeout_s=20",
+        f"query_server.query_endpoint=tcp://127.0.0.1:{port}",
+        f"query_server.server_secret={keys / 'drone.key_secret'}",
+        f"query_server.allow_dir={keys / 'allowed'}",
+        f"query_server.map={ply}",
+        f"accumulator.map={ply}",
+        f"refiner.map={ply}",
+        "ingest.depthai_retry_s=0.5",
+        f"ingest.telemetry_url={tmp_path / 'no_autopilot_tty'}",
     ]
     config = load_launch(REPO / "launch" / "field_drone.yaml", overrides=overrides, run_dir=str(tmp_path / "run"))
     supervisor = Supervisor(config, stdout=io.StringIO())
     result: list[int] = []
     thread = threading.Thread(target=lambda: result.append(supervisor.run()), daemon=True)
     thread.start()
-    client = QueryClient(zmq.Context.instance(), f"tcp://127.0.0.1:{port}", timeout_s=5.0,
-                         keys=curve.ClientKeys(keys / "allowed" / "ground.key_secret", keys / "drone.key"))
+    client = QueryClient(
+        zmq.Context.instance(),
+        f"tcp://127.0.0.1:{port}",
+        timeout_s=5.0,
+        keys=curve.ClientKeys(keys / "allowed" / "ground.key_secret", keys / "drone.key"),
+    )
     try:
+
         def graph():
             try:
                 reply = client.request(StatusRequest(request_id="field"))
             except Exception:
                 return None
             nodes = {n["node"]: n for n in reply.nodes}
-            if set(nodes) >= {"query_server", "ingest", "region_encoder", "accumulator", "refiner"} and nodes["ingest"]["level"] == 2:
+            if (
+                set(nodes) >= {"query_server", "ingest", "region_encoder", "accumulator", "refiner"}
+                and nodes["ingest"]["level"] == 2
+            ):
                 return nodes
             return None
 

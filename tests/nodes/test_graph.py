@@ -7,10 +7,8 @@ from __future__ import annotations
 import os
 import signal
 import threading
-import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zmq
 
@@ -35,8 +33,14 @@ def free_port() -> int:
 def launch_tiny(scene: Path, run_dir: Path, port: int, *extra: str):
     ply = scene / "map" / "point_cloud.ply"
     overrides = [
-        f"ingest.source={scene / 'replay.mcap'}", f"query_server.map={ply}", f"accumulator.map={ply}", f"refiner.map={ply}",
-        f"query_server.query_endpoint=tcp://127.0.0.1:{port}", "refiner.period_s=2", "ingest.ack_timeout_s=10", *extra,
+        f"ingest.source={scene / 'replay.mcap'}",
+        f"query_server.map={ply}",
+        f"accumulator.map={ply}",
+        f"refiner.map={ply}",
+        f"query_server.query_endpoint=tcp://127.0.0.1:{port}",
+        "refiner.period_s=2",
+        "ingest.ack_timeout_s=10",
+        *extra,
     ]
     return load_launch(REPO / "launch" / "replay.yaml", overrides=overrides, run_dir=str(run_dir))
 
@@ -93,21 +97,36 @@ def test_graph_aggregates_every_frame_once_survives_kill9_and_answers(tiny, tmp_
     record = latest_map(run_dir / "map")
     assert record["final"] and record["views"] == summary["views"]
 
-
     # a query server started after the flight (late joiner) answers from the snapshot on disk
     from olsplat_nodes.nodes.query_server import QueryServerNode
 
     port2 = free_port()
-    node = QueryServerNode("late", {
-        "map": str(scene / "map" / "point_cloud.ply"), "map_dir": str(run_dir / "map"), "views": str(run_dir / "views"),
-        "query_endpoint": f"tcp://127.0.0.1:{port2}", "diagnostics_bind": f"ipc://{tmp_path}/d.sock", "map_in": f"ipc://{tmp_path}/m.sock",
-    })
+    node = QueryServerNode(
+        "late",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "map_dir": str(run_dir / "map"),
+            "views": str(run_dir / "views"),
+            "query_endpoint": f"tcp://127.0.0.1:{port2}",
+            "diagnostics_bind": f"ipc://{tmp_path}/d.sock",
+            "map_in": f"ipc://{tmp_path}/m.sock",
+        },
+    )
     stop = threading.Event()
     thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
     thread.start()
     late = QueryClient(zmq.Context.instance(), f"tcp://127.0.0.1:{port2}", timeout_s=60.0)
     try:
-        reply = late.request(QueryRequest(request_id="q1", text="red roof buildings", view="frame_0003.jpg", heatmap=True, threshold=float("nan"), negatives=["road", "trees", "lawn"]))
+        reply = late.request(
+            QueryRequest(
+                request_id="q1",
+                text="red roof buildings",
+                view="frame_0003.jpg",
+                heatmap=True,
+                threshold=float("nan"),
+                negatives=["road", "trees", "lawn"],
+            )
+        )
         assert reply.status == "ok", reply.message
         assert reply.map_version == record["version"] and reply.request_id == "q1"
         assert reply.heatmap.shape == reply.mask.shape == (240, 320) and reply.image.shape == (240, 320, 3)

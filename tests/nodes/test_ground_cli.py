@@ -29,11 +29,18 @@ def query_server(ctx, sockdir, tiny, map_dir, views, **params):
     """A QueryServerNode in a thread; yields its query endpoint once it answers."""
     scene, _ = tiny
     endpoint = f"ipc://{sockdir}/query.sock"
-    node = QueryServerNode("query_server", {
-        "map": str(scene / "map" / "point_cloud.ply"), "map_dir": str(map_dir), "views": str(views),
-        "query_endpoint": endpoint, "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock", "map_in": f"ipc://{sockdir}/map.sock",
-        **params,
-    })
+    node = QueryServerNode(
+        "query_server",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "map_dir": str(map_dir),
+            "views": str(views),
+            "query_endpoint": endpoint,
+            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
+            "map_in": f"ipc://{sockdir}/map.sock",
+            **params,
+        },
+    )
     with NodeThread(node) as running:
         yield endpoint
         running.assert_running()
@@ -48,7 +55,11 @@ def ground(capsys, *argv) -> tuple[int, str, str]:
 
 def wait_until_up(capsys, endpoint, *keys):
     """The node thread reads the map PLY before it binds: ask until it answers."""
-    wait_for(lambda: ground(capsys, "status", "--json", "--connect", endpoint, "--timeout", 1, *keys)[0] == 0, 20, "the query server")
+    wait_for(
+        lambda: ground(capsys, "status", "--json", "--connect", endpoint, "--timeout", 1, *keys)[0] == 0,
+        20,
+        "the query server",
+    )
 
 
 def test_status_and_query_print_json(ctx, sockdir, tiny, tiny_run, capsys):
@@ -75,8 +86,19 @@ def test_query_over_a_view_writes_heatmap_and_mask_pngs(ctx, sockdir, tiny, tiny
     out_dir = tmp_path / "pictures"
     with query_server(ctx, sockdir, tiny, tiny_run / "map", tiny_run / "views") as endpoint:
         wait_until_up(capsys, endpoint)
-        code, out, err = ground(capsys, "query", "red roof buildings", "--view", ENCODE_VIEW, "--out", out_dir,
-                                "--connect", endpoint, "--timeout", 30)
+        code, out, err = ground(
+            capsys,
+            "query",
+            "red roof buildings",
+            "--view",
+            ENCODE_VIEW,
+            "--out",
+            out_dir,
+            "--connect",
+            endpoint,
+            "--timeout",
+            30,
+        )
     assert code == 0, err
     stem = f"{ENCODE_VIEW.rsplit('.', 1)[0]}_red_roof_buildings"
     pictures = sorted(out_dir.iterdir())
@@ -105,7 +127,11 @@ def _unused_tcp_endpoint() -> str:
 
 @pytest.mark.parametrize("command", [["status"], ["query", "road"]])
 def test_a_wrong_endpoint_exits_2_with_one_line_naming_it(command, capsys):
-    for endpoint in (_unused_tcp_endpoint(), "tcp://127.0.0.1", "nosuch://x"):  # nobody there; no port; no such transport
+    for endpoint in (
+        _unused_tcp_endpoint(),
+        "tcp://127.0.0.1",
+        "nosuch://x",
+    ):  # nobody there; no port; no such transport
         code, out, err = ground(capsys, *command, "--connect", endpoint, "--timeout", 0.3)
         assert code == 2 and out == "", (endpoint, out, err)
         assert err.count("\n") == 1 and endpoint in err and err.startswith(f"olsplat ground {command[0]}: error: "), err
@@ -113,8 +139,12 @@ def test_a_wrong_endpoint_exits_2_with_one_line_naming_it(command, capsys):
 
 def test_the_installed_command_exits_2_on_a_wrong_endpoint():
     endpoint = _unused_tcp_endpoint()
-    done = subprocess.run([sys.executable, "-m", "olsplat_nodes.cli", "ground", "status", "--connect", endpoint, "--timeout", "0.3"],
-                          capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-m", "olsplat_nodes.cli", "ground", "status", "--connect", endpoint, "--timeout", "0.3"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr == f"olsplat ground status: error: no reply from {endpoint} within 0.3 s\n"
 
@@ -129,15 +159,28 @@ def test_curve_ground_link_answers_only_allowed_keys(ctx, sockdir, tiny, tiny_ru
 
     allowed = ["--client-key", ground1_secret, "--server-key", server_public]
     intruder = ["--client-key", intruder_secret, "--server-key", server_public]
-    with query_server(ctx, sockdir, tiny, tiny_run / "map", tiny_run / "views",
-                      server_secret=str(server_secret), allow_dir=str(tmp_path / "allow")) as endpoint:
+    with query_server(
+        ctx,
+        sockdir,
+        tiny,
+        tiny_run / "map",
+        tiny_run / "views",
+        server_secret=str(server_secret),
+        allow_dir=str(tmp_path / "allow"),
+    ) as endpoint:
         wait_until_up(capsys, endpoint, *allowed)
-        code, out, err = ground(capsys, "query", "red roof buildings", "--json", "--connect", endpoint, "--timeout", 30, *allowed)
+        code, out, err = ground(
+            capsys, "query", "red roof buildings", "--json", "--connect", endpoint, "--timeout", 30, *allowed
+        )
         assert code == 0 and json.loads(out)["status"] == "ok", err
 
         for keys in (intruder, []):  # a key not on the list, and a client without CURVE: no answer at all
             code, out, err = ground(capsys, "status", "--json", "--connect", endpoint, "--timeout", 1, *keys)
-            assert code == 2 and out == "" and err == f"olsplat ground status: error: no reply from {endpoint} within 1 s\n"
+            assert (
+                code == 2
+                and out == ""
+                and err == f"olsplat ground status: error: no reply from {endpoint} within 1 s\n"
+            )
 
         code, out, err = ground(capsys, "status", "--json", "--connect", endpoint, *allowed)  # still served
         assert code == 0, err

@@ -27,12 +27,21 @@ def test_ground_monitor_writes_the_drones_status(tiny, tmp_path):
     socket = zmq.Context.instance().socket(zmq.ROUTER)
     port = socket.bind_to_random_port("tcp://127.0.0.1")
     socket.close(0)
-    server = QueryServerNode("qs", {
-        "map": str(scene / "map" / "point_cloud.ply"), "map_dir": str(tmp_path / "map"), "views": str(tmp_path / "views"),
-        "query_endpoint": f"tcp://127.0.0.1:{port}", "diagnostics_bind": f"ipc://{tmp_path}/d.sock", "map_in": f"ipc://{tmp_path}/m.sock",
-    })
+    server = QueryServerNode(
+        "qs",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "map_dir": str(tmp_path / "map"),
+            "views": str(tmp_path / "views"),
+            "query_endpoint": f"tcp://127.0.0.1:{port}",
+            "diagnostics_bind": f"ipc://{tmp_path}/d.sock",
+            "map_in": f"ipc://{tmp_path}/m.sock",
+        },
+    )
     status_file = tmp_path / "status.json"
-    monitor = GroundMonitorNode("monitor", {"connect": f"tcp://127.0.0.1:{port}", "period_s": 0.2, "status_file": str(status_file)})
+    monitor = GroundMonitorNode(
+        "monitor", {"connect": f"tcp://127.0.0.1:{port}", "period_s": 0.2, "status_file": str(status_file)}
+    )
     stop = threading.Event()
     threads = [threading.Thread(target=node.run, args=(stop,), daemon=True) for node in (server, monitor)]
     for thread in threads:

@@ -24,10 +24,17 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
     scene, _ = tiny
     endpoint = f"ipc://{sockdir}/query.sock"
     maps = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/map.sock", bind=True)
-    node = QueryServerNode("query_server", {
-        "map": str(scene / "map" / "point_cloud.ply"), "map_dir": str(tmp_path / "map"), "views": str(tmp_path / "views"),
-        "query_endpoint": endpoint, "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock", "map_in": f"ipc://{sockdir}/map.sock",
-    })
+    node = QueryServerNode(
+        "query_server",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "map_dir": str(tmp_path / "map"),
+            "views": str(tmp_path / "views"),
+            "query_endpoint": endpoint,
+            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
+            "map_in": f"ipc://{sockdir}/map.sock",
+        },
+    )
     try:
         with NodeThread(node) as running, QueryClient(ctx, endpoint, timeout_s=10.0) as client:
             status = client.request(StatusRequest(request_id="s1"))  # also waits for the node to be up
@@ -38,7 +45,9 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
             client.timeout_s = 2.0  # "at once": a hang would raise NoReply
             for view in ("", ENCODE_VIEW):
                 start = time.monotonic()
-                reply = client.request(QueryRequest(request_id=f"q-{view}", text="red roof buildings", view=view, heatmap=bool(view)))
+                reply = client.request(
+                    QueryRequest(request_id=f"q-{view}", text="red roof buildings", view=view, heatmap=bool(view))
+                )
                 elapsed = time.monotonic() - start
                 assert isinstance(reply, QueryReply) and reply.request_id == f"q-{view}"
                 assert reply.status == "no_map" and "no map yet" in reply.message and elapsed < 1.0
@@ -49,10 +58,18 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
             shutil.copytree(tiny_run / "views", tmp_path / "views")
             shutil.copytree(tiny_run / "map", tmp_path / "staging")
             (tmp_path / "staging").rename(tmp_path / "map")  # appears at once, as the refiner's atomic writes do
-            wait_for(lambda: client.request(StatusRequest()).map_version == 1, 10, "the first map to be loaded",
-                     step=every(0.2, lambda: send_msg(maps, MapUpdated(version=1, path=str(tmp_path / "map"), views=1), "map")))
+            wait_for(
+                lambda: client.request(StatusRequest()).map_version == 1,
+                10,
+                "the first map to be loaded",
+                step=every(
+                    0.2, lambda: send_msg(maps, MapUpdated(version=1, path=str(tmp_path / "map"), views=1), "map")
+                ),
+            )
             client.timeout_s = 30.0
-            reply = client.request(QueryRequest(request_id="q", text="red roof buildings", view=ENCODE_VIEW, heatmap=True))
+            reply = client.request(
+                QueryRequest(request_id="q", text="red roof buildings", view=ENCODE_VIEW, heatmap=True)
+            )
             assert reply.status == "ok" and reply.map_version == 1 and reply.heatmap.shape == (240, 320)
             running.assert_running()
     finally:

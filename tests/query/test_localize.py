@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -70,7 +69,9 @@ def test_matches_the_reference(scene, seed):
 def test_matches_the_reference_over_min_points(min_points):
     points, eps, _ = lattice(np.random.default_rng(7))
     selected = np.ones(len(points), bool)
-    assert_same_instances(instances_in_3d(points, selected, eps, min_points), instances_in_3d_bfs(points, selected, eps, min_points))
+    assert_same_instances(
+        instances_in_3d(points, selected, eps, min_points), instances_in_3d_bfs(points, selected, eps, min_points)
+    )
 
 
 def test_empty_and_too_small_selections():
@@ -175,7 +176,10 @@ def test_four_planes_in_130k_points_with_noise():
     """A selection the size of a real query's (speed is measured by ``olsplat bench query``, not
     here: open3d's DBSCAN took 1-8 s on selections like this, the voxel grid about 20 ms)."""
     rng = np.random.default_rng(0)
-    planes = [np.c_[rng.uniform(x, x + 30, 30000), rng.uniform(0, 20, 30000), rng.normal(h, 0.05, 30000)] for x, h in ((0, 0), (40, 6), (80, 9), (120, 3))]
+    planes = [
+        np.c_[rng.uniform(x, x + 30, 30000), rng.uniform(0, 20, 30000), rng.normal(h, 0.05, 30000)]
+        for x, h in ((0, 0), (40, 6), (80, 9), (120, 3))
+    ]
     means = np.vstack([*planes, rng.uniform((0, 0, 0), (150, 20, 20), (10000, 3))])
     selected = np.ones(len(means), bool)
     instances = instances_in_3d(means, selected)

@@ -62,7 +62,9 @@ def test_colmap_round_trip(tmp_path, binary):
 def test_colmap_pose_convention(tmp_path):
     """A hand-written model: identity rotation, t = (0, 0, 5) puts the camera centre at z = -5."""
     (tmp_path / "cameras.txt").write_text("# comment\n1 PINHOLE 100 80 90 91 50 40\n")
-    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 5 1 a.png\n\n2 0.7071067811865476 0 0.7071067811865476 0 0 0 0 1 b.png\n1 2 -1\n")
+    (tmp_path / "images.txt").write_text(
+        "1 1 0 0 0 0 0 5 1 a.png\n\n2 0.7071067811865476 0 0.7071067811865476 0 0 0 0 1 b.png\n1 2 -1\n"
+    )
     a, b = read_colmap(tmp_path)
     np.testing.assert_allclose(a.center, [0, 0, -5])
     np.testing.assert_allclose(a.K, [[90, 0, 50], [0, 91, 40], [0, 0, 1]])
@@ -128,7 +130,12 @@ def test_transforms_round_trip(tmp_path):
 
 def test_transforms_opengl_convention_and_camera_angle(tmp_path):
     """instant-ngp style: camera_angle_x only; an identity GL pose looks down world -z."""
-    meta = {"camera_angle_x": 2 * np.arctan(0.5), "w": 200, "h": 100, "frames": [{"file_path": "./a", "transform_matrix": np.eye(4).tolist()}]}
+    meta = {
+        "camera_angle_x": 2 * np.arctan(0.5),
+        "w": 200,
+        "h": 100,
+        "frames": [{"file_path": "./a", "transform_matrix": np.eye(4).tolist()}],
+    }
     (tmp_path / "t.json").write_text(json.dumps(meta))
     (camera,) = read_transforms_json(tmp_path / "t.json")
     assert camera.fx == pytest.approx(200.0) and camera.fy == pytest.approx(200.0)
@@ -155,7 +162,10 @@ def test_transforms_size_from_the_image(tmp_path):
         ({"fl_x": 5, "w": 10, "h": 10, "frames": []}, "no 'frames' list"),
         ({"fl_x": 5, "w": 10, "h": 10, "frames": [{"file_path": "a"}]}, "lacks 'file_path' or 'transform_matrix'"),
         ({"camera_model": "OPENCV_FISHEYE", "fl_x": 5, "w": 9, "h": 9, "frames": [{}]}, "unsupported camera_model"),
-        ({"fl_x": 5, "w": 10, "h": 10, "frames": [{"file_path": "a", "transform_matrix": [[2, 0, 0, 0]] * 4}]}, "not a rigid"),
+        (
+            {"fl_x": 5, "w": 10, "h": 10, "frames": [{"file_path": "a", "transform_matrix": [[2, 0, 0, 0]] * 4}]},
+            "not a rigid",
+        ),
     ],
 )
 def test_transforms_errors(tmp_path, meta, message):

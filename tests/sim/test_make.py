@@ -20,7 +20,11 @@ from olsplat_sim.presets import PRESETS
 
 
 def _digest(folder):
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_same_seed_same_bytes(tiny, tmp_path):
@@ -72,7 +76,9 @@ def test_annotations_agree_with_rendered_labels(tiny):
         doc = json.loads((out / "annotations" / camera.name.replace(".jpg", ".json")).read_text())
         annotated, annotated_instances = rasterize_annotation(doc)
         result = rasterize(truth.gaussians, camera, background=BACKGROUND)
-        rendered, instances = label_maps(result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance)
+        rendered, instances = label_maps(
+            result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance
+        )
         labelled = rendered >= 0
         agreement.append((annotated[labelled] == rendered[labelled]).mean())
         same = labelled & (annotated == rendered)
@@ -80,7 +86,9 @@ def test_annotations_agree_with_rendered_labels(tiny):
         for shape in doc["shapes"]:
             points = np.asarray(shape["points"])
             assert shape["label"] in LABELS
-            assert (points >= 0).all() and (points[:, 0] <= camera.width).all() and (points[:, 1] <= camera.height).all()
+            assert (
+                (points >= 0).all() and (points[:, 0] <= camera.width).all() and (points[:, 1] <= camera.height).all()
+            )
     assert np.mean(agreement) > 0.93 and min(agreement) > 0.85
 
 
@@ -112,8 +120,12 @@ def test_trees_hide_parts_of_annotated_buildings(tiny):
     for camera in read_colmap(out / "truth" / "true_poses"):
         with_trees = rasterize(truth.gaussians, camera)
         without = rasterize(no_trees, camera)
-        _, inst_with = label_maps(with_trees.topk_ids, with_trees.topk_weights, with_trees.alpha, truth.label, truth.instance)
-        _, inst_without = label_maps(without.topk_ids, without.topk_weights, without.alpha, labels_no_trees, instances_no_trees)
+        _, inst_with = label_maps(
+            with_trees.topk_ids, with_trees.topk_weights, with_trees.alpha, truth.label, truth.instance
+        )
+        _, inst_without = label_maps(
+            without.topk_ids, without.topk_weights, without.alpha, labels_no_trees, instances_no_trees
+        )
         for instance in np.unique(truth.instance[building]):
             full = (inst_without == instance).sum()
             if full > 50:

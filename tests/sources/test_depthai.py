@@ -17,7 +17,16 @@ dai = pytest.importorskip("depthai")
 
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
-from olsplat_nodes.sources import ERROR, OK, DepthAISource, camera_from_calibration, crop_intrinsics, discover_devices, open_source, trim_distortion  # noqa: E402
+from olsplat_nodes.sources import (
+    ERROR,
+    OK,
+    DepthAISource,
+    camera_from_calibration,
+    crop_intrinsics,
+    discover_devices,
+    open_source,
+    trim_distortion,
+)
 from olsplat_nodes.telemetry import FlightControllerPoses, TelemetryConfig  # noqa: E402
 
 
@@ -50,13 +59,19 @@ def test_no_device_is_a_clean_error_and_discovery_is_retried(no_device):
 
 def test_a_named_device_that_is_absent(no_device):
     with DepthAISource(device="1844301011B546F500", retry_s=0.1) as source:
-        wait_until(lambda: source.stats["discovery_attempts"] >= 1 and source.status()[1].startswith("no DepthAI"), 20, "a status")
+        wait_until(
+            lambda: source.stats["discovery_attempts"] >= 1 and source.status()[1].startswith("no DepthAI"),
+            20,
+            "a status",
+        )
         assert "1844301011B546F500" in source.status()[1]
 
 
 def calibration(model=None, dist=(0.1, -0.05, 0.001, 0.002, 0.01)):
     handler = dai.CalibrationHandler()
-    handler.setCameraIntrinsics(dai.CameraBoardSocket.CAM_A, [[3000.0, 0, 2028.0], [0, 3000.0, 1520.0], [0, 0, 1]], 4056, 3040)
+    handler.setCameraIntrinsics(
+        dai.CameraBoardSocket.CAM_A, [[3000.0, 0, 2028.0], [0, 3000.0, 1520.0], [0, 0, 1]], 4056, 3040
+    )
     handler.setDistortionCoefficients(dai.CameraBoardSocket.CAM_A, list(dist) + [0.0] * (14 - len(dist)))
     handler.setCameraType(dai.CameraBoardSocket.CAM_A, model or dai.CameraModel.Perspective)
     return handler
@@ -65,12 +80,16 @@ def calibration(model=None, dist=(0.1, -0.05, 0.001, 0.002, 0.01)):
 def test_calibration_to_camera():
     camera = camera_from_calibration(calibration(), "CAM_A", 1280, 720)
     s = 1280 / 4056  # width decides: 3040 * s = 959 rows, cropped to 720 (CROP keeps the aspect ratio)
-    np.testing.assert_allclose(camera.K, [[3000 * s, 0, 2028 * s], [0, 3000 * s, 1520 * s - (3040 * s - 720) / 2], [0, 0, 1]])
+    np.testing.assert_allclose(
+        camera.K, [[3000 * s, 0, 2028 * s], [0, 3000 * s, 1520 * s - (3040 * s - 720) / 2], [0, 0, 1]]
+    )
     np.testing.assert_allclose(camera.dist, [0.1, -0.05, 0.001, 0.002, 0.01], rtol=1e-6)  # float32 in the handler
     assert (camera.width, camera.height) == (1280, 720) and np.array_equal(camera.world_from_camera, np.eye(4))
     # same aspect ratio: equal to depthai's own scaling
     same = camera_from_calibration(calibration(), dai.CameraBoardSocket.CAM_A, 1352, 1013.333333 and 1013)
-    ours = crop_intrinsics(np.asarray(calibration().getDefaultIntrinsics(dai.CameraBoardSocket.CAM_A)[0]), (4056, 3040), (2028, 1520))
+    ours = crop_intrinsics(
+        np.asarray(calibration().getDefaultIntrinsics(dai.CameraBoardSocket.CAM_A)[0]), (4056, 3040), (2028, 1520)
+    )
     theirs = calibration().getCameraIntrinsics(dai.CameraBoardSocket.CAM_A, 2028, 1520, keepAspectRatio=False)
     np.testing.assert_allclose(ours, theirs, rtol=1e-6)
     assert same.model == "OPENCV_RATIONAL" or len(same.dist) == 5
@@ -118,14 +137,24 @@ def test_unplug_is_reported_and_the_device_is_picked_up_again():
     device = StandInDevice(3)
     pose = np.eye(4)
     pose[:3, 3] = [1, 2, 3]
-    with DepthAISource(width=64, height=48, retry_s=0.05, world_from_camera=pose, discover=device.discover, open_stream=device.open) as source:
+    with DepthAISource(
+        width=64, height=48, retry_s=0.05, world_from_camera=pose, discover=device.discover, open_stream=device.open
+    ) as source:
         names = []
-        wait_until(lambda: (f := source.read(0.05)) is not None and names.append(f) is None and len(names) == 3, 10, "three frames")
+        wait_until(
+            lambda: (f := source.read(0.05)) is not None and names.append(f) is None and len(names) == 3,
+            10,
+            "three frames",
+        )
         assert source.status() == (OK, "streaming from DepthAI device standin-device (64x48 at 10 fps)")
         device.release.set()  # unplug
         wait_until(lambda: source.stats["disconnects"] >= 1, 10, "the disconnect")
         wait_until(lambda: device.connects >= 2, 10, "a reconnect")
-        wait_until(lambda: (f := source.read(0.05)) is not None and names.append(f) is None and len(names) == 4, 10, "a frame after the reconnect")
+        wait_until(
+            lambda: (f := source.read(0.05)) is not None and names.append(f) is None and len(names) == 4,
+            10,
+            "a frame after the reconnect",
+        )
         assert len({f.name for f in names}) == 4  # names stay unique though the device restarts its sequence numbers
         frame = names[0]
         assert frame.image.shape == (48, 64, 3) and np.array_equal(frame.camera.world_from_camera, pose)
@@ -143,7 +172,9 @@ def test_poses_come_from_telemetry_and_frames_without_one_are_dropped():
         poses.add_message(mavlink.MAVLink_local_position_ned_message(10_000 + t, t / 1000.0, 0.0, -50.0, 1, 0, 0), host)
     stamps = [base - 300 * ms, base + 500 * ms, base + 1100 * ms]  # before the samples, inside, after (never bracketed)
     device = StandInDevice(3, stamps)
-    with DepthAISource(width=64, height=48, retry_s=0.05, poses=poses, discover=device.discover, open_stream=device.open) as source:
+    with DepthAISource(
+        width=64, height=48, retry_s=0.05, poses=poses, discover=device.discover, open_stream=device.open
+    ) as source:
         got = []
 
         def step():
@@ -154,4 +185,6 @@ def test_poses_come_from_telemetry_and_frames_without_one_are_dropped():
 
         wait_until(step, 10, "two frames rejected for want of a pose")  # the last one after max_wait_s
         assert len(got) == 1 and source.stats["frames"] == 1
-        np.testing.assert_allclose(got[0].camera.world_from_camera[:3, 3], [0.0, 0.5, 50.0], atol=1e-9)  # ENU of NED (0.5, 0, -50)
+        np.testing.assert_allclose(
+            got[0].camera.world_from_camera[:3, 3], [0.0, 0.5, 50.0], atol=1e-9
+        )  # ENU of NED (0.5, 0, -50)

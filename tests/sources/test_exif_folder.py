@@ -51,13 +51,25 @@ def test_positions_are_enu_around_the_first_photo_and_headings_follow_travel(pho
         assert v < camera.cy - 5 and abs(u - camera.cx) < 1e-3
         np.testing.assert_allclose(camera.world_from_camera[:3, 2], [0, 0, -1], atol=1e-12)  # optical axis down
     # the original file bytes travel with the frame and decode to the same image
-    assert all(np.array_equal(cv2.imdecode(np.frombuffer(f.jpeg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1], f.image) for f in frames)
+    assert all(
+        np.array_equal(cv2.imdecode(np.frombuffer(f.jpeg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1], f.image)
+        for f in frames
+    )
 
 
 def test_dji_gimbal_yaw_wins_over_travel(tmp_path):
     for i, (lat, lon, alt) in enumerate(TRACK[:2]):
-        write_photo(tmp_path / f"DJI_{i}.jpg", lat, lon, alt, f"2024:05:01 10:00:0{i}", xmp=dji_xmp(gimbal_yaw=90.0), f35=None,
-                    focal_mm=4.5, plane_res=(16393.44, 2, 640))
+        write_photo(
+            tmp_path / f"DJI_{i}.jpg",
+            lat,
+            lon,
+            alt,
+            f"2024:05:01 10:00:0{i}",
+            xmp=dji_xmp(gimbal_yaw=90.0),
+            f35=None,
+            focal_mm=4.5,
+            plane_res=(16393.44, 2, 640),
+        )
     source = ExifFolderSource(tmp_path, fast=True)
     assert source.heading_sources == ["gimbal_yaw", "gimbal_yaw"] and source.photos[0].gimbal_pitch == -90.0
     camera = source.cameras[0]
@@ -74,10 +86,12 @@ def test_headings_from_track_skip_hovering():
 
 
 def test_stamp_zone_from_gps_time_and_errors(tmp_path):
-    path = write_photo(tmp_path / "a.jpg", 30, -98, 300, "2014:10:19 13:20:51", gps_utc=("2014:10:19", (18.0, 20.0, 52.0)))
+    path = write_photo(
+        tmp_path / "a.jpg", 30, -98, 300, "2014:10:19 13:20:51", gps_utc=("2014:10:19", (18.0, 20.0, 52.0))
+    )
     photo = read_exif(path)
     assert photo.stamp_source == "gps_zone"
-    assert photo.stamp_ns == int(dt.datetime(2014, 10, 19, 18, 20, 51, tzinfo=dt.timezone.utc).timestamp()) * 10**9
+    assert photo.stamp_ns == int(dt.datetime(2014, 10, 19, 18, 20, 51, tzinfo=dt.UTC).timestamp()) * 10**9
     write_photo(tmp_path / "b.jpg", 30, -98, 300, "2014:10:19 13:20:53", f35=None)  # no focal information
     with pytest.raises(OlsplatInputError, match="exif_focal_px"):
         ExifFolderSource(tmp_path)
@@ -97,10 +111,15 @@ def test_caliterra_photos(shared_data):
     assert len(source.photos) == 24 and source.stats["photos_without_gps"] == 0
     # Canon SX260 HS at 4.5 mm: FocalPlaneXResolution gives ~2904 px at 4000 px wide, 726 px at the 1000 px copy
     assert source.focal_rules[0] == "FocalLength+FocalPlaneXResolution"
-    assert source.cameras[0].fx == pytest.approx(726.09, abs=0.1) and (source.cameras[0].width, source.cameras[0].height) == (1000, 750)
+    assert source.cameras[0].fx == pytest.approx(726.09, abs=0.1) and (
+        source.cameras[0].width,
+        source.cameras[0].height,
+    ) == (1000, 750)
     stamps = np.array([p.stamp_ns for p in source.photos])
     assert (np.diff(stamps) > 0).all() and {p.stamp_source for p in source.photos} == {"gps_zone"}
-    assert dt.datetime.fromtimestamp(stamps[0] / 1e9, dt.timezone.utc) == dt.datetime(2014, 10, 19, 18, 20, 51, tzinfo=dt.timezone.utc)
+    assert dt.datetime.fromtimestamp(stamps[0] / 1e9, dt.UTC) == dt.datetime(
+        2014, 10, 19, 18, 20, 51, tzinfo=dt.UTC
+    )
     positions = np.array([c.world_from_camera[:3, 3] for c in source.cameras])
     steps = np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1)
     assert np.median(steps) > 3 and steps.max() < 30  # a few metres to ~20 m between photos taken 2 s apart
@@ -116,7 +135,9 @@ def test_caliterra_photos(shared_data):
         in_camera = a.camera.world_from_camera[:3, :3].T @ np.array([move[0], move[1], 0.0])
         predicted = -in_camera[:2]  # the ground moves opposite to the camera in the image
         gray = [cv2.cvtColor(f.image, cv2.COLOR_RGB2GRAY).astype(np.float32) for f in (a, b)]
-        (dx, dy), response = cv2.phaseCorrelate(gray[0], gray[1], cv2.createHanningWindow(gray[0].shape[::-1], cv2.CV_32F))
+        (dx, dy), response = cv2.phaseCorrelate(
+            gray[0], gray[1], cv2.createHanningWindow(gray[0].shape[::-1], cv2.CV_32F)
+        )
         if response < 0.1:
             continue
         confident += 1

@@ -58,7 +58,9 @@ def test_record_without_a_camera_writes_nothing_and_fails(tmp_path, capsys):
 
         pytest.skip("a DepthAI device is attached")
     out = tmp_path / "none.mcap"
-    code = main(["record", "--source-kind", "depthai", "--set", "depthai_retry_s=0.2", "--out", str(out), "--seconds", "1.5"])
+    code = main(
+        ["record", "--source-kind", "depthai", "--set", "depthai_retry_s=0.2", "--out", str(out), "--seconds", "1.5"]
+    )
     assert code == 1 and not out.exists()
     assert "no DepthAI device found" in capsys.readouterr().err
     assert main(["record", "--source-kind", "nope", "--out", str(out)]) == 1

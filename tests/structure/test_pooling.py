@@ -35,8 +35,16 @@ def test_points_under_a_roof_do_not_pool_into_it():
     ground = np.c_[xs.ravel() * 2, ys.ravel() * 2, np.zeros(xs.size)]
     means = np.concatenate([roof, ground])
     n = len(means)
-    gaussians = Gaussians(means, np.tile([1.0, 0, 0, 0], (n, 1)), np.log(np.tile([0.3, 0.3, 0.02], (n, 1))), np.full(n, 6.0), np.zeros((n, 1, 3)))
-    camera = Camera("top", 80, 80, intrinsics(100.0, 100.0, 40.0, 40.0), look_at([0.0, 0.0, 30.0], [0.0, 0.0, 0.0], (0.0, 1.0, 0.0)))
+    gaussians = Gaussians(
+        means,
+        np.tile([1.0, 0, 0, 0], (n, 1)),
+        np.log(np.tile([0.3, 0.3, 0.02], (n, 1))),
+        np.full(n, 6.0),
+        np.zeros((n, 1, 3)),
+    )
+    camera = Camera(
+        "top", 80, 80, intrinsics(100.0, 100.0, 40.0, 40.0), look_at([0.0, 0.0, 30.0], [0.0, 0.0, 0.0], (0.0, 1.0, 0.0))
+    )
     depth = rasterize(gaussians, camera, want_topk=False).depth
     under = np.c_[np.zeros(4), np.linspace(-1, 1, 4), np.zeros(4)]  # ground points below the roof
     on_roof = np.c_[np.zeros(4), np.linspace(-1, 1, 4), np.full(4, 5.0)]

@@ -59,4 +59,6 @@ def test_strided_conv_and_transpose_equal_dense():
     transpose_weight = _dense_weight(up_kernel, 2).transpose(0, 1)  # conv_transpose3d wants [C_in, C_out, ...]
     dense_up = torch.nn.functional.conv_transpose3d(_dense(half, down.feats, 4), transpose_weight, stride=2)
     assert torch.equal(up.coords, coords) and up.stride == 1  # back onto the input's coordinates
-    torch.testing.assert_close(up.feats, dense_up[0, :, coords[:, 0], coords[:, 1], coords[:, 2]].T, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        up.feats, dense_up[0, :, coords[:, 0], coords[:, 1], coords[:, 2]].T, atol=1e-5, rtol=1e-5
+    )

@@ -36,7 +36,9 @@ def mixed_frames(n: int, seed: int = 0) -> list[bytes]:
         elif kind == 1:
             msg = mav.local_position_ned_encode(boot_ms, *rng.uniform(-100, 100, 6))
         elif kind == 2:
-            msg = mav.global_position_int_encode(boot_ms, *rng.integers(-900_000_000, 900_000_000, 2), *rng.integers(0, 500_000, 2), 10, -20, 30, 4500)
+            msg = mav.global_position_int_encode(
+                boot_ms, *rng.integers(-900_000_000, 900_000_000, 2), *rng.integers(0, 500_000, 2), 10, -20, 30, 4500
+            )
         elif kind == 3:
             msg = mav.system_time_encode(1_700_000_000_000_000 + 20_000 * i, boot_ms)
         elif kind == 4:
@@ -64,7 +66,11 @@ def corrupt(frames: list[bytes], seed: int = 0, tail_intact: int = 12) -> Record
     rng = np.random.default_rng(seed)
     out, intact, damaged, runs = bytearray(), [], 0, 0
     for i, frame in enumerate(frames):
-        op = "intact" if i >= len(frames) - tail_intact else rng.choice(["intact", "intact", "flip", "truncate", "garbage"])
+        op = (
+            "intact"
+            if i >= len(frames) - tail_intact
+            else rng.choice(["intact", "intact", "flip", "truncate", "garbage"])
+        )
         if op == "garbage":
             run = rng.integers(0, 256, rng.integers(1, 120), dtype=np.uint8)
             run[rng.random(len(run)) < 0.1] = rng.choice([0xFD, 0xFE])  # false start markers
@@ -107,7 +113,9 @@ class Flight:
         return self.roll, self.pitch, self.yaw0 + self.yaw_rate * t_s
 
 
-def flight_messages(flight: Flight, duration_s: float, attitude_hz: float = 50.0, position_hz: float = 10.0, boot_ms0: int = 5000):
+def flight_messages(
+    flight: Flight, duration_s: float, attitude_hz: float = 50.0, position_hz: float = 10.0, boot_ms0: int = 5000
+):
     """(time_boot_ms, frame bytes) of ATTITUDE and LOCAL_POSITION_NED, in time order."""
     mav = encoder()
     out = []
@@ -115,11 +123,15 @@ def flight_messages(flight: Flight, duration_s: float, attitude_hz: float = 50.0
         ms = round(k * 1000 / attitude_hz)
         roll, pitch, yaw = flight.attitude(ms / 1000)
         yaw = (yaw + np.pi) % (2 * np.pi) - np.pi  # MAVLink sends yaw in [-pi, pi]
-        out.append((boot_ms0 + ms, 0, pack(mav, mav.attitude_encode(boot_ms0 + ms, roll, pitch, yaw, 0, 0, flight.yaw_rate))))
+        out.append(
+            (boot_ms0 + ms, 0, pack(mav, mav.attitude_encode(boot_ms0 + ms, roll, pitch, yaw, 0, 0, flight.yaw_rate)))
+        )
     for k in range(int(duration_s * position_hz) + 1):
         ms = round(k * 1000 / position_hz)
         x, y, z = flight.position(ms / 1000)
-        out.append((boot_ms0 + ms, 1, pack(mav, mav.local_position_ned_encode(boot_ms0 + ms, x, y, z, *flight.velocity_ned))))
+        out.append(
+            (boot_ms0 + ms, 1, pack(mav, mav.local_position_ned_encode(boot_ms0 + ms, x, y, z, *flight.velocity_ned)))
+        )
     out.sort(key=lambda item: item[:2])
     return [(ms, frame) for ms, _, frame in out]
 

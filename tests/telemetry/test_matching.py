@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from olsplat_nodes.scene.rotations import quat_to_rotmat
-from olsplat_nodes.telemetry import BootClock, PoseBuffer, bracket, euler_to_quat, interpolate_attitude, interpolate_position, slerp
+from olsplat_nodes.telemetry import (
+    BootClock,
+    PoseBuffer,
+    bracket,
+    euler_to_quat,
+    interpolate_attitude,
+    interpolate_position,
+    slerp,
+)
 
 MS = 1_000_000
 TOL = 100 * MS
@@ -74,7 +82,11 @@ def test_buffer_matches_waits_and_rejects_with_counts():
     for k in range(0, 3):  # position at 10 Hz: 0, 100, 200 ms
         buf.add_position(100 * k * MS, [k, 0.0, 0.0])
     ok = buf.lookup(150 * MS)
-    assert ok.status == "ok" and ok.position_ned == pytest.approx([1.5, 0, 0]) and yaw_of(ok.quat_ned_from_body) == pytest.approx(0.075)
+    assert (
+        ok.status == "ok"
+        and ok.position_ned == pytest.approx([1.5, 0, 0])
+        and yaw_of(ok.quat_ned_from_body) == pytest.approx(0.075)
+    )
     assert buf.lookup(250 * MS).status == "wait"  # a later sample may still come: not counted
     assert buf.stats["rejected"] == 0
     late = buf.lookup(250 * MS, final=True)
@@ -87,8 +99,12 @@ def test_buffer_matches_waits_and_rejects_with_counts():
     gap = buf.lookup(350 * MS)
     assert gap.status == "rejected" and gap.reason == "position:gap"
     assert buf.stats == {
-        "matched": 1, "rejected": 3, "stale_samples": 0,
-        "rejected_attitude_no_sample_after": 1, "rejected_attitude_no_sample_before": 1, "rejected_position_gap": 1,
+        "matched": 1,
+        "rejected": 3,
+        "stale_samples": 0,
+        "rejected_attitude_no_sample_after": 1,
+        "rejected_attitude_no_sample_before": 1,
+        "rejected_position_gap": 1,
     }
 
 

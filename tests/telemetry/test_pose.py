@@ -8,7 +8,14 @@ from pymavlink.rotmat import Matrix3
 
 from olsplat_nodes.scene import Camera, intrinsics, look_at
 from olsplat_nodes.scene.rotations import quat_to_rotmat
-from olsplat_nodes.telemetry import CameraMount, euler_to_quat, euler_to_rotmat, geodetic_to_ned, mount_rotation, world_from_camera
+from olsplat_nodes.telemetry import (
+    CameraMount,
+    euler_to_quat,
+    euler_to_rotmat,
+    geodetic_to_ned,
+    mount_rotation,
+    world_from_camera,
+)
 
 S = np.sqrt(0.5)
 
@@ -38,7 +45,9 @@ def test_mount_pitched_down_45_degrees():
 
 def test_forward_camera_with_zero_angles():
     pose = world_from_camera([0.0, 0.0, 0.0], euler_to_rotmat(0.0, 0.0, 0.0), CameraMount.from_angles(0, 0, 0))
-    np.testing.assert_allclose(pose[:3, :3], [[1, 0, 0], [0, 0, 1], [0, -1, 0]], atol=1e-12)  # looks north, image down = down
+    np.testing.assert_allclose(
+        pose[:3, :3], [[1, 0, 0], [0, 0, 1], [0, -1, 0]], atol=1e-12
+    )  # looks north, image down = down
 
 
 def test_lever_arm_turns_with_the_vehicle():
@@ -47,7 +56,9 @@ def test_lever_arm_turns_with_the_vehicle():
     pose = world_from_camera([1.0, 2.0, -10.0], euler_to_rotmat(0.0, 0.0, np.pi / 2), mount)
     np.testing.assert_allclose(pose[:3, 3], [2.0 + 0.2, 1.0, 10.0 - 0.1], atol=1e-12)
     # Pitched up 90 degrees (nose up), the forward arm points up.
-    pose = world_from_camera([0.0, 0.0, 0.0], euler_to_rotmat(0.0, np.pi / 2, 0.0), CameraMount(lever_arm_m=(0.2, 0.0, 0.0)))
+    pose = world_from_camera(
+        [0.0, 0.0, 0.0], euler_to_rotmat(0.0, np.pi / 2, 0.0), CameraMount(lever_arm_m=(0.2, 0.0, 0.0))
+    )
     np.testing.assert_allclose(pose[:3, 3], [0, 0, 0.2], atol=1e-12)
 
 
@@ -73,7 +84,9 @@ def test_against_look_at(yaw_deg, mount_pitch_deg):
     """A level vehicle with an unrolled camera is ``look_at`` along the optical axis, world z up."""
     yaw, theta = np.radians(yaw_deg), np.radians(mount_pitch_deg)
     position = np.array([3.0, -4.0, -25.0])
-    pose = world_from_camera(position, euler_to_rotmat(0.0, 0.0, yaw), CameraMount.from_angles(0.0, mount_pitch_deg, 0.0))
+    pose = world_from_camera(
+        position, euler_to_rotmat(0.0, 0.0, yaw), CameraMount.from_angles(0.0, mount_pitch_deg, 0.0)
+    )
     eye = np.array([position[1], position[0], -position[2]])
     axis = np.array([np.cos(theta) * np.sin(yaw), np.cos(theta) * np.cos(yaw), np.sin(theta)])  # ENU
     nose = np.array([np.sin(yaw), np.cos(yaw), 0.0])
@@ -100,7 +113,9 @@ def test_vectorised_over_samples():
     mount = CameraMount.from_angles(5, -70, 3, lever_arm_m=(0.1, -0.05, 0.2))
     batch = world_from_camera(positions, euler_to_rotmat(*angles.T), mount)
     for i in range(7):
-        np.testing.assert_allclose(batch[i], world_from_camera(positions[i], euler_to_rotmat(*angles[i]), mount), atol=1e-12)
+        np.testing.assert_allclose(
+            batch[i], world_from_camera(positions[i], euler_to_rotmat(*angles[i]), mount), atol=1e-12
+        )
 
 
 def test_geodetic_to_ned_small_offsets():
@@ -118,7 +133,9 @@ def test_geodetic_to_ned_small_offsets():
         assert north[0] == pytest.approx(meridian * np.radians(d), rel=1e-7) and abs(north[1]) < 1e-6
         assert east[1] == pytest.approx(prime * np.cos(phi) * np.radians(d), rel=1e-7)
         np.testing.assert_allclose(up, [0, 0, -10.0], atol=1e-6)
-    np.testing.assert_allclose(geodetic_to_ned([45.0, 45.0], [7.0, 7.0], [100.0, 100.0], (45.0, 7.0, 100.0)), np.zeros((2, 3)), atol=1e-6)
+    np.testing.assert_allclose(
+        geodetic_to_ned([45.0, 45.0], [7.0, 7.0], [100.0, 100.0], (45.0, 7.0, 100.0)), np.zeros((2, 3)), atol=1e-6
+    )
 
 
 def test_bad_mounts_are_value_errors():

@@ -68,7 +68,10 @@ def test_global_position_is_converted_around_the_reference():
     north_east = [(47.3977419 + 1e-4 * k, 8.5455938 + 2e-4 * k, 488.0 + 5 * k) for k in range(3)]
     for k, (lat, lon, alt) in enumerate(north_east):
         ms = 1000 + 100 * k
-        frames = pack(mav, mav.global_position_int_encode(ms, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), 0, 0, 0, 0, 0))
+        frames = pack(
+            mav,
+            mav.global_position_int_encode(ms, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), 0, 0, 0, 0, 0),
+        )
         frames += pack(mav, mav.attitude_encode(ms, 0.0, 0.0, 0.0, 0, 0, 0))
         for message in decoder.feed(frames):
             source.add_message(message, ms * MS)
@@ -141,7 +144,9 @@ def test_serial_loop_end_to_end():
 
 
 def test_config_from_launch_params():
-    config = TelemetryConfig.from_params({"url": "/dev/ttyACM0", "mount_rpy_deg": [0, -90, 0], "lever_arm_m": [0.1, 0, 0.05], "position": "global"})
+    config = TelemetryConfig.from_params(
+        {"url": "/dev/ttyACM0", "mount_rpy_deg": [0, -90, 0], "lever_arm_m": [0.1, 0, 0.05], "position": "global"}
+    )
     assert config.lever_arm_m == (0.1, 0.0, 0.05)
     matrix = TelemetryConfig(mount_matrix=[0, -1, 0, 1, 0, 0, 0, 0, 1]).mount()
     np.testing.assert_allclose(matrix.body_from_camera, TelemetryConfig().mount().body_from_camera, atol=1e-12)

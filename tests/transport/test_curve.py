@@ -91,8 +91,10 @@ def test_two_curve_servers_share_one_authenticator_per_context(ctx, keys, tmp_pa
     other_allow = tmp_path / "allow2"
     other_allow.mkdir()
     (other_allow / "mallory.key").write_bytes(paths["mallory"][0].read_bytes())
-    with ServerThread(ctx, keys=curve.ServerKeys(paths["server"][1], allow)) as first, \
-         ServerThread(ctx, keys=curve.ServerKeys(paths["server"][1], other_allow)) as second:
+    with (
+        ServerThread(ctx, keys=curve.ServerKeys(paths["server"][1], allow)) as first,
+        ServerThread(ctx, keys=curve.ServerKeys(paths["server"][1], other_allow)) as second,
+    ):
         alice = curve.ClientKeys(paths["alice"][1], paths["server"][0])
         mallory = curve.ClientKeys(paths["mallory"][1], paths["server"][0])
         with QueryClient(ctx, first, timeout_s=3.0, keys=alice) as c:

@@ -19,8 +19,10 @@ pytestmark = pytest.mark.timeout(30)
 
 
 def test_beats_arrive_at_a_bound_collector(ctx):
-    with DiagnosticsCollector(ctx, LOCAL, stale_after_s=5.0) as collector, \
-         Diagnostics(ctx, collector.endpoint, "accumulator", period_s=0.02) as diag:
+    with (
+        DiagnosticsCollector(ctx, LOCAL, stale_after_s=5.0) as collector,
+        Diagnostics(ctx, collector.endpoint, "accumulator", period_s=0.02) as diag,
+    ):
         values = {"rate_hz": 2.5, "drops": 3, "state": "running"}
         # the first beats are lost while the PUB connects (slow joiner): beat until one arrives
         assert wait_for(lambda: collector.poll(10), step=lambda: diag.beat(DiagnosticStatus.WARN, "slow", values))
@@ -40,9 +42,12 @@ def test_beat_is_rate_limited_and_beat_now_is_not(ctx):
 
 
 def test_two_nodes_and_stale_detection(ctx):
-    with DiagnosticsCollector(ctx, LOCAL, stale_after_s=0.5) as collector, \
-         Diagnostics(ctx, collector.endpoint, "ingest", period_s=0.01) as a, \
-         Diagnostics(ctx, collector.endpoint, "refiner", period_s=0.01) as b:
+    with (
+        DiagnosticsCollector(ctx, LOCAL, stale_after_s=0.5) as collector,
+        Diagnostics(ctx, collector.endpoint, "ingest", period_s=0.01) as a,
+        Diagnostics(ctx, collector.endpoint, "refiner", period_s=0.01) as b,
+    ):
+
         def both_seen():
             collector.poll(5)
             return {n["node"] for n in collector.nodes()} == {"ingest", "refiner"}
@@ -50,7 +55,9 @@ def test_two_nodes_and_stale_detection(ctx):
         assert wait_for(both_seen, step=lambda: (a.beat(0), b.beat(0)))
         # refiner goes silent; ingest keeps beating
         levels = lambda: {n["node"]: n["level"] for n in collector.nodes()}  # noqa: E731
-        assert wait_for(lambda: levels()["refiner"] == DiagnosticStatus.STALE, step=lambda: (a.beat(0), collector.poll(5)))
+        assert wait_for(
+            lambda: levels()["refiner"] == DiagnosticStatus.STALE, step=lambda: (a.beat(0), collector.poll(5))
+        )
         assert levels()["ingest"] == DiagnosticStatus.OK
 
 
@@ -60,7 +67,10 @@ def test_collector_counts_garbage(ctx):
         raw.linger = 0
         raw.connect(collector.endpoint)
         start = time.monotonic()
-        wait_for(lambda: collector.stats["bad_messages"] > 0, step=lambda: (raw.send_multipart([b"diagnostics", b"junk"]), collector.poll(5)))
+        wait_for(
+            lambda: collector.stats["bad_messages"] > 0,
+            step=lambda: (raw.send_multipart([b"diagnostics", b"junk"]), collector.poll(5)),
+        )
         assert collector.stats["bad_messages"] > 0 and collector.nodes() == []
         assert time.monotonic() - start < 3.0
         raw.close(linger=0)
@@ -69,8 +79,10 @@ def test_collector_counts_garbage(ctx):
 def test_collector_survives_an_oversized_frame(ctx):
     """The collector binds; a sender whose frame exceeds max_bytes is cut off by libzmq and, being
     the connecting side, comes back by itself."""
-    with DiagnosticsCollector(ctx, LOCAL, max_bytes=64 * 1024) as collector, \
-         Diagnostics(ctx, collector.endpoint, "query_server", period_s=0.0) as diag:
+    with (
+        DiagnosticsCollector(ctx, LOCAL, max_bytes=64 * 1024) as collector,
+        Diagnostics(ctx, collector.endpoint, "query_server", period_s=0.0) as diag,
+    ):
         assert wait_for(lambda: collector.poll(10), step=lambda: diag.beat(0))
         message = lambda: (collector.poll(10), collector.nodes()[0]["message"])[1]  # noqa: E731
         diag.beat_now(0, "before")

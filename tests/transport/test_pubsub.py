@@ -20,8 +20,18 @@ pytestmark = pytest.mark.timeout(30)
 
 def _frame(seq: int, frame_id: str = "cam0", size: int = 4) -> ImageFrame:
     image = np.full((size, size + 1, 3), seq % 256, np.uint8)
-    return ImageFrame(seq=seq, stamp_ns=1000 + seq, frame_id=frame_id, name=f"v{seq:03d}", image=image, K=np.eye(3),
-                      D=np.zeros(0), world_from_camera=np.eye(4), width=size + 1, height=size)
+    return ImageFrame(
+        seq=seq,
+        stamp_ns=1000 + seq,
+        frame_id=frame_id,
+        name=f"v{seq:03d}",
+        image=image,
+        K=np.eye(3),
+        D=np.zeros(0),
+        world_from_camera=np.eye(4),
+        width=size + 1,
+        height=size,
+    )
 
 
 def _connected(send: callable, sub: Subscriber, timeout_s: float = 3.0) -> tuple:
@@ -73,7 +83,10 @@ def test_gaps_counted_per_stream_when_publisher_skips_seq(ctx):
         pub.send("observations", ObservationsAdded(seq=20, frame_id="acc"))  # repeated seq
         pub.send("observations", ObservationsAdded(seq=0, frame_id="acc"))  # publisher restarted
         got = []
-        wait_for(lambda: len([m for _, m in got if m.frame_id.startswith("acc")]) >= 9, step=lambda: got.extend(sub.drain(20)))
+        wait_for(
+            lambda: len([m for _, m in got if m.frame_id.startswith("acc")]) >= 9,
+            step=lambda: got.extend(sub.drain(20)),
+        )
         assert sub.stats["gaps"] == 6
         assert sub.gaps_by_stream == {("observations", "ObservationsAdded", "acc"): 6}
         assert sub.stats["duplicates"] == 1 and sub.stats["seq_resets"] == 1

@@ -30,12 +30,23 @@ def test_query_round_trip(ctx):
 
 def test_ipc_endpoint_and_a_reply_with_arrays(ctx, tmp_path):
     def answer(request):
-        return QueryReply(request_id=request.request_id, heatmap=np.linspace(0, 1, 12, dtype=np.float32).reshape(3, 4),
-                          mask=np.eye(3, 4, dtype=np.uint8))
+        return QueryReply(
+            request_id=request.request_id,
+            heatmap=np.linspace(0, 1, 12, dtype=np.float32).reshape(3, 4),
+            mask=np.eye(3, 4, dtype=np.uint8),
+        )
 
-    with ServerThread(ctx, f"ipc://{tmp_path}/q/query.sock", answer=answer) as endpoint, QueryClient(ctx, endpoint, timeout_s=3.0) as client:
+    with (
+        ServerThread(ctx, f"ipc://{tmp_path}/q/query.sock", answer=answer) as endpoint,
+        QueryClient(ctx, endpoint, timeout_s=3.0) as client,
+    ):
         reply = client.request(QueryRequest(request_id="a", text="road", view="v000"))
-        assert reply.heatmap.shape == (3, 4) and reply.heatmap[2, 3] == 1.0 and reply.mask.sum() == 3 and reply.image is None
+        assert (
+            reply.heatmap.shape == (3, 4)
+            and reply.heatmap[2, 3] == 1.0
+            and reply.mask.sum() == 3
+            and reply.image is None
+        )
 
 
 def test_timeout_raises_no_reply_within_bounded_time(ctx):
@@ -165,7 +176,9 @@ def test_client_skips_garbage_and_stale_replies(ctx):
         router.send_multipart([identity, b"", b"query", b"\xc1"])
         router.send_multipart([identity, b"no delimiter"])
         router.send_multipart([identity, b"", *good[:1]])  # truncated
-        router.send_multipart([identity, b"", good[0], msgpack.packb({**msgpack.unpackb(good[1]), "version": 2}), *good[2:]])
+        router.send_multipart(
+            [identity, b"", good[0], msgpack.packb({**msgpack.unpackb(good[1]), "version": 2}), *good[2:]]
+        )
         router.send_multipart([identity, b"", *encode(QueryReply(request_id="old"), "query")])
         router.send_multipart([identity, b"", *good])
         done.set()
