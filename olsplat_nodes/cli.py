@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .errors import OlsplatInputError
+from .errors import EXIT_FAILED, EXIT_INTERRUPTED, OlsplatInputError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,10 +45,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.run(args) or 0)
     except (OlsplatInputError, FileNotFoundError, PermissionError, IsADirectoryError) as exc:
         print(f"olsplat {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_FAILED
     except KeyboardInterrupt:
         print(f"olsplat {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

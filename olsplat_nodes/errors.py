@@ -20,3 +20,7 @@ class SceneFormatError(OlsplatInputError):
         self.path = str(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+
+# Process exit codes of nodes, the launcher and the CLI.
+EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130

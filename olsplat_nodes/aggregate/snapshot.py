@@ -1,4 +1,5 @@
-"""The language map: one feature per Gaussian plus what it takes to embed text the same way.
+"""The language map: one feature per Gaussian plus what it takes to embed text the same way;
+and the run's map folder of versioned snapshots (``write_snapshot``, ``latest_map``).
 
 Saved as one ``.npz`` (written to a temp file, then renamed: readers never see half a map),
 in one of two forms:
@@ -13,6 +14,7 @@ Version 1 files (float16 only, no ``form``) still load.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,3 +75,31 @@ class LanguageMap:
             raise SceneFormatError(path, "does not exist") from None
         except (KeyError, ValueError, OSError) as exc:
             raise SceneFormatError(path, f"not a language map ({type(exc).__name__}: {exc})") from None
+
+
+# The run's map folder: versioned snapshots and latest.json, the late joiner's way in.
+KEEP_VERSIONS = 3  # older snapshots are deleted; a reader that still holds one has it in memory
+
+
+def latest_map(map_dir: str | Path) -> dict | None:
+    """The record of the newest snapshot in ``map_dir`` ({version, path, views,
+    observed_gaussians, encoder, final}) or None when there is none yet."""
+    try:
+        return json.loads((Path(map_dir) / "latest.json").read_text())
+    except FileNotFoundError:
+        return None
+
+
+def write_snapshot(map_dir: Path, version: int, language_map: LanguageMap, record: dict, codebook: int | None) -> dict:
+    """Write ``MAP_DIR/language_map_NNNNNN.npz`` for ``version`` and point ``latest.json`` at it
+    (both atomic); delete all but the newest ``KEEP_VERSIONS``. Returns the new record."""
+    map_dir.mkdir(parents=True, exist_ok=True)
+    path = map_dir / f"language_map_{version:06d}.npz"
+    language_map.save(path, codebook)
+    record = {**record, "version": version, "path": str(path.resolve())}
+    tmp = map_dir / "latest.json.tmp"
+    tmp.write_text(json.dumps(record))
+    tmp.replace(map_dir / "latest.json")
+    for old in sorted(map_dir.glob("language_map_*.npz"))[:-KEEP_VERSIONS]:
+        old.unlink(missing_ok=True)
+    return record

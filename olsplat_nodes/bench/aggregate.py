@@ -37,13 +37,13 @@ def run(args: argparse.Namespace) -> int:
     from ..aggregate import ObservationStore
     from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
-    from ..pipeline import Scene
-    from ..pipeline.offline import add_view, method, view_features
+    from ..method import add_view, named_method
+    from ..pipeline import Scene, view_features
     from ..raster import rasterize
     from ..scene import read_ply
 
     scene = Scene.open(args.scene)
-    chosen = method(args.method)
+    chosen = named_method(args.method)
     encoder = encoder_from_spec()
     cameras = scene.cameras[: args.views]
     gaussians = read_ply(scene.ply)

@@ -33,8 +33,8 @@ def run(args: argparse.Namespace) -> int:
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
+    from ..method import named_method
     from ..pipeline import Scene
-    from ..pipeline.offline import method
     from ..scene import read_ply
 
     scene = Scene.open(args.scene)
@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     store = ObservationStore(args.aggregated / "store", n)
     if not len(store):
         raise OlsplatInputError(f"{args.aggregated / 'store'}: no aggregated views")
-    features, observed = store.refine(None, method(args.method).aggregation, only_touched=False)
+    features, observed = store.refine(None, named_method(args.method).aggregation, only_touched=False)
     unit = LanguageMap.from_features(features, observed, encoder.name).features.astype(np.float32)  # float16 -> back
     norms = np.linalg.norm(features, axis=1, keepdims=True)
     exact = np.where(norms > 0, features / np.maximum(norms, 1e-12), 0).astype(np.float32)

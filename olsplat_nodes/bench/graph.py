@@ -49,8 +49,8 @@ def run(args: argparse.Namespace) -> int:
 
     from ..evaluate.scene_eval import label_texts, load_queries
     from ..launcher import Supervisor, load_launch
-    from ..nodes.refiner import latest_map
-    from ..pipeline.views import load_views
+    from ..aggregate.snapshot import latest_map
+    from ..aggregate.views import load_views
     from ..transport import NoReply, QueryClient
 
     scene = args.scene.resolve()

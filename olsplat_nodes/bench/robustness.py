@@ -48,15 +48,14 @@ def run(args: argparse.Namespace) -> int:
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
-    from ..pipeline import Scene, aggregate_scene
-    from ..pipeline.offline import method, view_features
+    from ..method import named_method
+    from ..pipeline import Scene, aggregate_scene, view_features
     from ..structure.branch import StructureConfig
 
     scene = Scene.open(args.scene)
     encoder = encoder_from_spec()
     names = [m.strip() for m in args.methods.split(",") if m.strip()]
-    for name in names:
-        method(name)
+    methods = {name: named_method(name) for name in names}  # unknown names fail before any work
     features = [f.strip() for f in args.features.split(",") if f.strip()]
     if not features or any(f not in ("2d", "2d3d") for f in features):
         raise OlsplatInputError(f"--features: comma-separated 2d, 2d3d; got {args.features!r}")
@@ -74,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
             structure = StructureConfig() if kind == "2d3d" else None
             label = name if features == ["2d"] else f"{name} {kind}"
             with tempfile.TemporaryDirectory() as tmp:
-                stats = aggregate_scene(scene, name, encoder, Path(tmp), features_of=features_of, structure=structure)
+                stats = aggregate_scene(scene, methods[name], encoder, Path(tmp), features_of=features_of, structure=structure)
                 r = evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
             print(
                 f"  p {p:4.2f}  {label:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  ({stats['seconds']:.0f} s)",

@@ -27,8 +27,7 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..encoders.spec import encoder_from_spec
-    from ..pipeline import Scene
-    from ..pipeline.offline import view_features
+    from ..pipeline import Scene, view_features
     from ..raster import rasterize
     from ..scene import read_ply
     from ..structure.branch import StructuralBranch

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..errors import OlsplatInputError
@@ -10,10 +11,14 @@ from .onnx_encoder import OnnxEncoder
 from .shipped import DEFAULT_WEIGHTS, SHIPPED, default_encoder, shipped_encoder
 
 
-def encoder_from_spec(spec: str = "shipped", weights: str | None = None, fusion: str = "concat"):
+def encoder_from_spec(spec: str = "shipped", weights: str | Sequence[float] | None = None, fusion: str = "concat"):
     """'shipped' -> both shipped encoders fused (lambda_2D = 0.6); else comma-separated shipped
-    names or folders made by ``olsplat export-clip``, fused with ``weights`` when several."""
-    parsed = [float(w) for w in weights.split(",")] if weights else None
+    names or folders made by ``olsplat export-clip``, fused with ``weights`` (lambda_2D per
+    encoder, as numbers or as the command line's "0.6,0.4") when several."""
+    try:
+        parsed = [float(w) for w in (weights.split(",") if isinstance(weights, str) else weights)] if weights else None
+    except ValueError:
+        raise OlsplatInputError(f"fusion weights must be numbers such as 0.6,0.4, got {weights!r}") from None
     try:
         if spec == "shipped":
             return default_encoder(tuple(parsed) if parsed else DEFAULT_WEIGHTS)

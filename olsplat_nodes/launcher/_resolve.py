@@ -1,6 +1,6 @@
 """From a node's launch-file entry to the exact params dict it is started with.
 
-Three rewrites, in this order, over the node's effective params (its class ``DEFAULTS``
+Three rewrites, in this order, over the node's effective params (its class's ``Params`` defaults
 updated with the launch file's ``params``):
 
 1. Placeholders: ``{run_dir}`` (absolute), ``{namespace}`` and ``{name}`` in strings (also inside
@@ -34,17 +34,23 @@ _PLACEHOLDER = re.compile(r"\{\{|\}\}|\{(\w*)\}")
 
 
 def resolve_launch(config: LaunchConfig, run_dir: Path) -> dict[str, dict[str, Any]]:
-    """The params of every node (name -> params), checked against each node class's
-    ``DEFAULTS``. Imports every node class; raises ``LaunchFileError`` naming file and key."""
+    """The params of every node (name -> params), checked against each node class's typed
+    ``Params`` (names, types, ranges). Imports every node class; raises ``LaunchFileError`` naming file and key."""
     resolved = {}
     for i, node in enumerate(config.nodes):
         key = f"nodes[{i}] ({node.name})"
         try:
-            defaults = node_class(node.exec).DEFAULTS
+            cls = node_class(node.exec)
         except OlsplatInputError as exc:
             raise LaunchFileError(f"{config.source}: {key}.exec: {exc}") from exc
-        resolved[node.name] = resolve_params(node, defaults, run_dir=run_dir, namespace=config.namespace_of(node),
-                                             composed=config.compose, where=f"{config.source}: {key}")  # fmt: skip
+        where = f"{config.source}: {key}"
+        params = resolve_params(node, cls.defaults(), run_dir=run_dir, namespace=config.namespace_of(node),
+                                composed=config.compose, where=where)  # fmt: skip
+        try:
+            cls.check_params(params, f"{where}.params")  # names, types and ranges, before any node starts
+        except OlsplatInputError as exc:
+            raise LaunchFileError(str(exc)) from exc
+        resolved[node.name] = params
     return resolved
 
 

@@ -17,14 +17,12 @@ from typing import TextIO
 
 import zmq
 
+from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK  # the exit codes of Supervisor.run
 from ._children import NodeLog, ProcessChild, ThreadChild, describe_exit
 from ._config import LaunchConfig, NodeConfig
 from ._resolve import resolve_launch
 
 _TICK_S = 0.05
-
-# Exit codes of Supervisor.run.
-EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
 
 
 @dataclass

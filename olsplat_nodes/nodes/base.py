@@ -1,44 +1,122 @@
-"""What every node shares: a name, a flat parameter dict, a zmq context, and ``run(stop)``.
+"""What every node shares: a name, typed parameters, a zmq context, and one loop.
 
 A node is started either in its own process (``python -m olsplat_nodes.nodes EXEC --name N
 --params-json JSON``; SIGTERM/SIGINT set ``stop``) or as a thread of a composed launch that
-shares one context. ``run`` returns the exit code: 0 when the node has finished its job (a
-finite replay fully processed), non-zero on failure; the supervisor restarts on failure.
+shares one context. ``run(stop)`` is the same for every node: ``setup`` (open the core state
+and the sockets), then ``spin`` until ``stop`` is set or ``spin`` returns an exit code, then
+``teardown`` and every socket closed, also after an exception. It returns the exit code: 0
+when the node has finished its job (a finite replay fully processed), ``EXIT_INTERRUPTED``
+when stopped, non-zero on failure; the supervisor restarts on failure.
 """
 
 from __future__ import annotations
 
+import collections
 import importlib
+import logging
 import threading
-from typing import Any
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import zmq
 
-from ..errors import OlsplatInputError
+from ..errors import EXIT_INTERRUPTED, OlsplatInputError
+from ..params import field_defaults, parse_params
 from . import NODES
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class NoParams:
+    """The parameters of a node that takes none."""
+
+
+class _Closable(Protocol):
+    def close(self) -> None: ...
 
 
 class Node:
-    """Base class. Subclasses declare ``DEFAULTS`` (every parameter they read, with its default)
-    and implement ``run``. Unknown parameters are an error: a typo in a launch file must not
-    silently fall back to a default."""
+    """Base class. Subclasses declare ``Params``, a frozen dataclass of every parameter they
+    read (typed, with defaults; ``{run_dir}``, ``{namespace}`` and ``{name}`` in string defaults
+    are filled in by the launcher), and implement ``spin`` (and usually ``setup``). A parameter
+    with an unknown name or a wrong type is an error before anything starts: a typo in a launch
+    file must not silently fall back to a default."""
 
-    DEFAULTS: dict[str, Any] = {}
+    Params: ClassVar[type] = NoParams
 
     def __init__(self, name: str, params: dict[str, Any] | None = None, context: zmq.Context | None = None):
         self.name = name
-        params = dict(params or {})
-        unknown = sorted(set(params) - set(self.DEFAULTS))
-        if unknown:
-            raise OlsplatInputError(
-                f"node {name!r} ({type(self).__name__}): unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(self.DEFAULTS))}"
-            )
-        self.params = {**self.DEFAULTS, **params}
+        where = f"node {name!r} ({type(self).__name__})"
+        self.params: Any = parse_params(self.Params, dict(params or {}), where)
+        self.validate(self.params, where)
         self.context = context or zmq.Context.instance()
+        self.stats = NodeStats()
+        self.seqs = SequenceCounter()
+        self._sockets: list[_Closable] = []
 
-    def run(self, stop: threading.Event) -> int:  # pragma: no cover - abstract
+    @classmethod
+    def defaults(cls) -> dict[str, Any]:
+        """Every parameter's name and default (the launcher resolves placeholders in these)."""
+        return field_defaults(cls.Params)
+
+    @classmethod
+    def check_params(cls, params: dict[str, Any], where: str) -> None:
+        """Everything about ``params`` that can be known before the node starts (names, types,
+        ranges); ParameterError starting with ``where``. The launcher calls it for every node
+        before it starts any."""
+        cls.validate(parse_params(cls.Params, params, where), where)
+
+    @classmethod
+    def validate(cls, params: Any, where: str) -> None:
+        """Checks across fields of a parsed ``Params``, for subclasses; none by default."""
+
+    # --- the loop -------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> int:
+        self.stop = stop
+        try:
+            self.setup()
+            while not stop.is_set():
+                code = self.spin()
+                if code is not None:
+                    return code
+            return EXIT_INTERRUPTED
+        finally:
+            try:
+                self.teardown()
+            finally:
+                for socket in reversed(self._sockets):
+                    socket.close()
+                self._sockets.clear()
+
+    def setup(self) -> None:
+        """Open the node's state and sockets (``self.own`` each socket so that it is closed)."""
+
+    def spin(self) -> int | None:
+        """One turn of the loop (it should block at most ~0.2 s, so that ``stop`` is seen);
+        return an exit code to end the node."""
         raise NotImplementedError
+
+    def teardown(self) -> None:
+        """Last words before the sockets close (a final heartbeat, say)."""
+
+    # --- helpers --------------------------------------------------------------------------
+    def own(self, socket):
+        """Register ``socket`` to be closed when the node ends; returns it."""
+        self._sockets.append(socket)
+        return socket
+
+    def publish(self, publisher, topic: str, message) -> None:
+        """Send ``message`` on ``topic`` with the next sequence number of its type; counted."""
+        publisher.send(topic, self.seqs.stamp(message))
+        self.stats.count("published")
+
+    def unexpected(self, message, topic: str) -> None:
+        """A well-formed message of a type this input does not take: counted, logged, dropped."""
+        self.stats.count("bad_messages")
+        log.warning("%s: unexpected %s on %s: dropped", self.name, type(message).__name__, topic)
 
 
 def node_class(exec_name: str) -> type[Node]:
@@ -64,8 +142,6 @@ class NodeStats:
     same window (it includes queueing upstream), ``busy_ms`` the mean handling time alone."""
 
     def __init__(self, window_s: float = 10.0):
-        import collections
-
         self.window_s = window_s
         self.events: collections.deque = collections.deque()  # (monotonic end, latency s, busy s)
         self.counts: dict[str, int] = {
@@ -81,8 +157,6 @@ class NodeStats:
         self.counts[key] = self.counts.get(key, 0) + n
 
     def handled(self, stamp_ns: int, busy_s: float) -> None:
-        import time
-
         now = time.monotonic()
         latency = max(time.time() - stamp_ns / 1e9, 0.0) if stamp_ns else busy_s
         self.events.append((now, latency, busy_s))
@@ -91,12 +165,10 @@ class NodeStats:
             self.events.popleft()
 
     def values(self, **extra) -> dict:
-        import time
-
         now = time.monotonic()
         recent = [e for e in self.events if e[0] >= now - self.window_s]
         span = min(self.window_s, max(now - recent[0][0], 1e-3)) if recent else self.window_s
-        out = dict(self.counts)
+        out: dict[str, Any] = dict(self.counts)
         out["rate_hz"] = round(len(recent) / span, 3) if len(recent) > 1 else 0.0
         out["latency_ms"] = round(1e3 * float(np.mean([e[1] for e in recent])), 1) if recent else 0.0
         out["busy_ms"] = round(1e3 * float(np.mean([e[2] for e in recent])), 1) if recent else 0.0

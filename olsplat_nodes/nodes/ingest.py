@@ -25,123 +25,101 @@ acquisition stamps. A live source never ends: the node runs until stopped.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import OrderedDict
+from dataclasses import dataclass, fields
 
-import numpy as np
+from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
-from olsplat_msgs import EndOfStream, ImageFrame, MapUpdated, ObservationsAdded
-
-from ..sources import SOURCE_DEFAULTS, open_source
+from ..sources import SourceParams, open_source
 from ..transport import Diagnostics, Publisher, Subscriber
-from .base import Node, NodeStats, SequenceCounter
+from .base import Node
+from .convert import frame_message
 
 log = logging.getLogger(__name__)
 
 
-def frame_message(frame, seq: int, stamp_ns: int | None = None) -> ImageFrame:
-    """A replay frame (sim.replay_log.ReplayFrame, sources.SourceFrame) as the wire message, stamped
-    ``stamp_ns`` (default: now)."""
-    camera = frame.camera
-    return ImageFrame(
-        stamp_ns=time.time_ns() if stamp_ns is None else stamp_ns,
-        seq=seq,
-        frame_id="camera",
-        name=frame.name,
-        image=np.ascontiguousarray(frame.image, np.uint8),
-        K=camera.K,
-        D=camera.dist,
-        distortion_model="plumb_bob" if len(camera.dist) else "none",
-        world_from_camera=camera.world_from_camera,
-        width=camera.width,
-        height=camera.height,
-    )
-
-
 class IngestNode(Node):
-    DEFAULTS = {
-        **SOURCE_DEFAULTS,  # source_kind, source, rate_hz, fast, exif_*, depthai_*, fixed_pose, telemetry_* (sources/README.md)
-        "lossless": True,
-        "window": 2,  # frames in flight without acknowledgement (lossless)
-        "ack_timeout_s": 20.0,  # send a frame again when it was not acknowledged in time
-        "frames_out": "ipc://{run_dir}/frames.sock",
-        "acks_in": "ipc://{run_dir}/observations.sock",
-        "map_in": "ipc://{run_dir}/map.sock",
-        "diagnostics": "",  # collector endpoint ("" = no heartbeats)
-        "topic_frames": "frames",
-        "topic_observations": "observations",
-        "topic_map": "map",
-        "hwm": 4,
-        "state_file": "{run_dir}/ingest_acknowledged.txt",  # acknowledged frame names: a restart skips them
-    }
+    @dataclass(frozen=True)
+    class Params(SourceParams):  # source_kind, source, rate_hz, fast, exif_*, depthai_*, fixed_pose, telemetry_*
+        lossless: bool = True
+        window: int = 2  # frames in flight without acknowledgement (lossless)
+        ack_timeout_s: float = 20.0  # send a frame again when it was not acknowledged in time
+        frames_out: str = "ipc://{run_dir}/frames.sock"
+        acks_in: str = "ipc://{run_dir}/observations.sock"
+        map_in: str = "ipc://{run_dir}/map.sock"
+        diagnostics: str = ""  # collector endpoint ("" = no heartbeats)
+        topic_frames: str = "frames"
+        topic_observations: str = "observations"
+        topic_map: str = "map"
+        hwm: int = 4
+        state_file: str = "{run_dir}/ingest_acknowledged.txt"  # acknowledged frame names: a restart skips them
 
-    def run(self, stop: threading.Event) -> int:
+    def setup(self) -> None:
         p = self.params
-        self.stats = NodeStats()
-        self.pub = Publisher(self.context, p["frames_out"], bind=True, hwm=p["hwm"])
-        self.acks = Subscriber(
-            self.context, [p["acks_in"], p["map_in"]], [p["topic_observations"], p["topic_map"]], hwm=100
+        self.pub = self.own(Publisher(self.context, p.frames_out, bind=True, hwm=p.hwm))
+        self.acks = self.own(
+            Subscriber(self.context, [p.acks_in, p.map_in], [p.topic_observations, p.topic_map], hwm=100)
         )
-        self.diag = Diagnostics(self.context, p["diagnostics"], self.name) if p["diagnostics"] else None
-        self.seqs = SequenceCounter()
+        self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
         self.acked = self._load_acknowledged()
         self.final_map = False
         self.pending: OrderedDict[str, tuple[object, float]] = OrderedDict()  # name -> (frame, last send time)
-        pending = self.pending
-        names: list[str] = []
+        self.names: list[str] = []
+        self.phase = "streaming"  # -> "delivering" (source done, frames in flight) -> "ending" (EndOfStream sent)
+        self.last_eos = 0.0
         self.source = None
-        try:
-            self.source = source = open_source({key: p[key] for key in SOURCE_DEFAULTS})
-            while not stop.is_set():
-                frame = source.read(0.1)
-                if frame is None:
-                    if source.done:
-                        break
-                    self._service(pending, 0)
-                    continue
-                names.append(frame.name)
-                if p["lossless"]:
-                    while len(pending) >= p["window"] and not stop.is_set():
-                        self._service(pending, 0.1)
-                    if frame.name in self.acked:
-                        continue  # a restarted ingest: this view is already in the map
-                    pending[frame.name] = (frame, time.monotonic())
-                self._send(frame)
-                self._service(pending, 0)
-            if stop.is_set():
-                return 130
-            while pending and not stop.is_set():
-                self._service(pending, 0.1)
-            log.info("all %d frames delivered; waiting for the final map", len(names))
-            last_eos = 0.0
-            while not self.final_map and not stop.is_set():
-                if time.monotonic() - last_eos > 1.0:
-                    self.pub.send(
-                        p["topic_frames"],
-                        self.seqs.stamp(
-                            EndOfStream(
-                                stamp_ns=time.time_ns(),
-                                frame_id="camera",
-                                source=str(p["source"]),
-                                frames=len(names),
-                                names=names,
-                            )
-                        ),
-                    )
-                    last_eos = time.monotonic()
-                self._service(pending, 0.1)
-            return 0 if self.final_map else 130
-        finally:
+        self.source = self.own(open_source({f.name: getattr(p, f.name) for f in fields(SourceParams)}))
+
+    def spin(self) -> int | None:
+        if self.phase == "streaming":
+            self._stream_one()
+        elif self.phase == "delivering":
+            self._service(0.1)
+            if not self.pending:
+                log.info("all %d frames delivered; waiting for the final map", len(self.names))
+                self.phase = "ending"
+        else:
+            if time.monotonic() - self.last_eos > 1.0:
+                eos = EndOfStream(
+                    stamp_ns=time.time_ns(),
+                    frame_id="camera",
+                    source=str(self.params.source),
+                    frames=len(self.names),
+                    names=self.names,
+                )
+                self.publish(self.pub, self.params.topic_frames, eos)
+                self.last_eos = time.monotonic()
+            self._service(0.1)
+            if self.final_map:
+                return 0
+        return None
+
+    def teardown(self) -> None:
+        if hasattr(self, "acks"):
             self._beat(force=True)
-            if self.source is not None:
-                self.source.close()
-            for socket in (self.pub, self.acks, self.diag):
-                if socket is not None:
-                    socket.close()
+
+    def _stream_one(self) -> None:
+        """Read one frame (waiting up to 0.1 s) and send it; in lossless mode first wait for room
+        in the window of unacknowledged frames."""
+        frame = self.source.read(0.1)
+        if frame is None:
+            if self.source.done:
+                self.phase = "delivering"
+            self._service(0)
+            return
+        self.names.append(frame.name)
+        if self.params.lossless:
+            while len(self.pending) >= self.params.window and not self.stop.is_set():
+                self._service(0.1)
+            if frame.name in self.acked:
+                return  # a restarted ingest: this view is already in the map
+            self.pending[frame.name] = (frame, time.monotonic())
+        self._send(frame)
+        self._service(0)
 
     def _load_acknowledged(self) -> set[str]:
-        path = self.params["state_file"]
+        path = self.params.state_file
         if not path:
             return set()
         try:
@@ -154,35 +132,31 @@ class IngestNode(Node):
 
     def _send(self, frame) -> None:
         start = time.perf_counter()
-        message = self.seqs.stamp(
-            frame_message(frame, 0, frame.stamp_ns if self.source is not None and self.source.live else None)
-        )
-        self.pub.send(self.params["topic_frames"], message)
-        self.stats.count("published")
+        message = frame_message(frame, 0, frame.stamp_ns if self.source.live else None)
+        self.publish(self.pub, self.params.topic_frames, message)
         self.stats.handled(message.stamp_ns, time.perf_counter() - start)
 
-    def _service(self, pending: OrderedDict, timeout_s: float) -> None:
+    def _service(self, timeout_s: float) -> None:
         """Take in acknowledgements and map announcements; resend overdue frames; heartbeat."""
+        p = self.params
         for _, message in self.acks.drain(int(timeout_s * 1000)):
             if isinstance(message, ObservationsAdded) and message.name not in self.acked:
                 self.acked.add(message.name)
-                pending.pop(message.name, None)
-                if self.params["state_file"]:
-                    with open(self.params["state_file"], "a") as f:
+                self.pending.pop(message.name, None)
+                if p.state_file:
+                    with open(p.state_file, "a") as f:
                         f.write(message.name + "\n")
             elif isinstance(message, MapUpdated) and message.final:
                 self.final_map = True
-            elif not isinstance(
-                message, (ObservationsAdded, MapUpdated, EndOfStream)
-            ):  # (EndOfStream: forwarded by the accumulator)
-                self.stats.count("bad_messages")
-                log.warning("unexpected %s on %s: dropped", type(message).__name__, " / ".join(self.acks.topics))
+            elif not isinstance(message, (ObservationsAdded, MapUpdated, EndOfStream)):
+                # (EndOfStream: forwarded by the accumulator)
+                self.unexpected(message, " / ".join(self.acks.topics))
         now = time.monotonic()
-        for name, (frame, sent) in list(pending.items()):
-            if now - sent > self.params["ack_timeout_s"]:
-                log.warning("frame %s not acknowledged in %.0f s: sending it again", name, self.params["ack_timeout_s"])
+        for name, (frame, sent) in list(self.pending.items()):
+            if now - sent > p.ack_timeout_s:
+                log.warning("frame %s not acknowledged in %.0f s: sending it again", name, p.ack_timeout_s)
                 self.stats.count("resent")
-                pending[name] = (frame, now)
+                self.pending[name] = (frame, now)
                 self._send(frame)
         self._beat()
 

@@ -15,6 +15,7 @@ import logging
 import math
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,110 +24,63 @@ from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, Stat
 
 from ..errors import OlsplatInputError
 from ..transport import DiagnosticsCollector, QueryServer, Subscriber, curve
-from .base import Node, NodeStats
-from .refiner import latest_map
+from .base import Node
+from .convert import reply_for
 
 log = logging.getLogger(__name__)
 
 
-def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray | None, seconds: float) -> QueryReply:
-    """The wire answer of a core QueryAnswer: 3D instances (and 2D regions in the view)."""
-    instances = [
-        {
-            "id": i,
-            "kind": "3d",
-            "n_gaussians": inst.gaussians,
-            "centroid": list(inst.centre),
-            "box_min": list(inst.box_min),
-            "box_max": list(inst.box_max),
-        }
-        for i, inst in enumerate(answer.instances)
-    ]
-    instances += [
-        {"id": i, "kind": "2d", "box2d": list(r.box), "centre_px": list(r.centre), "area_px": r.pixels}
-        for i, r in enumerate(answer.regions)
-    ]
-    return QueryReply(
-        stamp_ns=time.time_ns(),
-        frame_id="map",
-        request_id=request.request_id,
-        status="ok",
-        message=f"{int(answer.chosen.sum())} Gaussians pick it over {len(answer.negatives)} negatives",
-        text=answer.text,
-        view=request.view,
-        map_version=map_version,
-        instances=instances,
-        heatmap=None if answer.heatmap is None else answer.heatmap.astype(np.float32),
-        mask=None if answer.mask is None else answer.mask.astype(np.uint8),
-        image=image,
-        seconds=seconds,
-    )
-
-
 class QueryServerNode(Node):
-    DEFAULTS = {
-        "map": "",  # the prior Gaussian map (INRIA PLY)
-        "map_dir": "{run_dir}/map",
-        "views": "{run_dir}/views",
-        "negatives": [
-            "object",
-            "things",
-            "stuff",
-            "texture",
-        ],  # query.CANONICAL_NEGATIVES: texts a query must beat, unless the request names its own
-        "query_endpoint": "tcp://127.0.0.1:5600",
-        "diagnostics_bind": "ipc://{run_dir}/diagnostics.sock",
-        "map_in": "ipc://{run_dir}/map.sock",
-        "topic_map": "map",
-        "topic_diagnostics": "diagnostics",
-        "stale_after_s": 5.0,
-        "server_secret": "",  # CURVE: this server's secret key file ("" = no encryption)
-        "allow_dir": "",  # CURVE: folder of allowed client public keys
-        "max_text_chars": 200,
-    }
+    @dataclass(frozen=True)
+    class Params:
+        map: str = ""  # the prior Gaussian map (INRIA PLY)
+        map_dir: str = "{run_dir}/map"
+        views: str = "{run_dir}/views"
+        # query.CANONICAL_NEGATIVES: texts a query must beat, unless the request names its own
+        negatives: tuple[str, ...] = ("object", "things", "stuff", "texture")
+        query_endpoint: str = "tcp://127.0.0.1:5600"
+        diagnostics_bind: str = "ipc://{run_dir}/diagnostics.sock"
+        map_in: str = "ipc://{run_dir}/map.sock"
+        topic_map: str = "map"
+        topic_diagnostics: str = "diagnostics"
+        stale_after_s: float = 5.0
+        server_secret: str = ""  # CURVE: this server's secret key file ("" = no encryption)
+        allow_dir: str = ""  # CURVE: folder of allowed client public keys
+        max_text_chars: int = 200
 
-    def run(self, stop: threading.Event) -> int:
+    def setup(self) -> None:
         from ..scene import read_ply  # heavy imports here and below: the launcher imports node classes
 
         p = self.params
-        self.gaussians = read_ply(p["map"])
+        self.gaussians = read_ply(p.map)
         self.language_map, self.version, self.encoders = None, 0, {}
-        self.stats = NodeStats()
-        self.views: list = []  # pipeline.views.SavedView, re-read when the run's views folder grows
-        keys = curve.ServerKeys(p["server_secret"], p["allow_dir"]) if p["server_secret"] else None
-        opened = []  # closed on the way out, also when opening a later one fails
-        try:
-            server = QueryServer(self.context, p["query_endpoint"], keys=keys)
-            opened.append(server)
-            collector = DiagnosticsCollector(
-                self.context, p["diagnostics_bind"], p["stale_after_s"], topic=p["topic_diagnostics"]
-            )
-            opened.append(collector)
-            maps = Subscriber(self.context, [p["map_in"]], [p["topic_map"]], hwm=100)
-            opened.append(maps)
-            self._transport = (server, collector, maps)  # their counters go into this node's status
-            threading.Thread(target=self._warm_up, name=f"{self.name}-warm-up", daemon=True).start()
+        self.views: list = []  # aggregate.SavedView, re-read when the run's views folder grows
+        keys = curve.ServerKeys(p.server_secret, p.allow_dir) if p.server_secret else None
+        self.server = self.own(QueryServer(self.context, p.query_endpoint, keys=keys))
+        self.collector = self.own(
+            DiagnosticsCollector(self.context, p.diagnostics_bind, p.stale_after_s, topic=p.topic_diagnostics)
+        )
+        self.maps = self.own(Subscriber(self.context, [p.map_in], [p.topic_map], hwm=100))
+        threading.Thread(target=self._warm_up, name=f"{self.name}-warm-up", daemon=True).start()
+        self._load_latest()
+        self.last_check = time.monotonic()
+
+    def spin(self) -> int | None:
+        request = self.server.poll(100)
+        if request is not None:
+            identity, message = request
+            self.server.reply(identity, self._answer(message))
+        self.collector.poll(0)
+        announced = []
+        for _, update in self.maps.drain(0):
+            if isinstance(update, MapUpdated):
+                announced.append(update.version)
+            else:
+                self.unexpected(update, self.params.topic_map)
+        if (announced and max(announced) > self.version) or time.monotonic() - self.last_check > 2.0:
             self._load_latest()
-            last_check = time.monotonic()
-            while not stop.is_set():
-                request = server.poll(100)
-                if request is not None:
-                    identity, message = request
-                    server.reply(identity, self._answer(message))
-                collector.poll(0)
-                announced = []
-                for _, update in maps.drain(0):
-                    if isinstance(update, MapUpdated):
-                        announced.append(update.version)
-                    else:
-                        self._unexpected(update, p["topic_map"])
-                if (announced and max(announced) > self.version) or time.monotonic() - last_check > 2.0:
-                    self._load_latest()
-                    last_check = time.monotonic()
-            return 130
-        finally:
-            for socket in opened:
-                socket.close()
+            self.last_check = time.monotonic()
+        return None
 
     def _warm_up(self) -> None:
         """Compile the query kernels (numba: 3D clustering, feature rendering) on small inputs
@@ -146,7 +100,7 @@ class QueryServerNode(Node):
                 32,
                 24,
                 intrinsics(30.0, 30.0, 16.0, 12.0),
-                look_at(centre + [0.0, 0.0, 100.0], centre, (0.0, 1.0, 0.0)),
+                look_at(centre + np.array([0.0, 0.0, 100.0]), centre, (0.0, 1.0, 0.0)),
             )
             render_feature_map(self.gaussians, np.zeros((len(self.gaussians), 1), np.float32), camera)
             log.info("query kernels ready in %.1f s", time.perf_counter() - start)
@@ -154,9 +108,9 @@ class QueryServerNode(Node):
             log.exception("warm-up failed")
 
     def _load_latest(self) -> None:
-        from ..aggregate.snapshot import LanguageMap
+        from ..aggregate import LanguageMap, latest_map
 
-        record = latest_map(self.params["map_dir"])
+        record = latest_map(self.params.map_dir)
         if record is None or record["version"] <= self.version:
             return
         try:
@@ -197,9 +151,8 @@ class QueryServerNode(Node):
         return reply
 
     def _query(self, request: QueryRequest) -> QueryReply:
-        from ..pipeline.views import load_views
+        from ..aggregate import load_views
         from ..query.answer import answer_query, encoder_for_map
-        from ..query.localize import regions_in_view
         from ..scene import select_view
 
         def refuse(status: str, text: str) -> QueryReply:
@@ -216,41 +169,34 @@ class QueryServerNode(Node):
         text = request.text.strip()
         if not text:
             return refuse("bad_request", "the query text is empty")
-        if len(text) > self.params["max_text_chars"]:
-            return refuse("bad_request", f"the query text is longer than {self.params['max_text_chars']} characters")
+        if len(text) > self.params.max_text_chars:
+            return refuse("bad_request", f"the query text is longer than {self.params.max_text_chars} characters")
         if self.language_map is None:
             return refuse("no_map", "no map yet: no view has been aggregated and refined")
         try:
-            if len(self.views) != sum(1 for _ in Path(self.params["views"]).glob("*.json")):
-                self.views = load_views(self.params["views"])  # views are only ever added
+            if len(self.views) != sum(1 for _ in Path(self.params.views).glob("*.json")):
+                self.views = load_views(self.params.views)  # views are only ever added
             views = self.views
             camera = select_view([v.camera for v in views], request.view) if request.view else None
             image = views[[v.camera for v in views].index(camera)].image() if camera is not None else None
             encoder_name = self.language_map.encoder
             if encoder_name not in self.encoders:
                 self.encoders[encoder_name] = encoder_for_map(self.language_map)
-            negatives = request.negatives or self.params["negatives"]
-            answer = answer_query(
-                self.language_map, self.gaussians, self.encoders[encoder_name], text, negatives, camera
-            )
+            negatives = request.negatives or list(self.params.negatives)
+            threshold = request.threshold if math.isfinite(request.threshold) else None  # NaN: beat the negatives
+            encoder = self.encoders[encoder_name]
+            answer = answer_query(self.language_map, self.gaussians, encoder, text, negatives, camera, threshold)
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))
-        if answer.mask is not None and math.isfinite(request.threshold):  # the caller's own cut on H_q
-            answer.mask = (answer.heatmap > request.threshold) & (answer.alpha > 0.5)
-            answer.regions = regions_in_view(answer.mask)
         if not request.heatmap:
             answer.heatmap = answer.mask = None
             image = None
         return reply_for(answer, request, self.version, image, 0.0)
 
-    def _unexpected(self, message, topic: str) -> None:
-        self.stats.count("bad_messages")
-        log.warning("unexpected %s on %s: dropped", type(message).__name__, topic)
-
     def _values(self) -> dict:
         """This node's own status values: its counters and those of its three sockets;
         ``bad_messages`` counts bad input on any of them (as every other node reports it)."""
-        server, collector, maps = self._transport
+        server, collector, maps = self.server, self.collector, self.maps
         values = self.stats.values(
             **server.stats,  # requests, bad_requests, replies, dropped_replies, auth_failures
             **{f"diagnostics_{k}": collector.stats[k] for k in ("received", "bad_messages", "gaps")},
@@ -274,4 +220,4 @@ class QueryServerNode(Node):
             "values": self._values(),
             "age_s": 0.0,
         }
-        return [own, *self._transport[1].nodes()]
+        return [own, *self.collector.nodes()]

@@ -11,28 +11,19 @@ being encoded twice.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
 from olsplat_msgs import EndOfStream, ImageFrame, RegionFeatures
 
 from ..transport import Diagnostics, Publisher, Subscriber
-from .base import Node, NodeStats, SequenceCounter
+from .base import Node
+from .convert import camera_of, regions_message
 
 log = logging.getLogger(__name__)
-
-
-def camera_of(message):
-    """The scene.Camera of an ImageFrame / RegionFeatures; ValueError when its fields are inconsistent."""
-    from ..scene import Camera
-
-    camera = Camera(message.name, message.width, message.height, message.K, message.world_from_camera, message.D)
-    if message.image is not None and message.image.shape != (message.height, message.width, 3):
-        raise ValueError(f"image is {message.image.shape}, but the camera says {message.height}x{message.width}x3")
-    return camera
 
 
 def encode_frame(frame: ImageFrame, encoder, region_config) -> RegionFeatures:
@@ -44,86 +35,70 @@ def encode_frame(frame: ImageFrame, encoder, region_config) -> RegionFeatures:
     image = np.ascontiguousarray(frame.image)
     levels = propose_regions(image, region_config)
     bank = encode_regions(image, levels, encoder)
-    return RegionFeatures(
-        stamp_ns=frame.stamp_ns,
-        seq=frame.seq,
-        frame_id=frame.frame_id,
-        name=frame.name,
-        source_seq=frame.seq,
-        encoder=encoder.name,
-        label_maps=levels.label_maps.astype(np.int32),
-        level_sizes=np.array([len(f) for f in bank.features], np.int32),
-        features=np.concatenate(bank.features).astype(np.float16),
-        image=image,
-        K=frame.K,
-        D=frame.D,
-        distortion_model=frame.distortion_model,
-        world_from_camera=frame.world_from_camera,
-        width=frame.width,
-        height=frame.height,
-    )
+    return regions_message(frame, levels.label_maps, bank.features, encoder.name)
 
 
 class RegionEncoderNode(Node):
-    DEFAULTS = {
-        "encoder": "shipped",  # encoder spec as in ``olsplat encode --encoder``
-        "encoder_weights": "",  # lambda_2D weights, e.g. "0.6,0.4" ("" = the default)
-        "latest_wins": True,
-        "recent": 8,  # results kept to answer re-sent frames
-        "frames_in": "ipc://{run_dir}/frames.sock",
-        "regions_out": "ipc://{run_dir}/regions.sock",
-        "diagnostics": "",
-        "topic_frames": "frames",
-        "topic_regions": "regions",
-        "hwm": 4,
-    }
+    @dataclass(frozen=True)
+    class Params:
+        encoder: str = "shipped"  # encoder spec as in ``olsplat encode --encoders``
+        encoder_weights: tuple[float, ...] = ()  # lambda_2D per encoder, e.g. [0.6, 0.4]; [] = the default
+        level_counts: tuple[int, ...] = (24, 80, 240)  # regions per level at 640x480, coarse to fine
+        latest_wins: bool = True
+        recent: int = 8  # results kept to answer re-sent frames
+        frames_in: str = "ipc://{run_dir}/frames.sock"
+        regions_out: str = "ipc://{run_dir}/regions.sock"
+        diagnostics: str = ""
+        topic_frames: str = "frames"
+        topic_regions: str = "regions"
+        hwm: int = 4
 
-    def run(self, stop: threading.Event) -> int:
+    def setup(self) -> None:
         from ..encoders.spec import encoder_from_spec
+        from ..errors import OlsplatInputError
         from ..regions import RegionConfig
 
         p = self.params
-        encoder = encoder_from_spec(p["encoder"], p["encoder_weights"] or None)
-        region_config = RegionConfig()
-        stats = NodeStats()
-        sub = Subscriber(self.context, [p["frames_in"]], [p["topic_frames"]], hwm=p["hwm"])
-        pub = Publisher(self.context, p["regions_out"], bind=True, hwm=p["hwm"])
-        diag = Diagnostics(self.context, p["diagnostics"], self.name) if p["diagnostics"] else None
-        recent: OrderedDict[str, RegionFeatures] = OrderedDict()
-        seqs = SequenceCounter()
+        self.encoder = encoder_from_spec(p.encoder, p.encoder_weights or None)
         try:
-            while not stop.is_set():
-                batch = sub.drain(200)
-                stats.count("received", len(batch))
-                frames = [m for _, m in batch if isinstance(m, ImageFrame)]
-                if p["latest_wins"] and len(frames) > 1:
-                    stats.count("dropped", len(frames) - 1)
-                    frames = frames[-1:]
-                chosen = {id(f) for f in frames}
-                for _, message in batch:
-                    if isinstance(message, EndOfStream):
-                        pub.send(p["topic_regions"], seqs.stamp(message))
-                    elif id(message) in chosen:
-                        start = time.perf_counter()
-                        try:
-                            out = recent.get(message.name) or encode_frame(message, encoder, region_config)
-                        except ValueError as exc:
-                            stats.count("bad_messages")
-                            log.warning("frame %s (seq %d) dropped: %s", message.name, message.seq, exc)
-                            continue
-                        recent[message.name] = out
-                        while len(recent) > p["recent"]:
-                            recent.popitem(last=False)
-                        pub.send(p["topic_regions"], seqs.stamp(out))
-                        stats.count("published")
-                        stats.handled(message.stamp_ns, time.perf_counter() - start)
-                    elif not isinstance(message, ImageFrame):
-                        stats.count("bad_messages")
-                        log.warning("unexpected %s on %s: dropped", type(message).__name__, p["topic_frames"])
-                if diag is not None:
-                    diag.beat(0, "encoding", stats.with_sockets(sub.stats, queue_depth=len(batch)))
-            return 130
-        finally:
-            for socket in (sub, pub, diag):
-                if socket is not None:
-                    socket.close()
+            self.region_config = RegionConfig(level_counts=p.level_counts)
+        except ValueError as exc:
+            raise OlsplatInputError(f"node {self.name!r}: {exc}") from exc
+        self.sub = self.own(Subscriber(self.context, [p.frames_in], [p.topic_frames], hwm=p.hwm))
+        self.pub = self.own(Publisher(self.context, p.regions_out, bind=True, hwm=p.hwm))
+        self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
+        self.recent: OrderedDict[str, RegionFeatures] = OrderedDict()
+
+    def spin(self) -> int | None:
+        p = self.params
+        batch = self.sub.drain(200)
+        self.stats.count("received", len(batch))
+        frames = [m for _, m in batch if isinstance(m, ImageFrame)]
+        if p.latest_wins and len(frames) > 1:
+            self.stats.count("dropped", len(frames) - 1)
+            frames = frames[-1:]
+        chosen = {id(f) for f in frames}
+        for _, message in batch:
+            if isinstance(message, EndOfStream):
+                self.publish(self.pub, p.topic_regions, message)
+            elif id(message) in chosen:
+                self._encode(message)
+            elif not isinstance(message, ImageFrame):
+                self.unexpected(message, p.topic_frames)
+        if self.diag is not None:
+            self.diag.beat(0, "encoding", self.stats.with_sockets(self.sub.stats, queue_depth=len(batch)))
+        return None
+
+    def _encode(self, frame: ImageFrame) -> None:
+        start = time.perf_counter()
+        try:
+            out = self.recent.get(frame.name) or encode_frame(frame, self.encoder, self.region_config)
+        except ValueError as exc:
+            self.stats.count("bad_messages")
+            log.warning("frame %s (seq %d) dropped: %s", frame.name, frame.seq, exc)
+            return
+        self.recent[frame.name] = out
+        while len(self.recent) > self.params.recent:
+            self.recent.popitem(last=False)
+        self.publish(self.pub, self.params.topic_regions, out)
+        self.stats.handled(frame.stamp_ns, time.perf_counter() - start)

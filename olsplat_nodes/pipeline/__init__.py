@@ -1,5 +1,7 @@
-"""Offline end-to-end runs of the method on scene folders (the nodes run the same core live)."""
+"""Offline runs of the method on scene folders (``olsplat aggregate`` / ``eval`` and the
+benchmarks); the live nodes run the same per-view step (``olsplat_nodes.method``)."""
 
-from .offline import METHODS, Scene, aggregate_scene
+from .offline import aggregate_scene
+from .scene_folder import Scene, view_features
 
-__all__ = ["METHODS", "Scene", "aggregate_scene"]
+__all__ = ["Scene", "aggregate_scene", "view_features"]

@@ -16,7 +16,7 @@ import numpy as np
 from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..scene import Camera, Gaussians
-from .heatmap import CANONICAL_NEGATIVES, heatmaps, relevancy_mask, render_feature_map
+from .heatmap import CANONICAL_NEGATIVES, heatmaps, relevancy_mask, render_feature_map, threshold_mask
 from .localize import Instance3D, Region2D, instances_in_3d, regions_in_view
 
 
@@ -48,9 +48,11 @@ def answer_query(
     text: str,
     negatives: list[str] | tuple[str, ...] = CANONICAL_NEGATIVES,
     camera: Camera | None = None,
+    threshold: float | None = None,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
-    mask and 2D regions of that view. Raises OlsplatInputError on an empty text or a map that
+    mask and 2D regions of that view. The mask is where the query beats every negative, or,
+    with ``threshold``, where its cosine heatmap exceeds that value. Raises OlsplatInputError on an empty text or a map that
     does not match the Gaussians."""
     text = text.strip()
     if not text:
@@ -69,6 +71,9 @@ def answer_query(
         feature_map, alpha = render_feature_map(gaussians, features, camera)
         maps = heatmaps(feature_map, embeddings)
         answer.heatmap, answer.negative_heatmaps, answer.alpha = maps[0], maps[1:], alpha
-        answer.mask = relevancy_mask(maps[0], maps[1:], alpha)
+        if threshold is None:
+            answer.mask = relevancy_mask(maps[0], maps[1:], alpha)
+        else:
+            answer.mask = threshold_mask(maps[0], threshold, alpha)
         answer.regions = regions_in_view(answer.mask)
     return answer

@@ -44,3 +44,8 @@ def relevancy_mask(
 ) -> np.ndarray:
     """[H, W] bool: where the query's heatmap beats every negative's."""
     return (query_map > negative_maps.max(0)) & (alpha > min_alpha) if len(negative_maps) else alpha > min_alpha
+
+
+def threshold_mask(query_map: np.ndarray, threshold: float, alpha: np.ndarray, min_alpha: float = 0.5) -> np.ndarray:
+    """[H, W] bool: where the query's cosine heatmap exceeds the caller's own ``threshold``."""
+    return (query_map > threshold) & (alpha > min_alpha)

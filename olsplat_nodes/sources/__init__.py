@@ -1,6 +1,6 @@
 """Camera sources for the ingest node: replay logs, folders of geotagged photos, OAK cameras.
 
-``open_source(spec)`` builds one from the ingest's flat parameters (``SOURCE_DEFAULTS``, README.md
+``open_source(spec)`` builds one from the ingest's flat parameters (``SourceParams``, README.md
 beside this file). A source is polled: ``read(timeout_s) -> SourceFrame | None``, ``done``,
 ``stats``, ``status() -> (level, message)`` (DiagnosticStatus levels 0 OK .. 3 STALE).
 """
@@ -16,13 +16,14 @@ from .exif import (
     read_exif,
 )
 from .oak import DepthAISource, camera_from_calibration, crop_intrinsics, discover_devices, trim_distortion
-from .open import SOURCE_DEFAULTS, SOURCE_KINDS, open_source, telemetry_config
+from .open import SOURCE_DEFAULTS, SOURCE_KINDS, SourceParams, open_source, telemetry_config
 from .replay import ReplaySource
 
 __all__ = [
     "ERROR",
     "OK",
     "SOURCE_DEFAULTS",
+    "SourceParams",
     "SOURCE_KINDS",
     "STALE",
     "WARN",

@@ -4,48 +4,64 @@
 from __future__ import annotations
 
 import time
-from dataclasses import fields
+from dataclasses import asdict, dataclass, fields
+from typing import Literal
 
 import numpy as np
 
+from ..params import field_defaults, parse_params
 from ..telemetry import TelemetryConfig
 from .base import Source
 
 SOURCE_KINDS = ("replay", "exif_folder", "depthai")
 
 
-def _yaml_value(value):
-    return list(value) if isinstance(value, tuple) else ([] if value is None else value)
+@dataclass(frozen=True)
+class SourceParams:
+    """The flat source parameters of the ingest node and ``olsplat record`` (README.md beside
+    this file documents each)."""
+
+    source_kind: Literal["replay", "exif_folder", "depthai"] = "replay"
+    source: str = ""  # replay: a replay log (.mcap) or a folder with images/ + COLMAP model; exif_folder: JPEGs
+    rate_hz: float = 0.0  # replay, exif_folder: 0 = the recorded pace
+    fast: bool = False  # replay, exif_folder: as fast as possible
+    exif_reference: tuple[float, ...] = ()  # exif_folder: (lat_deg, lon_deg, alt_m) of the ENU origin; () = first photo
+    exif_focal_px: float = 0.0  # exif_folder: focal length in pixels; 0 = from EXIF
+    exif_sensor_width_mm: float = 0.0  # exif_folder: sensor width when EXIF has only FocalLength
+    depthai_device: str = ""  # depthai: device id or name; "" = the first found
+    depthai_socket: str = "CAM_A"  # depthai: dai.CameraBoardSocket name
+    depthai_width: int = 1280  # depthai: output size in pixels (CROP resize of the sensor)
+    depthai_height: int = 720
+    depthai_fps: float = 10.0
+    depthai_retry_s: float = 3.0  # depthai: look for a device this often while none is streaming
+    depthai_frame_timeout_s: float = 3.0  # depthai: no frame for this long = device lost, reconnect
+    depthai_max_pending: int = 30  # depthai: frames kept while waiting for telemetry (oldest dropped beyond)
+    # depthai without telemetry: 16 numbers, row-major world_from_camera; () = nadir at the origin, image top north
+    fixed_pose: tuple[float, ...] = ()
+    # telemetry_*: TelemetryConfig's fields (telemetry/config.py); telemetry_url "" = no telemetry
+    telemetry_url: str = ""
+    telemetry_baudrate: int = 57600
+    telemetry_dialect: str = "all"
+    telemetry_attitude: Literal["ATTITUDE", "ATTITUDE_QUATERNION"] = "ATTITUDE"
+    telemetry_position: Literal["local", "global"] = "local"
+    telemetry_reference: tuple[float, float, float] | None = None
+    telemetry_mount_rpy_deg: tuple[float, float, float] = (0.0, -90.0, 0.0)
+    telemetry_mount_matrix: tuple[float, ...] | None = None
+    telemetry_lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    telemetry_tolerance_s: float = 0.1
+    telemetry_max_wait_s: float = 1.0
+    telemetry_buffer_len: int = 1000
+    telemetry_clock: Literal["receive", "system_time"] = "receive"
+    telemetry_clock_window_s: float = 10.0
 
 
-_TELEMETRY_FIELDS = {f.name: f.default for f in fields(TelemetryConfig)}
-
-SOURCE_DEFAULTS = {
-    "source_kind": "replay",  # replay | exif_folder | depthai
-    "source": "",  # replay: a replay log (.mcap) or a folder with images/ + COLMAP model; exif_folder: a folder of JPEGs
-    "rate_hz": 0.0,  # replay, exif_folder: 0 = the recorded pace
-    "fast": False,  # replay, exif_folder: as fast as possible
-    "exif_reference": [],  # exif_folder: [lat_deg, lon_deg, alt_m] of the ENU world origin; [] = the first photo
-    "exif_focal_px": 0.0,  # exif_folder: focal length in pixels; 0 = from EXIF
-    "exif_sensor_width_mm": 0.0,  # exif_folder: sensor width when EXIF has only FocalLength
-    "depthai_device": "",  # depthai: device id or name; "" = the first found
-    "depthai_socket": "CAM_A",  # depthai: dai.CameraBoardSocket name
-    "depthai_width": 1280,  # depthai: output size in pixels (CROP resize of the sensor)
-    "depthai_height": 720,
-    "depthai_fps": 10.0,
-    "depthai_retry_s": 3.0,  # depthai: look for a device this often while none is streaming
-    "depthai_frame_timeout_s": 3.0,  # depthai: no frame for this long = device lost, reconnect
-    "depthai_max_pending": 30,  # depthai: frames kept while waiting for telemetry (oldest dropped beyond)
-    "fixed_pose": [],  # depthai without telemetry: 16 numbers, row-major world_from_camera; [] = nadir at the origin, image top north
-    **{
-        f"telemetry_{name}": _yaml_value(default) for name, default in _TELEMETRY_FIELDS.items()
-    },  # telemetry_url "" = no telemetry
-}
+SOURCE_DEFAULTS = field_defaults(SourceParams)  # name -> default, for tools that list them
 
 
-def telemetry_config(spec: dict) -> TelemetryConfig | None:
+def telemetry_config(spec: dict | SourceParams) -> TelemetryConfig | None:
     """The ``TelemetryConfig`` of ``telemetry_*`` params, or None when ``telemetry_url`` is empty."""
-    params = {name: spec.get(f"telemetry_{name}", SOURCE_DEFAULTS[f"telemetry_{name}"]) for name in _TELEMETRY_FIELDS}
+    p = spec if isinstance(spec, SourceParams) else parse_params(SourceParams, spec, "source")
+    params = {f.name: getattr(p, f"telemetry_{f.name}") for f in fields(TelemetryConfig)}
     if not params["url"]:
         return None
     for name in ("reference", "mount_matrix"):
@@ -67,12 +83,10 @@ def fixed_world_from_camera(values) -> np.ndarray:
     return pose.reshape(4, 4)
 
 
-def open_source(spec: dict) -> Source:
-    """A source from flat params (missing keys take ``SOURCE_DEFAULTS``; unknown keys: ValueError)."""
-    unknown = sorted(set(spec) - set(SOURCE_DEFAULTS))
-    if unknown:
-        raise ValueError(f"unknown source parameter(s) {unknown}; known: {sorted(SOURCE_DEFAULTS)}")
-    p = {**SOURCE_DEFAULTS, **spec}
+def open_source(spec: dict | SourceParams) -> Source:
+    """A source from flat params (a mapping checked against ``SourceParams``: unknown names and
+    wrong types are a ``ParameterError``, a ValueError), or from ``SourceParams`` itself."""
+    p = asdict(spec) if isinstance(spec, SourceParams) else asdict(parse_params(SourceParams, spec, "source"))
     kind = p["source_kind"]
     if kind == "replay":
         from .replay import ReplaySource

@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import label_texts, load_queries
     from ..launcher import Supervisor, load_launch
-    from ..nodes.refiner import latest_map
+    from ..aggregate.snapshot import latest_map
     from ..viz import write_query_pictures
     from .ground import print_status
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    from ..pipeline import METHODS
+    from ..method import METHODS
 
     ev = subparsers.add_parser("eval", help="aggregate with several methods and score them on the annotations")
     ev.add_argument(
@@ -40,6 +40,14 @@ def add_parser(subparsers) -> None:
     ev.add_argument(
         "--fusion-sweep", action="store_true", help="also run the paper's Table 7 (lambda_2D x lambda_f, 12 runs)"
     )
+    ev.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a method parameter for every method, as in launch files (tau_d=0.3, beta=[1,2,4], topk_max=24); repeatable; "
+        "names: olsplat_nodes/method/params.py",
+    )
     ev.add_argument("--work", type=Path, help="folder for the per-run maps (default: SCENE/eval)")
     ev.add_argument("--json", type=Path, help="write the results here")
     ev.add_argument("--md", type=Path, help="write the paper's tables (Markdown) here")
@@ -64,14 +72,16 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluate.figures import qualitative_figures
     from ..evaluate.runs import plan_runs
     from ..evaluate.tables import overall, paper_tables
+    from ..method import MethodParams
+    from ..params import parse_assignments, parse_params
     from ..pipeline import Scene, aggregate_scene
-    from ..pipeline.offline import method
     from ..structure.branch import StructureConfig
 
     scenes = [Scene.open(folder) for folder in args.scene]  # every folder is checked before any work
     names = [m.strip() for m in args.methods.split(",") if m.strip()]
-    for name in names:
-        method(name)  # unknown names fail before any work
+    settings = parse_assignments(args.set, "--set")
+    if "method" in settings:
+        raise OlsplatInputError("--set method=...: choose methods with --methods")
     if not 0.0 <= args.lambda_f <= 1.0:
         raise OlsplatInputError(f"--lambda-f must be in [0, 1], got {args.lambda_f}")
     if args.minkunet and not args.minkunet.is_file():
@@ -81,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
     runs = plan_runs(
         names, args.encoders, weights, args.features == "2d3d", args.feature_ablation, args.fusion_sweep, structure
     )
+    methods = {  # unknown names and bad values fail before any work
+        r.method: parse_params(MethodParams, {**settings, "method": r.method}, "--set").resolve("--set") for r in runs
+    }
     encoders = {}
     for r in runs:  # every encoder is loaded before any work
         if (r.encoders, r.weights) not in encoders:
@@ -102,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
                 shutil.rmtree(out, ignore_errors=True)
                 stats = aggregate_scene(
                     scene,
-                    r.method,
+                    methods[r.method],
                     encoder,
                     out,
                     lambda xs, n=r.label: tqdm(xs, desc=n, unit="view"),
@@ -112,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
                 scores = evaluate_map(scene, language_map, encoder)
                 done[key] = ({**scores, "seconds": stats["seconds"], "peak_rss_mb": stats["peak_rss_mb"]}, language_map)
             scores, language_map = done[key]
-            results[title][r.label] = {**scores, "run": r.describe()}
+            results[title][r.label] = {**scores, "run": {**r.describe(), "settings": settings}}
             if r.kind == "method":
                 maps[r.label] = language_map
             print(f"{title}: {r.label:28s} mIoU {scores['mIoU']:5.1f}  mAcc {scores['mAcc']:5.1f}  Loc@40/50/60 "

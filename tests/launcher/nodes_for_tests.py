@@ -8,6 +8,8 @@ import logging
 import os
 import threading
 import time
+from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 import zmq
@@ -23,51 +25,56 @@ class Ticker(Node):
     "raise" raises), later runs go on normally. With ``wait_for`` (a path) it starts ticking
     only once that file exists (another node is up)."""
 
-    DEFAULTS = {
-        "ticks": 3,
-        "period_s": 0.01,
-        "exit_code": 0,
-        "crash_once": "",
-        "crash_how": "exit",
-        "topic": "ticks",
-        "note": "",
-        "wait_for": "",
-    }
+    @dataclass(frozen=True)
+    class Params:
+        ticks: int = 3
+        period_s: float = 0.01
+        exit_code: int = 0
+        crash_once: str = ""
+        crash_how: str = "exit"
+        topic: str = "ticks"
+        note: str = ""
+        wait_for: str = ""
+        extra: tuple[Any, ...] = ()  # unused: a list parameter whose items may be anything
 
     def run(self, stop: threading.Event) -> int:
         p = self.params
-        log.info("%s starting: topic=%s note=%s", self.name, p["topic"], p["note"])
-        if p["crash_once"] and not os.path.exists(p["crash_once"]):
-            Path(p["crash_once"]).touch()
-            if p["crash_how"] == "raise":
+        log.info("%s starting: topic=%s note=%s", self.name, p.topic, p.note)
+        if p.crash_once and not os.path.exists(p.crash_once):
+            Path(p.crash_once).touch()
+            if p.crash_how == "raise":
                 raise RuntimeError(f"{self.name} crashes on purpose")
             log.info("%s crashing on purpose", self.name)
             return 3
-        while p["wait_for"] and not os.path.exists(p["wait_for"]):
+        while p.wait_for and not os.path.exists(p.wait_for):
             if stop.wait(0.02):
                 return 0
-        for i in range(p["ticks"]):
-            if stop.wait(p["period_s"]):
+        for i in range(p.ticks):
+            if stop.wait(p.period_s):
                 return 0
             log.info("%s tick %d", self.name, i)
-        return int(p["exit_code"])
+        return int(p.exit_code)
 
 
 class Waiter(Node):
     """Writes its pid to ``pid_file``, then runs until ``release_file`` exists (returns 0) or
     it is stopped (returns 0). With ``ignore_stop`` it keeps running after stop (to be killed)."""
 
-    DEFAULTS = {"pid_file": "", "release_file": "", "ignore_stop": False}
+    @dataclass(frozen=True)
+    class Params:
+        pid_file: str = ""
+        release_file: str = ""
+        ignore_stop: bool = False
 
     def run(self, stop: threading.Event) -> int:
         p = self.params
-        if p["pid_file"]:
-            tmp = Path(p["pid_file"] + ".tmp")
+        if p.pid_file:
+            tmp = Path(p.pid_file + ".tmp")
             tmp.write_text(str(os.getpid()))
-            tmp.replace(p["pid_file"])  # atomic: a reader never sees an empty file
+            tmp.replace(p.pid_file)  # atomic: a reader never sees an empty file
         log.info("%s waiting (pid %d)", self.name, os.getpid())
-        while p["ignore_stop"] or not stop.is_set():
-            if p["release_file"] and os.path.exists(p["release_file"]):
+        while p.ignore_stop or not stop.is_set():
+            if p.release_file and os.path.exists(p.release_file):
                 log.info("%s released", self.name)
                 return 0
             time.sleep(0.02)
@@ -78,17 +85,21 @@ class Waiter(Node):
 class Talker(Node):
     """PUB bound to ``endpoint``; sends ``TOPIC i`` every ``period_s`` until stopped."""
 
-    DEFAULTS = {"endpoint": "ipc://{run_dir}/talk.sock", "topic_out": "chatter", "period_s": 0.02}
+    @dataclass(frozen=True)
+    class Params:
+        endpoint: str = "ipc://{run_dir}/talk.sock"
+        topic_out: str = "chatter"
+        period_s: float = 0.02
 
     def run(self, stop: threading.Event) -> int:
         sock = self.context.socket(zmq.PUB)
         sock.linger = 0
         try:
-            sock.bind(self.params["endpoint"])
-            log.info("%s publishing %s on %s", self.name, self.params["topic_out"], self.params["endpoint"])
+            sock.bind(self.params.endpoint)
+            log.info("%s publishing %s on %s", self.name, self.params.topic_out, self.params.endpoint)
             i = 0
-            while not stop.wait(self.params["period_s"]):
-                sock.send_string(f"{self.params['topic_out']} {i}")
+            while not stop.wait(self.params.period_s):
+                sock.send_string(f"{self.params.topic_out} {i}")
                 i += 1
         finally:
             sock.close()
@@ -99,20 +110,25 @@ class Listener(Node):
     """SUB connected to ``endpoint``; returns 0 after ``count`` messages on ``topic_in``, 2 if
     none arrive within ``timeout_s``."""
 
-    DEFAULTS = {"endpoint": "ipc://{run_dir}/talk.sock", "topic_in": "chatter", "count": 3, "timeout_s": 10.0}
+    @dataclass(frozen=True)
+    class Params:
+        endpoint: str = "ipc://{run_dir}/talk.sock"
+        topic_in: str = "chatter"
+        count: int = 3
+        timeout_s: float = 10.0
 
     def run(self, stop: threading.Event) -> int:
         sock = self.context.socket(zmq.SUB)
         sock.linger = 0
         try:
-            sock.connect(self.params["endpoint"])
-            sock.subscribe(self.params["topic_in"] + " ")
-            log.info("%s listening to %s on %s", self.name, self.params["topic_in"], self.params["endpoint"])
+            sock.connect(self.params.endpoint)
+            sock.subscribe(self.params.topic_in + " ")
+            log.info("%s listening to %s on %s", self.name, self.params.topic_in, self.params.endpoint)
             got = 0
-            deadline = time.monotonic() + self.params["timeout_s"]
-            while got < self.params["count"] and not stop.is_set():
+            deadline = time.monotonic() + self.params.timeout_s
+            while got < self.params.count and not stop.is_set():
                 if time.monotonic() > deadline:
-                    log.error("%s: nothing heard within %s s", self.name, self.params["timeout_s"])
+                    log.error("%s: nothing heard within %s s", self.name, self.params.timeout_s)
                     return 2
                 if sock.poll(50):
                     log.info("%s heard %s", self.name, sock.recv_string())

@@ -71,3 +71,32 @@ def test_launch_errors_are_one_line_and_exit_1(tmp_path):
         f"olsplat launch: error: {path}: --set 'tocker.ticks=2': no node named 'tocker'; nodes: ticker (or 'launch' for a top-level key)"
     ]
     assert not (tmp_path / "run").exists()  # nothing started, nothing written
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        (
+            "accumulator.tau_dd=0.3",
+            "nodes[3] (accumulator).params: unknown parameter 'tau_dd'; did you mean tau_d",
+        ),
+        ("accumulator.tau_d=high", "nodes[3] (accumulator).params.tau_d: expected a number or null, got 'high'"),
+        ("accumulator.tau_d=-1", "nodes[3] (accumulator).params: need kappa > 0, tau_d >= 0"),
+        ("accumulator.method=outlangsplot", "nodes[3] (accumulator).params.method: unknown method 'outlangsplot'"),
+        ("region_encoder.encoder_weights=0.6,0.4", "nodes[2] (region_encoder).params.encoder_weights: expected a list"),
+        ("refiner.method=topk", "nodes[4] (refiner).params: unknown parameter 'method'"),
+    ],
+)
+def test_the_shipped_graph_refuses_a_bad_parameter_at_launch_in_one_line(tmp_path, override, message):
+    """A misspelt name, a wrong type or an out-of-range method value in the real replay graph
+    is refused before any node starts: one line naming the file, the node and the parameter."""
+    run = tmp_path / "run"
+    result = subprocess.run(
+        [str(OLSPLAT), "launch", "launch/replay.yaml", "--run-dir", str(run), "--set", override],
+        capture_output=True, text=True, cwd=REPO, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 1, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("olsplat launch: error: launch/replay.yaml: "), lines
+    assert message in lines[0]
+    assert not run.exists()  # nothing started, nothing written

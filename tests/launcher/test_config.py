@@ -131,14 +131,14 @@ def test_placeholders_are_substituted_in_launch_values_and_defaults(tmp_path):
     config = parse_launch({"namespace": "uav1", "run_dir": "rel/run", "nodes": [
         {"name": "talk", "exec": f"{NODES}:Talker", "params": {"period_s": 0.1}},
         {"name": "tick", "exec": f"{NODES}:Ticker", "params": {"note": "{name} in {namespace} at {run_dir}, {{literal}}",
-                                                             "crash_once": ["{run_dir}/x", {"k": "{name}"}]}},
+                                                             "extra": ["{run_dir}/x", {"k": "{name}"}]}},
     ]})  # fmt: skip
     run_dir = (tmp_path / "rel" / "run").resolve()
     params = resolve_launch(config, run_dir)
     # The Talker's default endpoint carries {run_dir}: substituted although the file does not set it.
     assert params["talk"] == {"endpoint": f"ipc://{run_dir}/talk.sock", "topic_out": "uav1/chatter", "period_s": 0.1}
     assert params["tick"]["note"] == f"tick in uav1 at {run_dir}, {{literal}}"
-    assert params["tick"]["crash_once"] == [f"{run_dir}/x", {"k": "tick"}]
+    assert params["tick"]["extra"] == [f"{run_dir}/x", {"k": "tick"}]
 
 
 def test_unknown_placeholder_and_unknown_param_are_errors(tmp_path):
@@ -160,7 +160,9 @@ def test_remap_then_namespace_applies_to_topic_params_only(tmp_path):
         config = parse_launch({"nodes": [node]})
         from tests.launcher.nodes_for_tests import Listener, Talker, Ticker
 
-        defaults = {"Talker": Talker, "Listener": Listener, "Ticker": Ticker}[node["exec"].rpartition(":")[2]].DEFAULTS
+        defaults = {"Talker": Talker, "Listener": Listener, "Ticker": Ticker}[
+            node["exec"].rpartition(":")[2]
+        ].defaults()
         return resolve_params(config.nodes[0], defaults, tmp_path, namespace, composed)
 
     talker = {"name": "t", "exec": f"{NODES}:Talker"}

@@ -92,24 +92,19 @@ def region_features(tiny_camera):
 @pytest.fixture(scope="session")
 def tiny_run(tiny, region_features, tmp_path_factory):
     """A run directory as the graph leaves it after one view: ``store/`` (the view's observations
-    and encoder.txt), ``views/`` (its photo and camera) and ``map/`` (snapshot version 1 and
+    and the manifest), ``views/`` (its photo and camera) and ``map/`` (snapshot version 1 and
     latest.json), made with the same functions the accumulator and refiner nodes call."""
-    from olsplat_nodes.aggregate import ObservationStore
-    from olsplat_nodes.aggregate.snapshot import LanguageMap
-    from olsplat_nodes.nodes.accumulator import split_bank
-    from olsplat_nodes.nodes.refiner import write_snapshot
-    from olsplat_nodes.nodes.region_encoder import camera_of
-    from olsplat_nodes.pipeline.offline import add_view, method
-    from olsplat_nodes.pipeline.views import save_view
+    from olsplat_nodes.aggregate import LanguageMap, ObservationStore, save_view, write_snapshot
+    from olsplat_nodes.method import StoreManifest, add_view, named_method, write_manifest
+    from olsplat_nodes.nodes.convert import camera_of, split_bank
     from olsplat_nodes.scene import read_ply
 
     scene, _ = tiny
     run = tmp_path_factory.mktemp("tiny_run")
     gaussians = read_ply(scene / "map" / "point_cloud.ply")
-    chosen = method("outlangsplat")
+    chosen = named_method("outlangsplat")
     store = ObservationStore(run / "store", len(gaussians))
-    (run / "store").mkdir(parents=True, exist_ok=True)
-    (run / "store" / "encoder.txt").write_text(region_features.encoder)
+    write_manifest(run / "store", StoreManifest(chosen, region_features.encoder))
     camera = camera_of(region_features)
     label_maps, bank = split_bank(region_features)
     save_view(run / "views", len(store), camera, np.array(region_features.image))

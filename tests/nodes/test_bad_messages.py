@@ -207,7 +207,8 @@ def test_region_encoder_counts_bad_frames_and_still_encodes_the_valid_one(ctx, s
 def test_refiner_counts_bad_observations_and_still_writes_the_final_map(ctx, sockdir, tmp_path, tiny, tiny_run):
     import shutil
 
-    from olsplat_nodes.nodes.refiner import RefinerNode, latest_map
+    from olsplat_nodes.aggregate import latest_map
+    from olsplat_nodes.nodes.refiner import RefinerNode
 
     scene, _ = tiny
     shutil.copytree(tiny_run / "store", tmp_path / "store")  # one view, as the accumulator left it

@@ -4,6 +4,7 @@ the launch ends by itself once the final map is written, and the query server an
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import threading
@@ -13,9 +14,9 @@ import pytest
 import zmq
 
 from olsplat_msgs import QueryRequest, StatusRequest
-from olsplat_nodes.aggregate import ObservationStore
+from olsplat_nodes.aggregate import ObservationStore, latest_map
 from olsplat_nodes.launcher import Supervisor, load_launch
-from olsplat_nodes.nodes.refiner import latest_map
+from olsplat_nodes.method import read_manifest
 from olsplat_nodes.transport import NoReply, QueryClient
 
 from .conftest import wait_for
@@ -152,8 +153,14 @@ def test_a_recorded_session_replays_through_the_graph_composed_in_one_process(ti
     log = tmp_path / "session.mcap"
     assert main(["record", "--source", str(scene / "replay.mcap"), "--out", str(log), "--frames", "8"]) == 0
     run_dir = tmp_path / "run"
-    config = launch_tiny(scene, run_dir, free_port(), "launch.compose=true", f"ingest.source={log}")
+    overrides = ("launch.compose=true", f"ingest.source={log}", "accumulator.tau_d=0.3", "accumulator.beta=[1, 2]")
+    config = launch_tiny(scene, run_dir, free_port(), *overrides)
     assert Supervisor(config).run() == 0
     record = latest_map(run_dir / "map")
     assert record["final"] and record["views"] == 8
     assert len(ObservationStore(run_dir / "store", 1).names()) == 8
+    # the method's settings given at launch are the ones the store was made and refined with
+    manifest = json.loads((run_dir / "store" / "manifest.json").read_text())
+    assert manifest["method"]["name"] == "outlangsplat" and manifest["encoder"] == record["encoder"]
+    assert manifest["method"]["aggregation"]["tau_d"] == 0.3 and manifest["method"]["aggregation"]["beta"] == [1, 2]
+    assert read_manifest(run_dir / "store").method.aggregation.tau_d == 0.3

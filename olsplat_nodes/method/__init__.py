@@ -1,0 +1,21 @@
+"""The method as a whole, over the core packages (raster, aggregate, structure): the methods by
+name, their typed tunable parameters, the per-view step that the live accumulator and the
+offline runs share, and the store manifest that pins a run's settings."""
+
+from .manifest import StoreManifest, claim_store, read_manifest, write_manifest
+from .params import MethodParams, method_params_of
+from .table import METHODS, Method, named_method
+from .view_step import add_view
+
+__all__ = [
+    "METHODS",
+    "Method",
+    "MethodParams",
+    "StoreManifest",
+    "add_view",
+    "claim_store",
+    "method_params_of",
+    "named_method",
+    "read_manifest",
+    "write_manifest",
+]

@@ -1,0 +1,82 @@
+"""The observation store's manifest, ``STORE/manifest.json``: the method (with every resolved
+parameter) and the encoder the store's observations were made with.
+
+The accumulator writes it, the refiner reads it: the two can never refine with settings other
+than those the observations were made with. A store made with other settings is refused rather
+than mixed. Written to a temp file, fsynced and renamed, so it is whole or absent.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import OlsplatInputError
+from .table import Method
+
+MANIFEST = "manifest.json"
+
+
+@dataclass(frozen=True)
+class StoreManifest:
+    method: Method
+    encoder: str | None  # the encoder spec of the features; None until the first view
+
+
+def read_manifest(store: str | Path) -> StoreManifest | None:
+    """The manifest of the store folder ``store``, or None when it has none yet."""
+    path = Path(store) / MANIFEST
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        raise OlsplatInputError(f"{path}: unreadable store manifest ({exc})") from exc
+    if not isinstance(record, dict) or "method" not in record:
+        raise OlsplatInputError(f"{path}: not a store manifest (no 'method')")
+    return StoreManifest(Method.from_record(record["method"], str(path)), record.get("encoder"))
+
+
+def write_manifest(store: str | Path, manifest: StoreManifest) -> None:
+    folder = Path(store)
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / (MANIFEST + ".tmp")
+    with open(tmp, "w") as f:
+        json.dump({"method": manifest.method.record(), "encoder": manifest.encoder}, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    tmp.replace(folder / MANIFEST)
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)  # the rename itself survives a power cut
+    finally:
+        os.close(fd)
+
+
+def claim_store(store: str | Path, method: Method) -> StoreManifest:
+    """The store's manifest for a run with ``method``: written when the store has none, returned
+    when it has the same method; OlsplatInputError naming the differing settings otherwise."""
+    existing = read_manifest(store)
+    if existing is None:
+        manifest = StoreManifest(method, None)
+        write_manifest(store, manifest)
+        return manifest
+    if existing.method != method:
+        old, new = _flat(existing.method), _flat(method)
+        changed = [
+            f"{k}: {old.get(k)!r} in the store, {new.get(k)!r} now"
+            for k in sorted(set(old) | set(new))
+            if old.get(k) != new.get(k)
+        ]
+        raise OlsplatInputError(
+            f"{Path(store) / MANIFEST}: this store was made with other method settings ({'; '.join(changed)}); "
+            "use a new run folder or the store's own settings"
+        )
+    return existing
+
+
+def _flat(method: Method) -> dict[str, object]:
+    record = method.record()
+    return {"method": record["name"], **record["aggregation"], **record["raster"]}

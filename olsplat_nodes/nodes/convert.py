@@ -1,0 +1,120 @@
+"""Messages <-> core values, for every node: the one place where wire fields meet the core's
+types. Each ``*_of`` function checks a decoded message against itself and raises ValueError
+naming the inconsistency (the node counts and drops the message); each ``*_message`` function
+builds a wire message from core values."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from olsplat_msgs import ImageFrame, QueryReply, QueryRequest, RegionFeatures
+
+from ..scene import Camera
+
+
+def camera_of(message: ImageFrame | RegionFeatures) -> Camera:
+    """The ``scene.Camera`` of an ImageFrame / RegionFeatures; ValueError when its fields are
+    inconsistent (the photo's size against the camera's)."""
+    camera = Camera(message.name, message.width, message.height, message.K, message.world_from_camera, message.D)
+    if message.image is not None and message.image.shape != (message.height, message.width, 3):
+        raise ValueError(f"image is {message.image.shape}, but the camera says {message.height}x{message.width}x3")
+    return camera
+
+
+def frame_message(frame, seq: int, stamp_ns: int | None = None) -> ImageFrame:
+    """A source frame (``sources.SourceFrame``) as the wire message, stamped ``stamp_ns``
+    (default: now)."""
+    camera = frame.camera
+    return ImageFrame(
+        stamp_ns=time.time_ns() if stamp_ns is None else stamp_ns,
+        seq=seq,
+        frame_id="camera",
+        name=frame.name,
+        image=np.ascontiguousarray(frame.image, np.uint8),
+        K=camera.K,
+        D=camera.dist,
+        distortion_model="plumb_bob" if len(camera.dist) else "none",
+        world_from_camera=camera.world_from_camera,
+        width=camera.width,
+        height=camera.height,
+    )
+
+
+def regions_message(frame: ImageFrame, label_maps: np.ndarray, bank: list[np.ndarray], encoder: str) -> RegionFeatures:
+    """The wire message of one frame's regions: ``label_maps`` [L, H, W] (-1 = no region) and
+    the feature bank, one [R_l, D] array per level, sent as one float16 [sum R_l, D] array."""
+    return RegionFeatures(
+        stamp_ns=frame.stamp_ns,
+        seq=frame.seq,
+        frame_id=frame.frame_id,
+        name=frame.name,
+        source_seq=frame.seq,
+        encoder=encoder,
+        label_maps=label_maps.astype(np.int32),
+        level_sizes=np.array([len(f) for f in bank], np.int32),
+        features=np.concatenate(bank).astype(np.float16),
+        image=frame.image,
+        K=frame.K,
+        D=frame.D,
+        distortion_model=frame.distortion_model,
+        world_from_camera=frame.world_from_camera,
+        width=frame.width,
+        height=frame.height,
+    )
+
+
+def split_bank(message: RegionFeatures) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(label maps [L, H, W] int32, bank per level [R_l, D] float32) of a RegionFeatures;
+    ValueError naming the inconsistency when the message does not describe itself correctly."""
+    labels, sizes, features = message.label_maps, message.level_sizes, message.features
+    if labels.ndim != 3 or labels.shape[1:] != (message.height, message.width):
+        raise ValueError(f"label maps are {labels.shape}, the image is {message.height}x{message.width}")
+    if len(sizes) != len(labels) or (sizes < 0).any() or int(sizes.sum()) != len(features):
+        raise ValueError(
+            f"level sizes {sizes.tolist()} do not match {len(labels)} levels and {len(features)} feature rows"
+        )
+    if not np.isfinite(features).all():
+        raise ValueError("the feature bank holds NaN or infinite values")
+    offsets = np.cumsum([0, *sizes.tolist()])
+    for level, (label_map, size) in enumerate(zip(labels, sizes, strict=True)):
+        if label_map.min() < -1 or label_map.max() >= size:
+            raise ValueError(
+                f"level {level}: labels span {label_map.min()}..{label_map.max()}, the level has {size} regions"
+            )
+    return labels, [np.asarray(features[offsets[i] : offsets[i + 1]], np.float32) for i in range(len(sizes))]
+
+
+def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray | None, seconds: float) -> QueryReply:
+    """The wire answer of a core ``query.QueryAnswer``: 3D instances (and 2D regions in the view)."""
+    instances = [
+        {
+            "id": i,
+            "kind": "3d",
+            "n_gaussians": inst.gaussians,
+            "centroid": list(inst.centre),
+            "box_min": list(inst.box_min),
+            "box_max": list(inst.box_max),
+        }
+        for i, inst in enumerate(answer.instances)
+    ]
+    instances += [
+        {"id": i, "kind": "2d", "box2d": list(r.box), "centre_px": list(r.centre), "area_px": r.pixels}
+        for i, r in enumerate(answer.regions)
+    ]
+    return QueryReply(
+        stamp_ns=time.time_ns(),
+        frame_id="map",
+        request_id=request.request_id,
+        status="ok",
+        message=f"{int(answer.chosen.sum())} Gaussians pick it over {len(answer.negatives)} negatives",
+        text=answer.text,
+        view=request.view,
+        map_version=map_version,
+        instances=instances,
+        heatmap=None if answer.heatmap is None else answer.heatmap.astype(np.float32),
+        mask=None if answer.mask is None else answer.mask.astype(np.uint8),
+        image=image,
+        seconds=seconds,
+    )
