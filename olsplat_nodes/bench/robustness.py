@@ -73,7 +73,9 @@ def run(args: argparse.Namespace) -> int:
             structure = StructureConfig() if kind == "2d3d" else None
             label = name if features == ["2d"] else f"{name} {kind}"
             with tempfile.TemporaryDirectory() as tmp:
-                stats = aggregate_scene(scene, methods[name], encoder, Path(tmp), features_of=features_of, structure=structure)
+                stats = aggregate_scene(
+                    scene, methods[name], encoder, Path(tmp), features_of=features_of, structure=structure
+                )
                 r = evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
             print(
                 f"  p {p:4.2f}  {label:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  ({stats['seconds']:.0f} s)",

@@ -21,6 +21,7 @@ keep the node's own defaults.
 
 from __future__ import annotations
 
+import difflib
 import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -66,9 +67,10 @@ def resolve_params(
     ``where`` prefixes error messages (``replay.yaml: nodes[0] (ingest)``)."""
     unknown = sorted(set(node.params) - set(defaults))
     if unknown:
-        raise LaunchFileError(
-            f"{where}.params.{unknown[0]}: unknown parameter of {node.exec}; known: {', '.join(sorted(defaults)) or '(none)'}"
-        )
+        close = difflib.get_close_matches(unknown[0], list(defaults), n=3, cutoff=0.6)
+        hint = f"did you mean {' or '.join(close)}? " if close else ""
+        known = ", ".join(sorted(defaults)) or "(none)"
+        raise LaunchFileError(f"{where}.params.{unknown[0]}: unknown parameter of {node.exec}; {hint}known: {known}")
     values = {"run_dir": str(Path(run_dir).resolve()), "namespace": namespace, "name": node.name}
     params: dict[str, Any] = {}
     for key, default in defaults.items():

@@ -55,15 +55,11 @@ def write_manifest(store: str | Path, manifest: StoreManifest) -> None:
         os.close(fd)
 
 
-def claim_store(store: str | Path, method: Method) -> StoreManifest:
-    """The store's manifest for a run with ``method``: written when the store has none, returned
-    when it has the same method; OlsplatInputError naming the differing settings otherwise."""
+def check_store(store: str | Path, method: Method) -> StoreManifest | None:
+    """The store's manifest (None when it has none yet); OlsplatInputError naming the differing
+    settings when the store was made with another method or other parameters."""
     existing = read_manifest(store)
-    if existing is None:
-        manifest = StoreManifest(method, None)
-        write_manifest(store, manifest)
-        return manifest
-    if existing.method != method:
+    if existing is not None and existing.method != method:
         old, new = _flat(existing.method), _flat(method)
         changed = [
             f"{k}: {old.get(k)!r} in the store, {new.get(k)!r} now"
@@ -74,6 +70,16 @@ def claim_store(store: str | Path, method: Method) -> StoreManifest:
             f"{Path(store) / MANIFEST}: this store was made with other method settings ({'; '.join(changed)}); "
             "use a new run folder or the store's own settings"
         )
+    return existing
+
+
+def claim_store(store: str | Path, method: Method) -> StoreManifest:
+    """The store's manifest for a run with ``method``: written when the store has none, returned
+    when it has the same method; OlsplatInputError naming the differing settings otherwise."""
+    existing = check_store(store, method)
+    if existing is None:
+        existing = StoreManifest(method, None)
+        write_manifest(store, existing)
     return existing
 
 

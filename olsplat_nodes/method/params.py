@@ -8,6 +8,7 @@ Symbols are the paper's; defaults and the values the sweeps tried are in README.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 from ..aggregate import AggregationConfig
 from ..errors import OlsplatInputError
@@ -34,7 +35,7 @@ class MethodParams:
     topk_max: int | None = None  # ... at most this many (paper: 32) ...
     topk_coverage: float | None = None  # ... stopping at this share of the pixel's weight (paper: 0.9)
 
-    def overrides(self) -> dict[str, object]:
+    def overrides(self) -> dict[str, Any]:
         """The fields that were set (not None), by name."""
         named = {f.name: getattr(self, f.name) for f in fields(MethodParams) if f.name != "method"}
         return {name: value for name, value in named.items() if value is not None}

@@ -31,6 +31,7 @@ def add_view(
     ``kept``, the number of Gaussians the view observed."""
     t0 = time.perf_counter()
     rendered = rasterize(gaussians, camera, method.raster)
+    assert rendered.topk_ids is not None and rendered.topk_weights is not None  # rasterize always keeps Top-K
     t1 = time.perf_counter()
     if branch is not None:
         bank = branch.fuse_view(camera, rendered.depth, label_maps, bank)

@@ -21,7 +21,9 @@ from dataclasses import dataclass, replace
 
 from olsplat_msgs import EndOfStream, ObservationsAdded, RegionFeatures
 
+from ..errors import OlsplatInputError
 from ..method import MethodParams
+from ..params import ParameterError
 from ..transport import Diagnostics, Publisher, Subscriber
 from .base import Node
 from .convert import camera_of, split_bank
@@ -44,9 +46,13 @@ class AccumulatorNode(Node):
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
-        from ..method import method_params_of
+        from ..method import check_store, method_params_of
 
-        method_params_of(params).resolve(where)  # a known method, values in range
+        method = method_params_of(params).resolve(where)  # a known method, values in range
+        try:
+            check_store(params.store, method)  # a resumed run keeps the settings its store was made with
+        except OlsplatInputError as exc:
+            raise ParameterError(f"{where}: {exc}") from exc
 
     def setup(self) -> None:
         from ..aggregate import ObservationStore  # heavy imports here: the launcher imports node classes

@@ -28,6 +28,7 @@ import logging
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, fields
+from typing import Any
 
 from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
@@ -68,7 +69,7 @@ class IngestNode(Node):
         self.names: list[str] = []
         self.phase = "streaming"  # -> "delivering" (source done, frames in flight) -> "ending" (EndOfStream sent)
         self.last_eos = 0.0
-        self.source = None
+        self.source: Any = None  # a sources.Source once open
         self.source = self.own(open_source({f.name: getattr(p, f.name) for f in fields(SourceParams)}))
 
     def spin(self) -> int | None:

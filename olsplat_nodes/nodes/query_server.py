@@ -17,6 +17,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from ..errors import OlsplatInputError
 from ..transport import DiagnosticsCollector, QueryServer, Subscriber, curve
 from .base import Node
 from .convert import reply_for
+
+if TYPE_CHECKING:  # imported at run time inside methods: the launcher imports node classes
+    from ..aggregate import LanguageMap
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +57,9 @@ class QueryServerNode(Node):
 
         p = self.params
         self.gaussians = read_ply(p.map)
-        self.language_map, self.version, self.encoders = None, 0, {}
+        self.language_map: LanguageMap | None = None
+        self.version = 0
+        self.encoders: dict[str, Any] = {}  # encoder spec -> loaded encoder
         self.views: list = []  # aggregate.SavedView, re-read when the run's views folder grows
         keys = curve.ServerKeys(p.server_secret, p.allow_dir) if p.server_secret else None
         self.server = self.own(QueryServer(self.context, p.query_endpoint, keys=keys))

@@ -17,11 +17,12 @@ from ..errors import OlsplatInputError
 from ..method import Method, add_view
 from ..scene import Camera, Gaussians, read_ply
 from ..structure.branch import StructuralBranch, StructureConfig
+from ..structure.points import StructuralPoints
 from .scene_folder import Scene, view_features
 
 # (scene folder, map file state, what shapes the points) -> (points, features): the 3D branch's
 # point features are costly and the same for every run over one map.
-_POINT_FEATURES: dict[tuple, tuple] = {}
+_POINT_FEATURES: dict[tuple, tuple[StructuralPoints, np.ndarray]] = {}
 
 
 def _structural_branch(scene: Scene, gaussians: Gaussians, structure: StructureConfig) -> StructuralBranch:
@@ -34,7 +35,8 @@ def _structural_branch(scene: Scene, gaussians: Gaussians, structure: StructureC
         _POINT_FEATURES.clear()  # one map at a time: these are large
         built = StructuralBranch.build(gaussians, np.array([c.center for c in scene.cameras]), structure)
         _POINT_FEATURES[key] = (built.points, built.features)
-    return StructuralBranch(*_POINT_FEATURES[key], structure)
+    points, features = _POINT_FEATURES[key]
+    return StructuralBranch(points, features, structure)
 
 
 def aggregate_scene(

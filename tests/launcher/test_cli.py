@@ -78,13 +78,13 @@ def test_launch_errors_are_one_line_and_exit_1(tmp_path):
     [
         (
             "accumulator.tau_dd=0.3",
-            "nodes[3] (accumulator).params: unknown parameter 'tau_dd'; did you mean tau_d",
+            "nodes[3] (accumulator).params.tau_dd: unknown parameter of accumulator; did you mean tau_d or tau_e?",
         ),
         ("accumulator.tau_d=high", "nodes[3] (accumulator).params.tau_d: expected a number or null, got 'high'"),
         ("accumulator.tau_d=-1", "nodes[3] (accumulator).params: need kappa > 0, tau_d >= 0"),
         ("accumulator.method=outlangsplot", "nodes[3] (accumulator).params.method: unknown method 'outlangsplot'"),
         ("region_encoder.encoder_weights=0.6,0.4", "nodes[2] (region_encoder).params.encoder_weights: expected a list"),
-        ("refiner.method=topk", "nodes[4] (refiner).params: unknown parameter 'method'"),
+        ("refiner.method=topk", "nodes[4] (refiner).params.method: unknown parameter of refiner; known: codebook"),
     ],
 )
 def test_the_shipped_graph_refuses_a_bad_parameter_at_launch_in_one_line(tmp_path, override, message):
@@ -100,3 +100,21 @@ def test_the_shipped_graph_refuses_a_bad_parameter_at_launch_in_one_line(tmp_pat
     assert len(lines) == 1 and lines[0].startswith("olsplat launch: error: launch/replay.yaml: "), lines
     assert message in lines[0]
     assert not run.exists()  # nothing started, nothing written
+
+
+def test_a_run_folder_made_with_other_method_settings_is_refused_at_launch(tmp_path):
+    from olsplat_nodes.method import MethodParams, StoreManifest, write_manifest
+
+    run = tmp_path / "run"
+    write_manifest(run / "store", StoreManifest(MethodParams(tau_d=0.3).resolve(), "shipped"))
+    result = subprocess.run(
+        [str(OLSPLAT), "launch", "launch/replay.yaml", "--run-dir", str(run), "--set", "accumulator.tau_d=0.2"],
+        capture_output=True, text=True, cwd=REPO, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        f"olsplat launch: error: launch/replay.yaml: nodes[3] (accumulator).params: {run / 'store' / 'manifest.json'}: "
+        "this store was made with other method settings (tau_d: 0.3 in the store, 0.2 now); "
+        "use a new run folder or the store's own settings"
+    ]
+    assert sorted(p.name for p in run.iterdir()) == ["store"]  # nothing started

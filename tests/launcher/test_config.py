@@ -147,7 +147,8 @@ def test_unknown_placeholder_and_unknown_param_are_errors(tmp_path):
         resolve_launch(config, tmp_path)
     config = parse_launch({"nodes": [dict(TICKER, params={"tiks": 2})]}, source="f.yaml")
     with pytest.raises(
-        LaunchFileError, match=r"f.yaml: nodes\[0\] \(a\).params.tiks: unknown parameter of .*Ticker; known: crash_how"
+        LaunchFileError,
+        match=r"f.yaml: nodes\[0\] \(a\).params.tiks: unknown parameter of .*Ticker; did you mean ticks\? known: crash_how",
     ):
         resolve_launch(config, tmp_path)
     config = parse_launch({"nodes": [dict(TICKER, exec="tests.launcher.nowhere:Ticker")]}, source="f.yaml")

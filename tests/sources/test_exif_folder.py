@@ -117,9 +117,7 @@ def test_caliterra_photos(shared_data):
     ) == (1000, 750)
     stamps = np.array([p.stamp_ns for p in source.photos])
     assert (np.diff(stamps) > 0).all() and {p.stamp_source for p in source.photos} == {"gps_zone"}
-    assert dt.datetime.fromtimestamp(stamps[0] / 1e9, dt.UTC) == dt.datetime(
-        2014, 10, 19, 18, 20, 51, tzinfo=dt.UTC
-    )
+    assert dt.datetime.fromtimestamp(stamps[0] / 1e9, dt.UTC) == dt.datetime(2014, 10, 19, 18, 20, 51, tzinfo=dt.UTC)
     positions = np.array([c.world_from_camera[:3, 3] for c in source.cameras])
     steps = np.linalg.norm(np.diff(positions[:, :2], axis=0), axis=1)
     assert np.median(steps) > 3 and steps.max() < 30  # a few metres to ~20 m between photos taken 2 s apart
