@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 
 def frame_message(frame, seq: int, stamp_ns: int | None = None) -> ImageFrame:
-    """A replay frame (sim.replay_log.ReplayFrame, sources.SourceFrame) as the wire message, stamped
+    """A camera frame (``sources.SourceFrame``, e.g. from a replay log) as the wire message, stamped
     ``stamp_ns`` (default: now)."""
     camera = frame.camera
     return ImageFrame(
