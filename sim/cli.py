@@ -75,7 +75,7 @@ def run_make(args: argparse.Namespace) -> int:
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    from .replay_log import paced, read_replay
+    from olsplat_nodes.sources.replay_log import paced, read_replay
 
     start, count, first = time.monotonic(), 0, None
     for frame in paced(read_replay(args.log), rate_hz=args.rate, fast=args.fast):

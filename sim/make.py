@@ -27,6 +27,8 @@ import numpy as np
 
 from olsplat_nodes.raster import rasterize
 from olsplat_nodes.scene import Camera, write_colmap, write_ply
+from olsplat_nodes.sources import SourceFrame
+from olsplat_nodes.sources.replay_log import encode_jpeg, write_mcap, write_timestamps
 
 from .annotate import annotate_view, label_maps
 from .flight import FlightFrame, FlightSpec, plan_flight
@@ -34,7 +36,6 @@ from .labels import CATEGORIES, LABELS, QUERIES
 from .presets import Preset
 from .preview import contact_sheet, overlay, overview
 from .reconstruct import ReconstructionSpec, perturb_pose, reconstruct
-from .replay_log import encode_jpeg, write_mcap, write_timestamps
 from .scene import generate_scene
 from .sensor import SensorSpec, apply_sensor, exposure_gains, to_uint8
 
@@ -126,7 +127,7 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
                 previews.append((f"{frame.camera.name} ({frame.kind})", decoded, overlay(decoded[..., ::-1], doc)))
             if (i + 1) % max(1, len(frames) // 10) == 0 or i + 1 == len(frames):
                 log(f"frames: {i + 1}/{len(frames)} ({time.perf_counter() - start:.0f} s)")
-            yield frame.stamp_ns, frame.camera.name, jpeg, sfm_cameras[i]
+            yield SourceFrame(i, frame.stamp_ns, frame.camera.name, image, sfm_cameras[i], jpeg)
 
     write_mcap(out / "replay.mcap", rendered())
     write_timestamps(out / "images" / "timestamps.csv", [f.camera.name for f in frames], [f.stamp_ns for f in frames])

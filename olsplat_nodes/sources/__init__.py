@@ -3,6 +3,7 @@
 ``open_source(spec)`` builds one from the ingest's flat parameters (``SourceParams``, README.md
 beside this file). A source is polled: ``read(timeout_s) -> SourceFrame | None``, ``done``,
 ``stats``, ``status() -> (level, message)`` (DiagnosticStatus levels 0 OK .. 3 STALE).
+The replay log format (MCAP write/read, image folders + COLMAP) is ``replay_log``.
 """
 
 from .base import ERROR, OK, STALE, WARN, PacedSource, Pacer, Source, SourceFrame

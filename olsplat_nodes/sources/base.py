@@ -9,7 +9,7 @@ message; ``stats`` are its counters (flat dict of numbers) for the same heartbea
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,13 +22,16 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3  # DiagnosticStatus levels (msgs/: 0 OK, 1 W
 
 @dataclass
 class SourceFrame:
-    """One frame, shaped like ``olsplat_sim.replay_log.ReplayFrame`` (plus the original JPEG).
+    """One camera frame: what every source yields and what the replay log (``replay_log.py``) stores.
 
-    seq       # the source's frame index (DepthAI: the device's sequence number)
+    seq       # the source's frame index (a replay log: 0, 1, 2, ... in the log; DepthAI: the device's sequence number)
     stamp_ns  # acquisition time, ns since the Unix epoch (live cameras: host-synced, converted to wall clock)
-    image     # [H, W, 3] uint8 RGB
-    camera    # intrinsics + world_from_camera (OpenCV camera axes, ENU world for field sources)
-    jpeg      # the image's original JPEG bytes when the source has them (recording keeps them as is)
+    name      # image name, unique within a flight (e.g. "frame_0003.jpg"; COLMAP's image name)
+    image     # [H, W, 3] uint8 RGB, H = camera.height rows, W = camera.width columns
+    camera    # intrinsics (K in pixels, OpenCV distortion) + world_from_camera [4, 4] (metres;
+              # OpenCV camera axes: x right, y down, z forward; ENU world for field sources)
+    jpeg      # the image's original JPEG bytes when the source has them (photos, replay logs,
+              # JPEG image folders), else None; recording keeps them as they are
     """
 
     seq: int
@@ -79,7 +82,7 @@ class Source:
 class Pacer:
     """When a frame is due: the recorded pace (stamp differences), a fixed rate, or at once.
 
-    The same rule as ``olsplat_sim.replay_log.paced``, but asked instead of sleeping, so that a
+    The rule ``replay_log.paced`` sleeps by, asked instead of sleeping here, so that a
     node can wait for a frame in small steps (and heartbeat) between two distant photos.
     """
 
@@ -104,9 +107,9 @@ class Pacer:
 
 
 class PacedSource(Source):
-    """A finite source of ``ReplayFrame``-like objects, delivered at a ``Pacer``'s pace."""
+    """A finite source of ``SourceFrame``s, delivered at a ``Pacer``'s pace."""
 
-    def __init__(self, frames: Iterator, rate_hz: float | None = None, fast: bool = False):
+    def __init__(self, frames: Iterable[SourceFrame], rate_hz: float | None = None, fast: bool = False):
         super().__init__()
         self._frames = iter(frames)
         self._pacer = Pacer(rate_hz, fast)
@@ -130,8 +133,4 @@ class PacedSource(Source):
         frame, self._next = self._next, None
         self._pacer.sent()
         self.counts["frames"] += 1
-        return (
-            frame
-            if isinstance(frame, SourceFrame)
-            else SourceFrame(frame.seq, frame.stamp_ns, frame.name, frame.image, frame.camera)
-        )
+        return frame

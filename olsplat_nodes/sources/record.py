@@ -1,7 +1,7 @@
-"""Record any source to the replay log format (``olsplat_sim.replay_log.write_mcap``).
+"""Record any source to the replay log format (``replay_log.write_mcap``).
 
 Frames keep their stamps, names, intrinsics and poses exactly; images go in as JPEG: the
-source's original bytes when it has them (an image folder), else encoded once at
+source's original bytes when it has them (photos, a replay log), else encoded once at
 ``jpeg_quality``. Replaying the log (``read_replay``) gives the same frames every time.
 """
 
@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from .base import Source
+from .base import Source, SourceFrame
+from .replay_log import write_mcap
 
 
 def record(
@@ -28,14 +29,12 @@ def record(
 ) -> int:
     """Write the source's frames to ``out`` until it is done, ``frames`` were written, ``seconds``
     passed or ``stop`` is set; returns the number written (0: no file is left behind)."""
-    from olsplat_sim.replay_log import encode_jpeg, write_mcap
-
     stop = stop or threading.Event()
     start = time.monotonic()
     last_report = start
     written = 0
 
-    def items():
+    def items() -> Iterator[SourceFrame]:
         nonlocal written, last_report
         while not source.done and not stop.is_set():
             if frames is not None and written >= frames:
@@ -50,12 +49,11 @@ def record(
                 last_report = now
             if frame is None:
                 continue
-            jpeg = frame.jpeg if frame.jpeg is not None else encode_jpeg(frame.image, jpeg_quality)
             written += 1
-            yield frame.stamp_ns, frame.name, jpeg, frame.camera
+            yield frame
 
     out = Path(out)
-    count = write_mcap(out, items())
+    count = write_mcap(out, items(), jpeg_quality)
     if count == 0:
         out.unlink(missing_ok=True)
     return count

@@ -1,10 +1,11 @@
-"""Replay sources: an MCAP replay log or a folder of images + COLMAP model (``olsplat_sim.replay_log``)."""
+"""Replay sources: an MCAP replay log or a folder of images + COLMAP model (``replay_log.read_replay``)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from .base import PacedSource
+from .replay_log import read_replay
 
 
 class ReplaySource(PacedSource):
@@ -13,7 +14,5 @@ class ReplaySource(PacedSource):
     kind = "replay"
 
     def __init__(self, path: str | Path, rate_hz: float | None = None, fast: bool = False, folder_rate_hz: float = 1.0):
-        from olsplat_sim.replay_log import read_replay
-
         self.path = Path(path)
         super().__init__(read_replay(path, folder_rate_hz), rate_hz, fast)

@@ -144,7 +144,7 @@ def test_every_category_present(preset):
 def test_cli_options_and_motion_blur(tmp_path, capsys):
     """Fewer views, a faster rate and a long shutter: blur softens the frame, stamps follow the rate."""
     from olsplat_nodes.cli import main
-    from olsplat_sim.replay_log import read_replay
+    from olsplat_nodes.sources.replay_log import read_replay
 
     common = ["sim", "make", "--preset", "tiny", "--views", "3", "--rate", "4"]
     assert main([*common, "--out", str(tmp_path / "sharp")]) == 0

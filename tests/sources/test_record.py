@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 
 from olsplat_nodes.cli import main
-from olsplat_nodes.sources import open_source
+from olsplat_nodes.sources import PacedSource, SourceFrame, open_source
 from olsplat_nodes.sources.record import record
-from olsplat_sim.replay_log import encode_jpeg, read_replay
+from olsplat_nodes.sources.replay_log import encode_jpeg, read_replay
 
 
 def assert_same_camera(a, b):
@@ -26,15 +26,29 @@ def test_record_a_replay_source_and_read_it_back(tiny, tmp_path, capsys):
     assert f"{len(original)} frames" in capsys.readouterr().out
     again = list(read_replay(out))
     assert len(again) == len(original)
-    for a, b in zip(original, again):
+    for a, b in zip(original, again, strict=True):
         assert (a.seq, a.stamp_ns, a.name) == (b.seq, b.stamp_ns, b.name)
         assert_same_camera(a.camera, b.camera)
-        # the log stores JPEG: the re-read image is exactly the decoded JPEG the recorder wrote
-        jpeg = encode_jpeg(a.image, 95)
-        np.testing.assert_array_equal(b.image, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1])
-    # replaying the recording is reproducible bit for bit: recording it again changes nothing but the JPEG generation
-    assert [f.stamp_ns for f in read_replay(out)] == [f.stamp_ns for f in again]
-    assert all(np.array_equal(x.image, y.image) for x, y in zip(read_replay(out), again))
+        # the log's JPEG bytes are copied, not re-encoded: the images are exactly the original ones
+        assert b.jpeg == a.jpeg
+        np.testing.assert_array_equal(a.image, b.image)
+
+
+def test_record_encodes_frames_without_jpeg_once(tiny, tmp_path):
+    """Frames without JPEG bytes (a live camera) are encoded once, at ``jpeg_quality``."""
+    scene, _ = tiny
+    original = list(read_replay(scene / "replay.mcap"))[:4]
+    bare = [SourceFrame(f.seq, f.stamp_ns, f.name, f.image, f.camera) for f in original]
+    out = tmp_path / "bare.mcap"
+    assert record(PacedSource(bare, fast=True), out, jpeg_quality=80) == 4
+    again = list(read_replay(out))
+    for a, b in zip(original, again, strict=True):
+        assert (a.seq, a.stamp_ns, a.name) == (b.seq, b.stamp_ns, b.name)
+        assert_same_camera(a.camera, b.camera)
+        assert b.jpeg == encode_jpeg(a.image, 80)
+        decoded = cv2.imdecode(np.frombuffer(b.jpeg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+        np.testing.assert_array_equal(b.image, decoded)
+        assert not np.array_equal(a.image, b.image)  # a second generation of JPEG
 
 
 def test_record_keeps_original_jpeg_bytes_and_limits(photo_folder, tmp_path):
@@ -44,8 +58,9 @@ def test_record_keeps_original_jpeg_bytes_and_limits(photo_folder, tmp_path):
     assert record(source, out, frames=3) == 3
     again = list(read_replay(out))
     assert [f.name for f in again] == [f.name for f in frames[:3]]
-    for a, b in zip(frames, again):
-        np.testing.assert_array_equal(a.image, b.image)  # the photo's own bytes: no re-encoding
+    for a, b in zip(frames, again, strict=False):  # again: the first 3
+        assert b.jpeg == a.jpeg  # the photo's own bytes: no re-encoding
+        np.testing.assert_array_equal(a.image, b.image)
         assert a.stamp_ns == b.stamp_ns
         assert_same_camera(a.camera, b.camera)
 

@@ -1,6 +1,10 @@
-"""Replay logs: write a flight to MCAP, read it (or a folder of images + COLMAP) back as frames.
+"""The replay log format: write frames to MCAP, read them (or a folder of images + COLMAP) back.
 
-MCAP layout (sim/README.md has the full description): JSON-encoded messages
+This is the drone side's own format: ``olsplat record`` writes it, the replay source reads it,
+and the simulator (``olsplat sim make``) writes its flights through this module. Every frame,
+written or read, is a ``SourceFrame`` (``base.py``).
+
+MCAP layout (the README.md beside this file has the full description): JSON-encoded messages
 with Foxglove schemas, so Foxglove opens the file and shows the images and camera poses.
 
 | topic                | schema                    | per frame                                  |
@@ -10,7 +14,8 @@ with Foxglove schemas, so Foxglove opens the file and shows the images and camer
 | /tf                  | foxglove.FrameTransform   | world -> camera pose (OpenCV camera axes)  |
 
 All three messages of a frame share its ``log_time`` (the acquisition stamp in ns) and carry
-the frame index as ``sequence``. A metadata record ``olsplat`` holds the frame names.
+the frame's index in the log (0, 1, 2, ...) as ``sequence``. A metadata record ``olsplat``
+holds the frame names, by index.
 """
 
 from __future__ import annotations
@@ -20,15 +25,26 @@ import csv
 import json
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from olsplat_nodes.errors import OlsplatInputError, SceneFormatError
-from olsplat_nodes.scene import Camera, read_colmap
-from olsplat_nodes.scene.rotations import quat_to_rotmat, rotmat_to_quat
+from ..errors import SceneFormatError
+from ..scene import Camera, read_colmap
+from ..scene.rotations import quat_to_rotmat, rotmat_to_quat
+from .base import Pacer, SourceFrame
+
+__all__ = [
+    "CAMERA_FRAME",
+    "SCHEMAS",
+    "TOPICS",
+    "encode_jpeg",
+    "paced",
+    "read_replay",
+    "write_mcap",
+    "write_timestamps",
+]
 
 _TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
 _VEC3 = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
@@ -71,15 +87,7 @@ TOPICS = {
     "/tf": "foxglove.FrameTransform",
 }
 CAMERA_FRAME = "camera"
-
-
-@dataclass
-class ReplayFrame:
-    seq: int  # frame index in the flight
-    stamp_ns: int  # acquisition time, ns since the Unix epoch
-    name: str
-    image: np.ndarray  # [H, W, 3] uint8 RGB
-    camera: Camera  # intrinsics + world_from_camera (OpenCV axes)
+_JPEG_MAGIC = b"\xff\xd8\xff"  # start of image + the first marker
 
 
 def _stamp(stamp_ns: int) -> dict:
@@ -87,14 +95,60 @@ def _stamp(stamp_ns: int) -> dict:
 
 
 def encode_jpeg(image_rgb: np.ndarray, quality: int = 92) -> bytes:
+    """JPEG bytes of an [H, W, 3] uint8 RGB image."""
     ok, data = cv2.imencode(".jpg", image_rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise ValueError("JPEG encoding failed")
     return data.tobytes()
 
 
-def write_mcap(path: str | Path, frames: Iterable[tuple[int, str, bytes, Camera]]) -> int:
-    """Write (stamp_ns, name, jpeg_bytes, camera) frames; returns how many. Atomic (temp + rename)."""
+def _decode_rgb(data: bytes) -> np.ndarray | None:
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    return None if image is None else image[..., ::-1].copy()
+
+
+def _messages(stamp_ns: int, jpeg: bytes, camera: Camera) -> dict[str, dict]:
+    """The three messages of one frame, by topic."""
+    k = camera.K
+    dist = list(camera.dist) + [0.0] * (5 - len(camera.dist)) if len(camera.dist) <= 5 else list(camera.dist)
+    pose = camera.world_from_camera
+    q = rotmat_to_quat(pose[:3, :3])  # w, x, y, z
+    stamp = _stamp(stamp_ns)
+    return {
+        "/camera/image": {
+            "timestamp": stamp,
+            "frame_id": CAMERA_FRAME,
+            "data": base64.b64encode(jpeg).decode(),
+            "format": "jpeg",
+        },
+        "/camera/calibration": {
+            "timestamp": stamp,
+            "frame_id": CAMERA_FRAME,
+            "width": camera.width,
+            "height": camera.height,
+            "distortion_model": "plumb_bob" if len(dist) <= 5 else "rational_polynomial",
+            "D": dist,
+            "K": k.reshape(-1).tolist(),
+            "R": np.eye(3).reshape(-1).tolist(),
+            "P": np.c_[k, np.zeros(3)].reshape(-1).tolist(),
+        },
+        "/tf": {
+            "timestamp": stamp,
+            "parent_frame_id": "world",
+            "child_frame_id": CAMERA_FRAME,
+            "translation": dict(zip("xyz", pose[:3, 3].tolist(), strict=True)),
+            "rotation": dict(zip("wxyz", q.tolist(), strict=True)),
+        },
+    }
+
+
+def write_mcap(path: str | Path, frames: Iterable[SourceFrame], jpeg_quality: int = 92) -> int:
+    """Write the frames to an MCAP replay log; returns how many. Atomic (temp file + rename).
+
+    A frame's ``jpeg`` bytes go in as they are; a frame without them is encoded once at
+    ``jpeg_quality``. Stamps, names, intrinsics and poses are kept; ``seq`` is not: the log
+    numbers its frames 0, 1, 2, ... in the order written (read back as ``seq``).
+    """
     from mcap.writer import Writer
 
     path = Path(path)
@@ -109,33 +163,19 @@ def write_mcap(path: str | Path, frames: Iterable[tuple[int, str, bytes, Camera]
         channels = {
             topic: writer.register_channel(topic, "json", schema_ids[schema]) for topic, schema in TOPICS.items()
         }
-        for seq, (stamp_ns, name, jpeg, camera) in enumerate(frames):
-            names.append(name)
-            k = camera.K
-            dist = list(camera.dist) + [0.0] * (5 - len(camera.dist)) if len(camera.dist) <= 5 else list(camera.dist)
-            pose = camera.world_from_camera
-            q = rotmat_to_quat(pose[:3, :3])
-            messages = {
-                "/camera/image": {"timestamp": _stamp(stamp_ns), "frame_id": CAMERA_FRAME, "data": base64.b64encode(jpeg).decode(), "format": "jpeg"},
-                "/camera/calibration": {
-                    "timestamp": _stamp(stamp_ns), "frame_id": CAMERA_FRAME, "width": camera.width, "height": camera.height,
-                    "distortion_model": "plumb_bob" if len(dist) <= 5 else "rational_polynomial", "D": dist,
-                    "K": k.reshape(-1).tolist(), "R": np.eye(3).reshape(-1).tolist(), "P": np.c_[k, np.zeros(3)].reshape(-1).tolist(),
-                },
-                "/tf": {
-                    "timestamp": _stamp(stamp_ns), "parent_frame_id": "world", "child_frame_id": CAMERA_FRAME,
-                    "translation": dict(zip("xyz", pose[:3, 3].tolist())), "rotation": dict(zip("wxyz", q.tolist())),
-                },
-            }  # fmt: skip
-            for topic, message in messages.items():
-                writer.add_message(channels[topic], stamp_ns, json.dumps(message).encode(), stamp_ns, seq)
+        for index, frame in enumerate(frames):
+            names.append(frame.name)
+            jpeg = frame.jpeg if frame.jpeg is not None else encode_jpeg(frame.image, jpeg_quality)
+            stamp_ns = int(frame.stamp_ns)
+            for topic, message in _messages(stamp_ns, jpeg, frame.camera).items():
+                writer.add_message(channels[topic], stamp_ns, json.dumps(message).encode(), stamp_ns, index)
         writer.add_metadata("olsplat", {"frame_names": json.dumps(names), "camera_axes": "opencv"})
         writer.finish()
     tmp.replace(path)
     return len(names)
 
 
-def _read_mcap(path: Path) -> Iterator[ReplayFrame]:
+def _read_mcap(path: Path) -> Iterator[SourceFrame]:
     from mcap.reader import make_reader
 
     try:
@@ -163,9 +203,10 @@ def _read_mcap(path: Path) -> Iterator[ReplayFrame]:
         raise
 
 
-def _frame_from_messages(seq: int, parts: dict, names: list[str], path: Path) -> ReplayFrame:
+def _frame_from_messages(seq: int, parts: dict, names: list[str], path: Path) -> SourceFrame:
     image_msg, calib, tf = parts["/camera/image"], parts["/camera/calibration"], parts["/tf"]
-    image = cv2.imdecode(np.frombuffer(base64.b64decode(image_msg["data"]), np.uint8), cv2.IMREAD_COLOR)
+    data = base64.b64decode(image_msg["data"])
+    image = _decode_rgb(data)
     if image is None:
         raise SceneFormatError(path, f"frame {seq}: the image does not decode")
     pose = np.eye(4)
@@ -184,32 +225,42 @@ def _frame_from_messages(seq: int, parts: dict, names: list[str], path: Path) ->
         dist if dist.any() else np.zeros(0),
         "OPENCV" if dist.any() else "PINHOLE",
     )
-    return ReplayFrame(seq, int(parts["stamp"]), name, image[..., ::-1].copy(), camera)
+    jpeg = data if image_msg.get("format") == "jpeg" and data.startswith(_JPEG_MAGIC) else None
+    return SourceFrame(seq, int(parts["stamp"]), name, image, camera, jpeg)
 
 
-def _read_folder(folder: Path, rate_hz: float) -> Iterator[ReplayFrame]:
+def _read_timestamps(table: Path) -> dict[str, int]:
+    with open(table) as f:
+        return {row["name"]: int(row["stamp_ns"]) for row in csv.DictReader(f)}
+
+
+def _read_folder(folder: Path, rate_hz: float) -> Iterator[SourceFrame]:
     """A folder with images/ and a COLMAP model (sparse/0/ or the folder itself)."""
     images = folder / "images" if (folder / "images").is_dir() else folder
     cameras = read_colmap(folder)
-    stamps = {}
     table = images / "timestamps.csv"
-    if table.is_file():
-        with open(table) as f:
-            stamps = {row["name"]: int(row["stamp_ns"]) for row in csv.DictReader(f)}
+    stamps = _read_timestamps(table) if table.is_file() else {}
     for seq, camera in enumerate(cameras):
         file = images / camera.name
-        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
+        try:
+            data = file.read_bytes()
+        except OSError:
+            data = b""
+        image = _decode_rgb(data) if data else None
         if image is None:
             raise SceneFormatError(file, "image missing or unreadable (named by the COLMAP model)")
         stamp = stamps.get(camera.name, int(round(seq * 1e9 / rate_hz)))
-        yield ReplayFrame(seq, stamp, camera.name, image[..., ::-1].copy(), camera)
+        jpeg = data if data.startswith(_JPEG_MAGIC) else None  # a PNG is re-encoded when recorded
+        yield SourceFrame(seq, stamp, camera.name, image, camera, jpeg)
 
 
-def read_replay(path: str | Path, folder_rate_hz: float = 1.0) -> Iterator[ReplayFrame]:
+def read_replay(path: str | Path, folder_rate_hz: float = 1.0) -> Iterator[SourceFrame]:
     """Frames of an MCAP replay log, or of a folder of images + COLMAP model, in order.
 
-    A folder's stamps come from ``images/timestamps.csv`` (columns name, stamp_ns) when present,
-    else from ``folder_rate_hz``.
+    Frames carry the stored JPEG bytes (``jpeg``), so recording a replay copies its images
+    exactly. A folder's stamps come from ``images/timestamps.csv`` (columns name, stamp_ns)
+    when present, else from ``folder_rate_hz``. Unreadable input raises ``SceneFormatError``
+    (a missing path at once, a corrupt log while iterating).
     """
     path = Path(path)
     if path.is_dir():
@@ -219,24 +270,30 @@ def read_replay(path: str | Path, folder_rate_hz: float = 1.0) -> Iterator[Repla
     return _read_mcap(path)
 
 
-def paced(frames: Iterable[ReplayFrame], rate_hz: float | None = None, fast: bool = False) -> Iterator[ReplayFrame]:
-    """Yield frames at their recorded pace, at ``rate_hz``, or as fast as possible."""
-    if rate_hz is not None and rate_hz <= 0:
-        raise OlsplatInputError(f"the replay rate must be positive, got rate_hz={rate_hz}")
-    start = first = None
-    for i, frame in enumerate(frames):
-        if not fast:
-            now = time.monotonic()
-            if start is None:
-                start, first = now, frame.stamp_ns
-            due = start + (i / rate_hz if rate_hz else (frame.stamp_ns - first) / 1e9)
-            if due > now:
-                time.sleep(due - now)
-        yield frame
+def paced(frames: Iterable[SourceFrame], rate_hz: float | None = None, fast: bool = False) -> Iterator[SourceFrame]:
+    """Yield frames at their recorded pace (stamp differences), at ``rate_hz``, or at once (``fast``).
+
+    Sleeps between frames; the rule is ``Pacer``'s, which a polled source asks instead.
+    A non-positive ``rate_hz`` raises ``OlsplatInputError`` here, before any frame.
+    """
+    pacer = Pacer(rate_hz, fast)
+
+    def frames_in_time() -> Iterator[SourceFrame]:
+        for frame in frames:
+            wait = pacer.due(frame.stamp_ns) - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            pacer.sent()
+            yield frame
+
+    return frames_in_time()
 
 
 def write_timestamps(path: str | Path, names: list[str], stamps: list[int]) -> None:
+    """``timestamps.csv`` for an image folder: columns name, stamp_ns (ns since the Unix epoch)."""
+    if len(names) != len(stamps):
+        raise ValueError(f"{len(names)} names but {len(stamps)} stamps")
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["name", "stamp_ns"])
-        writer.writerows(zip(names, stamps))
+        writer.writerows(zip(names, stamps, strict=True))
