@@ -1,7 +1,11 @@
 """olsplat: open-vocabulary 3D scene understanding for UAVs on a CPU.
 
-Subpackages: ``scene`` (map and camera I/O), ``raster`` (CPU rasterizer with Top-K), ``bench``
-(benchmark scripts); the node wrappers, transport and launcher arrive with their issues.
+The numeric core (``scene``, ``raster``, ``regions``, ``encoders``, ``structure``,
+``aggregate``, ``method``, ``query``) is pure functions and dataclasses plus the run's on-disk
+storage, and never touches a socket. Around it: ``nodes`` (thin wrappers over the core),
+``transport`` (ZeroMQ), ``launcher``, ``sources`` and ``telemetry`` (the drone's runtime path);
+``pipeline``, ``evaluate``, ``bench`` and ``tools`` (offline runs, studies and the ``olsplat``
+command).
 """
 
 __version__ = "0.1.0"

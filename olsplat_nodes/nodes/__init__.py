@@ -1,6 +1,9 @@
-"""The five nodes of the graph, each a thin wrapper over the core: decode a message, call a pure
-function, encode the answer. ``NODES`` maps an executable name (as launch files write it) to
-its class; ``python -m olsplat_nodes.nodes EXEC`` runs one node in its own process."""
+"""The nodes: the drone's five (ingest, region_encoder, accumulator, refiner, query_server) and
+the ground station's monitor, each a thin wrapper over the core: decode a message, call a pure
+function, encode the answer. ``base.py`` holds what they share (typed ``Params``, the loop,
+sockets, stats), ``convert.py`` every message <-> core conversion; no node imports another.
+``NODES`` maps an executable name (as launch files write it) to its class;
+``python -m olsplat_nodes.nodes EXEC`` runs one node in its own process."""
 
 NODES = {
     "ingest": "olsplat_nodes.nodes.ingest:IngestNode",

@@ -7,6 +7,7 @@ import logging
 import time
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Self
 
 import zmq
 
@@ -61,6 +62,23 @@ def attach(sock: zmq.Socket, endpoints: list[str], bind: bool) -> list[str]:
             exc.add_note(f"while {'binding' if bind else 'connecting'} {endpoint}")
             raise
     return resolved
+
+
+class Closable:
+    """Base of the transport's socket classes: ``close()`` (idempotent), and a context manager
+    that closes on exit. Subclasses keep their zmq socket in ``self.socket`` and extend ``close``
+    when they own more (a monitor socket, CURVE keys)."""
+
+    socket: zmq.Socket
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 class DropLog:

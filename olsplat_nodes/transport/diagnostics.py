@@ -13,7 +13,7 @@ import zmq
 
 from olsplat_msgs import DiagnosticStatus, encode
 
-from ._sockets import attach, make_socket
+from ._sockets import Closable, attach, make_socket
 from .pubsub import Subscriber
 
 log = logging.getLogger(__name__)
@@ -26,7 +26,7 @@ LEVEL_NAMES = {
 }
 
 
-class Diagnostics:
+class Diagnostics(Closable):
     """A node's heartbeat publisher. ``beat`` sends at most one status per ``period_s`` (call it
     from the node's loop as often as convenient); ``beat_now`` always sends (state changes,
     shutdown). Levels: ``DiagnosticStatus.OK/WARN/ERROR`` (0/1/2; STALE is the collector's)."""
@@ -78,17 +78,9 @@ class Diagnostics:
             return False
         return True
 
-    def close(self) -> None:
-        self.socket.close(linger=0)
-
-    def __enter__(self) -> Diagnostics:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
-class DiagnosticsCollector:
+class DiagnosticsCollector(Closable):
     """The collector: a SUB bound to ``endpoint`` (every node's ``Diagnostics`` connects to it).
     ``poll`` takes in what arrived; ``nodes()`` gives the latest status of each node as a dict with
     ``age_s`` (seconds since it arrived), level forced to STALE when older than ``stale_after_s``
@@ -143,8 +135,3 @@ class DiagnosticsCollector:
     def close(self) -> None:
         self.subscriber.close()
 
-    def __enter__(self) -> DiagnosticsCollector:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

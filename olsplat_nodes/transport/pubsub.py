@@ -13,12 +13,12 @@ from zmq.utils.monitor import parse_monitor_message
 
 from olsplat_msgs import DEFAULT_MAX_BYTES, WireError, decode, encode
 
-from ._sockets import DropLog, as_list, attach, deadline_after, log, make_socket, remaining_ms
+from ._sockets import Closable, DropLog, as_list, attach, deadline_after, log, make_socket, remaining_ms
 
 _MAX_LATE_SKIPS = 1000
 
 
-class Publisher:
+class Publisher(Closable):
     """PUB socket. ``send(topic, msg)`` encodes and hands the frames to libzmq without blocking:
     at the high-water mark (``hwm`` messages per subscriber) PUB drops, which is what a sensor
     stream wants (latest wins); subscribers see the loss as gaps in ``seq``. The node sets
@@ -50,17 +50,9 @@ class Publisher:
         self.stats["published"] += 1
         return True
 
-    def close(self) -> None:
-        self.socket.close(linger=0)
-
-    def __enter__(self) -> Publisher:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
-class Subscriber:
+class Subscriber(Closable):
     """SUB socket on one or more endpoints, receiving only ``topics`` (exact names; ``None`` = all).
 
     ``stats`` (flat ints, ready to merge into diagnostics ``values``):
@@ -213,8 +205,3 @@ class Subscriber:
             self._monitor.close(linger=0)
         self.socket.close(linger=0)
 
-    def __enter__(self) -> Subscriber:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

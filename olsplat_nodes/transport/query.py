@@ -17,7 +17,7 @@ import zmq
 
 from olsplat_msgs import DEFAULT_MAX_BYTES, QueryReply, QueryRequest, StatusRequest, WireError, decode, encode
 
-from ._sockets import DropLog, attach, deadline_after, log, make_socket, remaining_ms
+from ._sockets import Closable, DropLog, attach, deadline_after, log, make_socket, remaining_ms
 from .curve import ClientKeys, ServerKeys
 
 QUERY_TOPIC = "query"
@@ -44,7 +44,7 @@ def _salvage_request_id(body: list) -> str:
     return request_id[:200] if isinstance(request_id, str) else ""
 
 
-class QueryServer:
+class QueryServer(Closable):
     """ROUTER socket bound to ``endpoint``. ``poll`` returns the next well-formed request; a
     malformed one (or a message that is not one of ``accept``) is counted, logged and answered
     with ``QueryReply(status="bad_request")`` right there. With ``keys`` the link is CURVE
@@ -153,14 +153,9 @@ class QueryServer:
             self._keys_applied = False
             self.keys.release(self.context)
 
-    def __enter__(self) -> QueryServer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
-class QueryClient:
+class QueryClient(Closable):
     """DEALER client of one query server. ``request(msg)`` sends and waits up to ``timeout_s`` for
     the matching reply; on timeout the socket is closed and a fresh one connected (lazy pirate:
     a late answer can never be mistaken for the next one), and ``NoReply`` is raised after
@@ -251,11 +246,3 @@ class QueryClient:
             self._reset()
         raise NoReply(self.endpoint, self.timeout_s)
 
-    def close(self) -> None:
-        self.socket.close(linger=0)
-
-    def __enter__(self) -> QueryClient:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
