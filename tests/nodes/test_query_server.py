@@ -15,8 +15,9 @@ import pytest
 from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest, decode, encode, load_schema
 from olsplat_nodes.nodes.query_server import QueryServerNode
 from olsplat_nodes.transport import QueryClient
+from tests.helpers import every, wait_for
 
-from .conftest import ENCODE_VIEW, NodeThread, every, raw_socket, send_msg, wait_for
+from .conftest import ENCODE_VIEW, NodeThread, raw_socket, send_msg
 
 pytestmark = pytest.mark.timeout(120)
 
