@@ -3,7 +3,8 @@
 ``schema.yaml`` is the single source; ``msgs/README.md`` is the wire specification for writing
 a client in another language. ``encode(msg, topic)`` gives ``[topic, msgpack header, *array
 buffers]``; ``decode(frames, max_bytes)`` gives ``(topic, msg)`` or raises a ``WireError``.
-Decoded arrays are read-only zero-copy views of the received frames.
+Decoded arrays are read-only zero-copy views of the received frames. Records inside fields
+(``QueryReply.instances``: ``Instance3D``/``Instance2D``) are plain dicts checked key by key.
 """
 
 from .codec import DEFAULT_MAX_BYTES, VERSION, decode, encode
@@ -13,6 +14,9 @@ from .messages import (
     DiagnosticStatus,
     EndOfStream,
     ImageFrame,
+    Instance,
+    Instance2D,
+    Instance3D,
     MapUpdated,
     ObservationsAdded,
     QueryReply,
@@ -30,6 +34,9 @@ __all__ = [
     "DiagnosticStatus",
     "EndOfStream",
     "ImageFrame",
+    "Instance",
+    "Instance2D",
+    "Instance3D",
     "MalformedMessage",
     "MapUpdated",
     "MessageTooLarge",

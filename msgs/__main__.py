@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .schema import header_table, message_tables, update_readme
+from .schema import header_table, message_tables, record_tables, update_readme
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -19,7 +19,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     if args.update is None:
-        print(header_table() + "\n" + message_tables(), end="")
+        print(header_table() + "\n" + message_tables() + "\n" + record_tables(), end="")
     else:
         args.update.write_text(update_readme(args.update.read_text(encoding="utf-8")), encoding="utf-8")
     return 0

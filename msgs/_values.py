@@ -1,4 +1,4 @@
-"""Checks of non-array field values, shared by both directions of the codec.
+"""Checks of non-array field values (records included), shared by both directions of the codec.
 
 ``convert=True`` (encode) also turns numpy scalars/arrays and tuples into msgpack-native values
 and raises ``TypeError``/``ValueError`` (a programming error in the sender);
@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from .errors import MalformedMessage
-from .schema import FieldSpec
+from .schema import FieldSpec, RecordSpec, fixed_list
 
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 MSGPACK_INT_MAX = 2**64 - 1  # msgpack's unsigned 64-bit integers
@@ -80,6 +80,21 @@ def field_value(spec: FieldSpec, value: Any, where: str, convert: bool) -> Any:
     elif kind == "bool":
         if not isinstance(value, bool):
             raise _fail(convert, f"{where}: expected bool, got {type(value).__name__} {value!r:.80}")
+    elif spec.record is not None:  # list[<Record>]
+        if convert and isinstance(value, tuple):
+            value = list(value)
+        if not isinstance(value, list):
+            raise _fail(convert, f"{where}: expected {kind} (an array of maps), got {type(value).__name__}")
+        value = [record_value(spec.record, item, f"{where}[{i}]", convert) for i, item in enumerate(value)]
+    elif (fixed := fixed_list(kind)) is not None:  # float[N], int[N] (record fields)
+        item_kind, length = fixed
+        if convert and isinstance(value, (tuple, np.ndarray)):
+            value = list(value)
+        if not isinstance(value, list) or len(value) != length:
+            size = f" of {len(value)} items" if isinstance(value, list) else ""
+            raise _fail(convert, f"{where}: expected {kind} ({length} numbers), got {type(value).__name__}{size}")
+        item_spec = _ITEM_SPECS[item_kind]
+        value = [field_value(item_spec, item, f"{where}[{i}]", convert) for i, item in enumerate(value)]
     else:
         if convert and isinstance(value, tuple):
             value = list(value)
@@ -87,10 +102,40 @@ def field_value(spec: FieldSpec, value: Any, where: str, convert: bool) -> Any:
         if not isinstance(value, container):
             raise _fail(convert, f"{where}: expected {kind}, got {type(value).__name__}")
         value = native(value, where, convert)
-        item_type = {"list[str]": str, "list[dict]": dict}.get(kind)
-        for i, item in enumerate(value if item_type else ()):
-            if not isinstance(item, item_type):
-                raise _fail(convert, f"{where}[{i}]: expected {item_type.__name__}, got {type(item).__name__}")
+        item_type: type | None = {"list[str]": str, "list[dict]": dict}.get(kind)
+        if item_type is not None:
+            for i, item in enumerate(value):
+                if not isinstance(item, item_type):
+                    raise _fail(convert, f"{where}[{i}]: expected {item_type.__name__}, got {type(item).__name__}")
     if spec.choices is not None and value not in spec.choices:
         raise _fail(convert, f"{where}: {value!r} is not one of {list(spec.choices)}", ValueError)
     return value
+
+
+_ITEM_SPECS = {kind: FieldSpec("item", kind, "") for kind in ("int", "float")}
+
+
+def record_value(record: RecordSpec, value: Any, where: str, convert: bool) -> dict:
+    """The checked map of one record: exactly the fields of its kind (all of them, none nil, no
+    others), each checked as a field; returned as a new dict in schema order."""
+    if not isinstance(value, dict):
+        raise _fail(convert, f"{where}: expected a map (record {record.name}), got {type(value).__name__}")
+    kind = None
+    if record.tag is not None:
+        if record.tag not in value:
+            raise _fail(convert, f"{where}: record {record.name} without its {record.tag!r} key", ValueError)
+        tag = next(f for f in record.fields if f.name == record.tag)
+        kind = field_value(tag, value[record.tag], f"{where}.{record.tag}", convert)
+    fields = record.fields_of(kind)
+    names = [f.name for f in fields]
+    if len(value) != len(names) or any(name not in value for name in names):
+        missing = [name for name in names if name not in value]
+        extra = ", ".join(f"{key!r:.40}" for key in value if key not in names)
+        of_kind = f" of kind {kind!r}" if kind is not None else ""
+        raise _fail(
+            convert,
+            f"{where}: record {record.name}{of_kind} needs exactly the keys {names}; "
+            f"missing {missing}, unexpected [{extra}]",
+            ValueError,
+        )
+    return {f.name: field_value(f, value[f.name], f"{where}.{f.name}", convert) for f in fields}

@@ -59,7 +59,7 @@ def _check_shape(spec: FieldSpec, shape: Sequence[int], where: str, error: type[
         raise error(
             f"{where}: rank {len(shape)} (shape {list(shape)}), schema wants rank {len(spec.shape)} {list(spec.shape)}"
         )
-    for axis, (got, want) in enumerate(zip(shape, spec.shape)):
+    for axis, (got, want) in enumerate(zip(shape, spec.shape, strict=True)):
         if isinstance(want, int) and got != want:
             raise error(f"{where}: shape {list(shape)}, axis {axis} must be {want} (schema {list(spec.shape)})")
 
@@ -96,7 +96,8 @@ def encode(msg: Any, topic: str) -> list[bytes]:
             f.name: field_value(f, getattr(msg, f.name), f"{spec.name}.{f.name}", True) for f in spec.scalar_fields
         },
     }
-    entries, buffers = [], []
+    entries: list[dict[str, Any]] = []
+    buffers: list[bytes] = []
     for f in spec.array_fields:
         array = _array_to_wire(f, getattr(msg, f.name), f"{spec.name}.{f.name}")
         if array is None:
@@ -218,7 +219,8 @@ def decode(frames: Sequence[Any], max_bytes: int = DEFAULT_MAX_BYTES) -> tuple[s
     expected_frames = 2 + len(spec.array_fields)
     if len(views) != expected_frames:
         raise MalformedMessage(
-            f"{spec.name}: expected {expected_frames} frames (topic, header, {len(spec.array_fields)} arrays), got {len(views)}"
+            f"{spec.name}: expected {expected_frames} frames (topic, header, {len(spec.array_fields)} arrays), "
+            f"got {len(views)}"
         )
     values: dict[str, Any] = {
         "stamp_ns": _common_int(header["stamp_ns"], f"{spec.name}.stamp_ns", False),
@@ -241,6 +243,6 @@ def decode(frames: Sequence[Any], max_bytes: int = DEFAULT_MAX_BYTES) -> tuple[s
         raise MalformedMessage(
             f"{spec.name} header: 'arrays' must list {len(spec.array_fields)} entries, got {entries!r:.120}"
         )
-    for i, (f, entry) in enumerate(zip(spec.array_fields, entries)):
+    for i, (f, entry) in enumerate(zip(spec.array_fields, entries, strict=True)):
         values[f.name] = _array_from_wire(f, entry, views[2 + i], f"{spec.name}.{f.name}")
     return topic, MESSAGES[name](**values)

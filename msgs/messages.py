@@ -6,21 +6,51 @@ cannot drift. Field descriptions live in the schema (and the README tables gener
 the comments here give shapes and units.
 
 Every message starts with ``stamp_ns`` (ns since the Unix epoch), ``seq`` (+1 per message of a
-stream, set by the sender) and ``frame_id`` (stream name). Array fields default to ``None``
-(a dataclass needs defaults after the defaulted common fields); a required array left ``None``
-is refused by ``encode``. Arrays from ``decode`` are read-only views
-of the received buffers: copy before modifying.
+stream, set by the sender) and ``frame_id`` (stream name). Array fields are ``np.ndarray | None``
+and default to ``None`` (a dataclass needs defaults after the defaulted common fields); a
+required array left ``None`` is refused by ``encode`` (the schema, and the README, say which
+arrays are optional). Arrays from ``decode`` are read-only views of the received buffers: copy
+before modifying.
+
+Records (maps inside a field, ``records:`` in the schema) are ``TypedDict`` classes: plain dicts
+at run time (JSON-ready, indexable as before), typed for editors and mypy, one class per kind of
+a tagged record (``Instance3D``, ``Instance2D``: ``Instance`` is their union), checked against
+the schema by ``check_against_schema`` like the messages.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import MISSING, dataclass, field, fields
-from typing import ClassVar
+from typing import Any, ClassVar, Literal, TypedDict, get_type_hints
 
 import numpy as np
 
-from .schema import load_schema
+from .schema import fixed_list, load_schema
+
+
+class Instance3D(TypedDict):
+    """Record ``Instance`` of kind "3d": a cluster of the Gaussians that pick the query."""
+
+    id: int  # 0, 1, ... by decreasing n_gaussians
+    kind: Literal["3d"]
+    n_gaussians: int
+    centroid: list[float]  # [x, y, z] world metres
+    box_min: list[float]  # [x, y, z] world metres
+    box_max: list[float]  # [x, y, z] world metres
+
+
+class Instance2D(TypedDict):
+    """Record ``Instance`` of kind "2d": a connected region of the mask in the requested view."""
+
+    id: int  # 0, 1, ... by decreasing area_px
+    kind: Literal["2d"]
+    box2d: list[int]  # [x0, y0, x1, y1] pixels, end exclusive
+    centre_px: list[float]  # [x, y] pixels, top-left pixel's centre at (0.5, 0.5)
+    area_px: int
+
+
+Instance = Instance3D | Instance2D
 
 
 @dataclass
@@ -29,11 +59,11 @@ class ImageFrame:
     seq: int = 0
     frame_id: str = ""
     name: str = ""
-    image: np.ndarray = None  # [H, W, 3] uint8 RGB
-    K: np.ndarray = None  # [3, 3] float64, pixels
-    D: np.ndarray = None  # [n] float64, may be empty
+    image: np.ndarray | None = None  # [H, W, 3] uint8 RGB
+    K: np.ndarray | None = None  # [3, 3] float64, pixels
+    D: np.ndarray | None = None  # [n] float64, may be empty
     distortion_model: str = "none"  # "plumb_bob" | "none"
-    world_from_camera: np.ndarray = None  # [4, 4] float64, OpenCV axes, metres
+    world_from_camera: np.ndarray | None = None  # [4, 4] float64, OpenCV axes, metres
     width: int = 0
     height: int = 0
 
@@ -56,14 +86,14 @@ class RegionFeatures:
     name: str = ""
     source_seq: int = 0
     encoder: str = ""
-    label_maps: np.ndarray = None  # [L, H, W] int32, -1 = no region
-    level_sizes: np.ndarray = None  # [L] int32
-    features: np.ndarray = None  # [R, D] float16 | float32, R = level_sizes.sum()
-    image: np.ndarray = None  # [H, W, 3] uint8 RGB
-    K: np.ndarray = None  # [3, 3] float64
-    D: np.ndarray = None  # [n] float64
+    label_maps: np.ndarray | None = None  # [L, H, W] int32, -1 = no region
+    level_sizes: np.ndarray | None = None  # [L] int32
+    features: np.ndarray | None = None  # [R, D] float16 | float32, R = level_sizes.sum()
+    image: np.ndarray | None = None  # [H, W, 3] uint8 RGB
+    K: np.ndarray | None = None  # [3, 3] float64
+    D: np.ndarray | None = None  # [n] float64
     distortion_model: str = "none"
-    world_from_camera: np.ndarray = None  # [4, 4] float64
+    world_from_camera: np.ndarray | None = None  # [4, 4] float64
     width: int = 0
     height: int = 0
 
@@ -118,7 +148,7 @@ class QueryReply:
     text: str = ""
     view: str = ""
     map_version: int = 0
-    instances: list[dict] = field(default_factory=list)
+    instances: list[Instance] = field(default_factory=list)
     heatmap: np.ndarray | None = None  # [H, W] float32 in [0, 1]
     mask: np.ndarray | None = None  # [H, W] uint8, 0 | 1
     image: np.ndarray | None = None  # [H, W, 3] uint8 RGB overlay
@@ -172,6 +202,8 @@ MESSAGE_CLASSES = (
     DiagnosticStatus,
 )
 MESSAGES: dict[str, type] = {f"olsplat_msgs/{cls.__name__}": cls for cls in MESSAGE_CLASSES}
+# record name -> {kind: TypedDict class} (a record without a tag: {None: class})
+RECORDS: dict[str, dict[str | None, Any]] = {"Instance": {"3d": Instance3D, "2d": Instance2D}}
 
 _ANNOTATIONS = {
     "str": "str",
@@ -188,11 +220,47 @@ def _same_default(a, b) -> bool:
     return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
 
 
+_RECORD_HINTS: dict[str, object] = {"str": str, "int": int, "float": float, "bool": bool}
+_LIST_HINTS: dict[str, object] = {"int": list[int], "float": list[float]}
+
+
+def _record_hint(spec, kind: str | None, tag: str | None) -> object:
+    """The annotation a record field of ``spec`` has in the TypedDict of ``kind``."""
+    if spec.name == tag:
+        return Literal[kind]
+    fixed = fixed_list(spec.type)
+    return _LIST_HINTS[fixed[0]] if fixed is not None else _RECORD_HINTS[spec.type]
+
+
+def _check_records(schema) -> list[str]:
+    problems = []
+    if list(RECORDS) != list(schema.records):
+        problems.append(f"records differ: classes {list(RECORDS)}, schema {list(schema.records)}")
+    for name, classes in RECORDS.items():
+        record = schema.records.get(name)
+        if record is None:
+            continue
+        kinds = list(record.kinds) or [None]
+        if list(classes) != kinds:
+            problems.append(f"record {name}: classes for kinds {list(classes)}, schema has {kinds}")
+            continue
+        for kind, cls in classes.items():
+            specs = record.fields_of(kind)
+            hints = get_type_hints(cls)
+            want = {s.name: _record_hint(s, kind, record.tag) for s in specs}
+            if list(hints) != list(want) or hints != want:
+                problems.append(f"{cls.__name__}: keys and types {hints}, schema says {want}")
+            if cls.__required_keys__ != frozenset(want):
+                problems.append(f"{cls.__name__}: every key must be required (record fields are never optional)")
+    return problems
+
+
 def check_against_schema() -> list[str]:
     """Every difference between these classes and ``schema.yaml`` (empty when they agree):
-    message set, field names and order, annotations, defaults."""
+    message set, field names and order, annotations, defaults; record TypedDicts: kinds, keys
+    and their order, types."""
     schema = load_schema()
-    problems = []
+    problems = _check_records(schema)
     if list(MESSAGES) != [m.schema_name for m in schema.messages.values()]:
         problems.append(
             f"messages differ: classes {list(MESSAGES)}, schema {[m.schema_name for m in schema.messages.values()]}"
@@ -206,10 +274,12 @@ def check_against_schema() -> list[str]:
         if [f.name for f in got] != [s.name for s in specs]:
             problems.append(f"{cls.__name__}: fields {[f.name for f in got]} != schema {[s.name for s in specs]}")
             continue
-        for f, s in zip(got, specs):
+        for f, s in zip(got, specs, strict=True):
             if s.is_array:
-                want_type = "np.ndarray | None" if s.optional else "np.ndarray"
+                want_type = "np.ndarray | None"  # required or not: None until set (encode refuses a required None)
                 want_default = None
+            elif s.record is not None:
+                want_type, want_default = s.type, []
             else:
                 want_type = _ANNOTATIONS[s.type] + (" | None" if s.optional else "")
                 want_default = {"list[str]": [], "list[dict]": [], "dict": {}}.get(s.type, s.default)

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from olsplat_msgs import ImageFrame, QueryReply, QueryRequest, RegionFeatures
+from olsplat_msgs import ImageFrame, Instance, Instance2D, Instance3D, QueryReply, QueryRequest, RegionFeatures
 
 from ..scene import Camera
 
@@ -87,20 +87,27 @@ def split_bank(message: RegionFeatures) -> tuple[np.ndarray, list[np.ndarray]]:
 
 
 def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray | None, seconds: float) -> QueryReply:
-    """The wire answer of a core ``query.QueryAnswer``: 3D instances (and 2D regions in the view)."""
-    instances = [
-        {
-            "id": i,
-            "kind": "3d",
-            "n_gaussians": inst.gaussians,
-            "centroid": list(inst.centre),
-            "box_min": list(inst.box_min),
-            "box_max": list(inst.box_max),
-        }
+    """The wire answer of a core ``query.QueryAnswer``: 3D instances, then the 2D regions in the view, as
+    ``Instance`` records (``msgs/schema.yaml``; ``encode`` checks them)."""
+    instances: list[Instance] = [
+        Instance3D(
+            id=i,
+            kind="3d",
+            n_gaussians=int(inst.gaussians),
+            centroid=[float(x) for x in inst.centre],  # world metres
+            box_min=[float(x) for x in inst.box_min],
+            box_max=[float(x) for x in inst.box_max],
+        )
         for i, inst in enumerate(answer.instances)
     ]
     instances += [
-        {"id": i, "kind": "2d", "box2d": list(r.box), "centre_px": list(r.centre), "area_px": r.pixels}
+        Instance2D(
+            id=i,
+            kind="2d",
+            box2d=[int(x) for x in r.box],  # x0, y0, x1, y1, end exclusive
+            centre_px=[float(x) for x in r.centre],  # top-left pixel's centre at (0.5, 0.5)
+            area_px=int(r.pixels),
+        )
         for i, r in enumerate(answer.regions)
     ]
     return QueryReply(

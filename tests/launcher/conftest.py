@@ -1,13 +1,11 @@
 """Helpers for the launcher tests: write a launch file, make the test nodes importable in the
-child processes, run a supervisor with a deadline, wait for a condition."""
+child processes, run a supervisor with a deadline (waits: ``tests.helpers.wait_for``)."""
 
 from __future__ import annotations
 
 import io
 import os
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -33,17 +31,6 @@ def write_launch(folder: Path, nodes: list[dict], **top) -> Path:
     path = folder / "t.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
-
-
-def wait_for(condition: Callable[[], object], timeout_s: float = 10.0, what: str = "condition"):
-    """Poll ``condition`` until it returns something truthy; fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.02)
-    pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
 
 
 class Running:

@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 
 from olsplat_nodes.cli import main
+from tests.helpers import wait_for
 
-from .conftest import NODES, REPO, wait_for, write_launch
+from .conftest import NODES, REPO, write_launch
 
 OLSPLAT = Path(sys.executable).with_name("olsplat")
 
@@ -38,7 +39,7 @@ def test_a_signal_to_the_launcher_stops_every_child_and_sets_the_exit_code(tmp_p
     try:
         pid_files = [run / f"{name}.pid" for name in names]
         pids = wait_for(
-            lambda: all(p.exists() for p in pid_files) and [int(p.read_text()) for p in pid_files], what="three nodes"
+            lambda: all(p.exists() for p in pid_files) and [int(p.read_text()) for p in pid_files], 10.0, "three nodes"
         )
         launcher.send_signal(sig)
         out, _ = launcher.communicate(timeout=15)
@@ -64,11 +65,12 @@ def test_launch_runs_a_file_to_its_end_with_overrides(tmp_path, capsys):
 
 def test_launch_errors_are_one_line_and_exit_1(tmp_path):
     path = write_launch(tmp_path, [{"name": "ticker", "exec": f"{NODES}:Ticker"}])
-    result = subprocess.run([str(OLSPLAT), "launch", str(path), "--set", "tocker.ticks=2"], capture_output=True, text=True,
-                            cwd=REPO, timeout=60)  # fmt: skip
+    command = [str(OLSPLAT), "launch", str(path), "--set", "tocker.ticks=2"]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=REPO, timeout=60)
     assert result.returncode == 1
     assert result.stderr.strip().splitlines() == [
-        f"olsplat launch: error: {path}: --set 'tocker.ticks=2': no node named 'tocker'; nodes: ticker (or 'launch' for a top-level key)"
+        f"olsplat launch: error: {path}: --set 'tocker.ticks=2': no node named 'tocker'; "
+        "nodes: ticker (or 'launch' for a top-level key)"
     ]
     assert not (tmp_path / "run").exists()  # nothing started, nothing written
 

@@ -9,8 +9,9 @@ import signal
 import pytest
 
 from olsplat_nodes.launcher import load_launch
+from tests.helpers import wait_for
 
-from .conftest import NODES, Running, run_launch, wait_for, write_launch
+from .conftest import NODES, Running, run_launch, write_launch
 
 
 def read_logs(tmp_path) -> dict[str, str]:
@@ -59,11 +60,11 @@ def test_kill_9_of_a_running_child_is_noticed_and_the_node_restarted(tmp_path):
     ], exit_when=["victim"])  # fmt: skip
     running = Running(load_launch(path))
     pid_file = run / "victim.pid"
-    first = int(wait_for(lambda: pid_file.exists() and pid_file.read_text(), what="victim's pid file"))
+    first = int(wait_for(lambda: pid_file.exists() and pid_file.read_text(), 10.0, "victim's pid file"))
     assert running.supervisor.pids == {"victim": first}
     os.kill(first, signal.SIGKILL)
     second = int(
-        wait_for(lambda: pid_file.read_text() != str(first) and pid_file.read_text(), what="a restarted victim")
+        wait_for(lambda: pid_file.read_text() != str(first) and pid_file.read_text(), 10.0, "a restarted victim")
     )
     assert second != first
     (run / "release").touch()

@@ -1,5 +1,6 @@
 """One or more filled-in instances of every message, covering None arrays, empty arrays, every
-allowed dtype of a field, NaN, nested dicts and unicode; shared by the codec tests."""
+allowed dtype of a field, NaN, nested dicts, records of every kind and unicode; shared by the
+codec tests."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from olsplat_msgs import (
     DiagnosticStatus,
     EndOfStream,
     ImageFrame,
+    Instance2D,
+    Instance3D,
     MapUpdated,
     ObservationsAdded,
     QueryReply,
@@ -104,14 +107,18 @@ def sample_messages() -> list[tuple[str, object]]:
                 view="v000",
                 map_version=5,
                 instances=[
-                    {
-                        "id": 0,
-                        "score": 0.9,
-                        "n_gaussians": 10,
-                        "centroid": [1.0, 2.0, 3.0],
-                        "box2d": [0, 1, 2, 3],
-                        "extra": None,
-                    }
+                    Instance3D(
+                        id=0,
+                        kind="3d",
+                        n_gaussians=10,
+                        centroid=[1.0, 2.0, 3.0],
+                        box_min=[0.5, -1e300, 2.0],
+                        box_max=[1.5, 2.5, math.inf],
+                    ),
+                    Instance3D(
+                        id=1, kind="3d", n_gaussians=2**62, centroid=[0.0] * 3, box_min=[0.0] * 3, box_max=[0.0] * 3
+                    ),
+                    Instance2D(id=0, kind="2d", box2d=[0, 1, 2, 3], centre_px=[1.0, 2.0], area_px=4),
                 ],
                 heatmap=rng.random((6, 8), dtype=np.float32),
                 mask=(rng.random((6, 8)) > 0.5).astype(np.uint8),

@@ -12,6 +12,8 @@ from olsplat_msgs import (
     MESSAGES,
     DiagnosticStatus,
     ImageFrame,
+    Instance2D,
+    Instance3D,
     QueryReply,
     QueryRequest,
     RegionFeatures,
@@ -24,6 +26,7 @@ from olsplat_msgs import (
 from .samples import assert_same, sample_messages
 
 SAMPLES = sample_messages()
+INSTANCE_2D = Instance2D(id=0, kind="2d", box2d=[0, 1, 2, 3], centre_px=[1.0, 2.0], area_px=4)
 
 
 @pytest.mark.parametrize("name,msg", SAMPLES, ids=[s[0] for s in SAMPLES])
@@ -141,7 +144,13 @@ def _image(**changes):
         (DiagnosticStatus(values={"x": object()}), TypeError, "DiagnosticStatus.values.x"),
         (DiagnosticStatus(values={"x": b"raw"}), TypeError, "DiagnosticStatus.values.x"),
         (QueryRequest(negatives=["a", 3]), TypeError, "QueryRequest.negatives[1]"),
-        (QueryReply(instances=[1]), TypeError, "QueryReply.instances[0]"),
+        (QueryReply(instances=[1]), TypeError, "QueryReply.instances[0]: expected a map (record Instance)"),
+        (QueryReply(instances=[{"id": 0}]), ValueError, "QueryReply.instances[0]: record Instance without its 'kind'"),
+        (QueryReply(instances=[{**INSTANCE_2D, "kind": "3D"}]), ValueError, "instances[0].kind: '3D' is not one of"),
+        (QueryReply(instances=[{**INSTANCE_2D, "score": 0.5}]), ValueError, "unexpected ['score']"),
+        (QueryReply(instances=[{**INSTANCE_2D, "box2d": [0, 1, 2]}]), TypeError, "box2d: expected int[4]"),
+        (QueryReply(instances=[{**INSTANCE_2D, "box2d": [0, 1, 2, 3.0]}]), TypeError, "box2d[3]: expected int"),
+        (QueryReply(instances=[{**INSTANCE_2D, "area_px": None}]), TypeError, "area_px: None"),
         (QueryRequest(heatmap=1), TypeError, "QueryRequest.heatmap: expected bool"),
     ],
 )
@@ -164,3 +173,39 @@ def test_deep_nesting_is_refused():
         value = [value]
     with pytest.raises(ValueError, match="nested deeper"):
         encode(DiagnosticStatus(values={"deep": value}), "d")
+
+
+def test_records_from_numpy_and_tuples_are_written_as_plain_lists():
+    """What the query server's numbers look like before encode: numpy scalars and arrays, tuples."""
+    centre = np.array([1.0, 2.0, 3.0], np.float32)
+    sent = QueryReply(
+        instances=[
+            Instance3D(
+                id=np.int64(0),
+                kind="3d",
+                n_gaussians=np.int32(25),
+                centroid=centre,
+                box_min=(np.float64(0.5), 1, 2.0),
+                box_max=centre + 1,
+            ),
+            Instance2D(
+                id=0, kind="2d", box2d=tuple(np.arange(4)), centre_px=(0.5, np.float32(1.5)), area_px=np.int64(9)
+            ),
+        ]
+    )
+    frames = encode(sent, "query")
+    raw = msgpack.unpackb(frames[1])["fields"]["instances"]
+    assert raw == [
+        {
+            "id": 0,
+            "kind": "3d",
+            "n_gaussians": 25,
+            "centroid": [1.0, 2.0, 3.0],
+            "box_min": [0.5, 1.0, 2.0],
+            "box_max": [2.0, 3.0, 4.0],
+        },
+        {"id": 0, "kind": "2d", "box2d": [0, 1, 2, 3], "centre_px": [0.5, 1.5], "area_px": 9},
+    ]
+    back = decode(frames)[1].instances
+    assert back == raw and all(type(x) is float for x in back[0]["box_min"])
+    assert encode(decode(frames)[1], "query") == frames

@@ -9,10 +9,13 @@ import pytest
 
 from olsplat_msgs import (
     ImageFrame,
+    Instance2D,
+    Instance3D,
     MalformedMessage,
     MessageTooLarge,
     QueryReply,
     RegionFeatures,
+    StatusReply,
     StatusRequest,
     UnknownSchema,
     UnsupportedVersion,
@@ -38,8 +41,16 @@ def _region_frames() -> list[bytes]:
     return encode(msg, "regions")
 
 
+INSTANCES = [
+    Instance3D(
+        id=0, kind="3d", n_gaussians=30, centroid=[1.0, 2.0, 3.0], box_min=[0.0, 1.0, 2.0], box_max=[2.0, 3.0, 4.0]
+    ),
+    Instance2D(id=0, kind="2d", box2d=[0, 1, 2, 3], centre_px=[1.5, 2.5], area_px=4),
+]
+
+
 def _reply_frames() -> list[bytes]:
-    return encode(QueryReply(request_id="r", mask=np.ones((2, 2), np.uint8)), "query")
+    return encode(QueryReply(request_id="r", mask=np.ones((2, 2), np.uint8), instances=INSTANCES), "query")
 
 
 def _with_header(frames: list[bytes], change) -> list[bytes]:
@@ -63,7 +74,7 @@ def _set(path: str, value):
 
 
 def _delete(path: str):
-    keys = path.split(".")
+    keys = [int(k) if k.isdigit() else k for k in path.split(".")]
 
     def change(header):
         target = header
@@ -77,6 +88,7 @@ def _delete(path: str):
 STATUS = encode(StatusRequest(request_id="x"), "query")
 REGIONS = _region_frames()
 REPLY = _reply_frames()
+NODES = encode(StatusReply(request_id="s", nodes=[{"node": "ingest", "level": 0}]), "query")
 
 CASES = [
     # (id, frames, error class, words that must appear in the message)
@@ -167,21 +179,137 @@ CASES = [
     ),
     (
         "field-list-of-int",
-        _with_header(REPLY, _set("fields.instances", [1])),
+        _with_header(NODES, _set("fields.nodes", [1])),
         MalformedMessage,
-        "QueryReply.instances[0]: expected dict",
+        "StatusReply.nodes[0]: expected dict",
     ),
     (
         "field-list-is-map",
-        _with_header(REPLY, _set("fields.instances", {})),
+        _with_header(NODES, _set("fields.nodes", {})),
         MalformedMessage,
-        "QueryReply.instances: expected list[dict]",
+        "StatusReply.nodes: expected list[dict]",
     ),
     (
         "field-bin-inside",
-        _with_header(REPLY, _set("fields.instances", [{"a": b"x"}])),
+        _with_header(NODES, _set("fields.nodes", [{"a": b"x"}])),
         MalformedMessage,
-        "QueryReply.instances[0].a",
+        "StatusReply.nodes[0].a",
+    ),
+    # records: QueryReply.instances is list[Instance] (REPLY has a 3d then a 2d instance)
+    (
+        "records-is-map",
+        _with_header(REPLY, _set("fields.instances", {})),
+        MalformedMessage,
+        "QueryReply.instances: expected list[Instance] (an array of maps), got dict",
+    ),
+    (
+        "record-is-int",
+        _with_header(REPLY, _set("fields.instances", [1])),
+        MalformedMessage,
+        "QueryReply.instances[0]: expected a map (record Instance), got int",
+    ),
+    (
+        "record-is-nil",
+        _with_header(REPLY, _set("fields.instances.1", None)),
+        MalformedMessage,
+        "QueryReply.instances[1]: expected a map (record Instance), got NoneType",
+    ),
+    (
+        "record-without-kind",
+        _with_header(REPLY, _delete("fields.instances.0.kind")),
+        MalformedMessage,
+        "QueryReply.instances[0]: record Instance without its 'kind' key",
+    ),
+    (
+        "record-unknown-kind",
+        _with_header(REPLY, _set("fields.instances.0.kind", "4d")),
+        MalformedMessage,
+        "QueryReply.instances[0].kind: '4d' is not one of ['3d', '2d']",
+    ),
+    (
+        "record-kind-not-str",
+        _with_header(REPLY, _set("fields.instances.1.kind", 2)),
+        MalformedMessage,
+        "QueryReply.instances[1].kind: expected str, got int",
+    ),
+    (
+        "record-missing-key",
+        _with_header(REPLY, _delete("fields.instances.1.area_px")),
+        MalformedMessage,
+        "QueryReply.instances[1]: record Instance of kind '2d' needs exactly the keys "
+        "['id', 'kind', 'box2d', 'centre_px', 'area_px']; missing ['area_px'], unexpected []",
+    ),
+    (
+        "record-undocumented-key",  # the old description's "score", never sent
+        _with_header(REPLY, _set("fields.instances.0.score", 0.9)),
+        MalformedMessage,
+        "missing [], unexpected ['score']",
+    ),
+    (
+        "record-keys-of-the-other-kind",
+        _with_header(REPLY, _set("fields.instances.1.kind", "3d")),
+        MalformedMessage,
+        "QueryReply.instances[1]: record Instance of kind '3d' needs exactly the keys",
+    ),
+    (
+        "record-bin-key",
+        _with_header(REPLY, _set("fields.instances.0", {**INSTANCES[0], b"id": 1})),
+        MalformedMessage,
+        "unexpected [b'id']",
+    ),
+    (
+        "record-nil-value",
+        _with_header(REPLY, _set("fields.instances.0.centroid", None)),
+        MalformedMessage,
+        "QueryReply.instances[0].centroid: None, but the field is not optional",
+    ),
+    (
+        "record-short-list",
+        _with_header(REPLY, _set("fields.instances.0.centroid", [1.0, 2.0])),
+        MalformedMessage,
+        "QueryReply.instances[0].centroid: expected float[3] (3 numbers), got list of 2 items",
+    ),
+    (
+        "record-list-is-str",
+        _with_header(REPLY, _set("fields.instances.1.box2d", "0 1 2 3")),
+        MalformedMessage,
+        "QueryReply.instances[1].box2d: expected int[4] (4 numbers), got str",
+    ),
+    (
+        "record-float-in-int-list",
+        _with_header(REPLY, _set("fields.instances.1.box2d.3", 3.5)),
+        MalformedMessage,
+        "QueryReply.instances[1].box2d[3]: expected int, got float",
+    ),
+    (
+        "record-str-in-float-list",
+        _with_header(REPLY, _set("fields.instances.1.centre_px.1", "2.5")),
+        MalformedMessage,
+        "QueryReply.instances[1].centre_px[1]: expected float, got str",
+    ),
+    (
+        "record-nested-list",
+        _with_header(REPLY, _set("fields.instances.0.box_max.0", [2.0])),
+        MalformedMessage,
+        "QueryReply.instances[0].box_max[0]: expected float, got list",
+    ),
+    (
+        "record-bool-as-int",
+        _with_header(REPLY, _set("fields.instances.1.area_px", True)),
+        MalformedMessage,
+        "QueryReply.instances[1].area_px: expected int, got bool",
+    ),
+    (
+        "record-bin-value",
+        _with_header(REPLY, _set("fields.instances.0.id", b"\x00")),
+        MalformedMessage,
+        "QueryReply.instances[0].id: expected int, got bytes",
+    ),
+    (
+        "record-int-out-of-range",
+        _with_header(REPLY, _set("fields.instances.0.n_gaussians", 2**64 - 1)),
+        MalformedMessage,
+        "QueryReply.instances[0].n_gaussians: 18446744073709551615 outside the signed 64-bit range",
     ),
     ("arrays-not-list", _with_header(REPLY, _set("arrays", {})), MalformedMessage, "'arrays' must list 3 entries"),
     (
@@ -317,6 +445,18 @@ def test_too_large_is_checked_before_parsing():
 def test_uint8_dtype_alias_is_accepted():
     frames = _with_header(REPLY, _set("arrays.1.dtype", "<u1"))
     assert decode(frames)[1].mask.dtype == np.uint8
+
+
+def test_record_float_accepts_an_integer_from_other_encoders():
+    frames = _with_header(REPLY, _set("fields.instances.0.centroid", [1, 2, 3]))
+    centroid = decode(frames)[1].instances[0]["centroid"]
+    assert centroid == [1.0, 2.0, 3.0] and all(type(x) is float for x in centroid)
+
+
+def test_record_key_order_is_not_significant():
+    frames = _with_header(REPLY, _set("fields.instances.1", dict(reversed(INSTANCES[1].items()))))
+    back = decode(frames)[1].instances
+    assert back == INSTANCES and list(back[1]) == list(INSTANCES[1])  # the schema's order again
 
 
 def test_float_field_accepts_an_integer_from_other_encoders():

@@ -127,42 +127,6 @@ def tiny_run(tiny, region_features, tmp_path_factory):
 
 
 # ---------------------------------------------------------------------------------------------
-# waiting
-
-
-def wait_for(
-    condition: Callable[[], Any],
-    timeout_s: float,
-    what: str,
-    step: Callable[[], Any] | None = None,
-    interval_s: float = 0.02,
-):
-    """Call ``step`` (if any) and ``condition`` until the latter is truthy; fail naming ``what``."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if step is not None:
-            step()
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(interval_s)
-
-
-def every(period_s: float, action: Callable[[], Any]) -> Callable[[], None]:
-    """A step for ``wait_for`` that runs ``action`` at most once per ``period_s`` (first call: now)."""
-    last = [-float("inf")]
-
-    def step():
-        if time.monotonic() - last[0] >= period_s:
-            last[0] = time.monotonic()
-            action()
-
-    return step
-
-
-# ---------------------------------------------------------------------------------------------
 # nodes in threads
 
 
@@ -294,7 +258,8 @@ class Heartbeats(Tap):
                 return found
             if time.monotonic() > deadline:
                 pytest.fail(
-                    f"timed out after {timeout_s} s waiting for a heartbeat of {node} with {what}; last values: {beats[-1:]}"
+                    f"timed out after {timeout_s} s waiting for a heartbeat of {node} with {what}; "
+                    f"last values: {beats[-1:]}"
                 )
 
 

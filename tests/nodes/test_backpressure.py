@@ -10,8 +10,9 @@ import pytest
 from olsplat_msgs import EndOfStream, RegionFeatures
 from olsplat_nodes.nodes.region_encoder import RegionEncoderNode
 from olsplat_nodes.transport import Publisher
+from tests.helpers import every, wait_for
 
-from .conftest import Heartbeats, NodeThread, Tap, every, image_frame, wait_for
+from .conftest import Heartbeats, NodeThread, Tap, image_frame
 
 pytestmark = pytest.mark.timeout(120)
 BURST = 40

@@ -34,19 +34,18 @@ from olsplat_msgs import (
     encode,
 )
 from olsplat_nodes.transport import QueryClient
+from tests.helpers import every, wait_for
 
 from .conftest import (
     Heartbeats,
     NodeThread,
     Tap,
     bad_variants,
-    every,
     image_frame,
     oversized,
     raw_socket,
     send,
     send_msg,
-    wait_for,
 )
 
 pytestmark = pytest.mark.timeout(120)

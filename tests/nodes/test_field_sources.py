@@ -15,9 +15,10 @@ from olsplat_nodes.launcher import Supervisor, load_launch
 from olsplat_nodes.nodes.ingest import IngestNode
 from olsplat_nodes.sources import discover_devices
 from olsplat_nodes.transport import QueryClient, curve
+from tests.helpers import free_port, wait_for
 
 from ..sources.conftest import TRACK, write_photo
-from .conftest import Heartbeats, NodeThread, Tap, wait_for
+from .conftest import Heartbeats, NodeThread, Tap
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -99,20 +100,13 @@ def test_ingest_streams_geotagged_photos(ctx, sockdir, tmp_path):
         tap.close()
 
 
-def _free_port() -> int:
-    sock = zmq.Context.instance().socket(zmq.ROUTER)
-    port = sock.bind_to_random_port("tcp://127.0.0.1")
-    sock.close(0)
-    return port
-
-
 @pytest.mark.slow
 def test_field_drone_launch_without_camera(tiny, tmp_path, no_device):
     scene, _ = tiny
     keys = tmp_path / "keys"
     curve.generate(keys, "drone")
     curve.generate(keys / "allowed", "ground")
-    port = _free_port()
+    port = free_port()
     ply = scene / "map" / "point_cloud.ply"
     overrides = [
         "launch.compose=true",

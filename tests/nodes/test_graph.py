@@ -18,17 +18,9 @@ from olsplat_nodes.aggregate import ObservationStore, latest_map
 from olsplat_nodes.launcher import Supervisor, load_launch
 from olsplat_nodes.method import read_manifest
 from olsplat_nodes.transport import NoReply, QueryClient
-
-from .conftest import wait_for
+from tests.helpers import free_port, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    socket = zmq.Context.instance().socket(zmq.ROUTER)
-    port = socket.bind_to_random_port("tcp://127.0.0.1")
-    socket.close(0)
-    return port
 
 
 def launch_tiny(scene: Path, run_dir: Path, port: int, *extra: str):

@@ -13,13 +13,13 @@ import sys
 
 import cv2
 import pytest
-import zmq
 
 from olsplat_nodes.cli import main
 from olsplat_nodes.nodes.query_server import QueryServerNode
 from olsplat_nodes.transport import curve
+from tests.helpers import free_port, wait_for
 
-from .conftest import ENCODE_VIEW, NodeThread, wait_for
+from .conftest import ENCODE_VIEW, NodeThread
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -119,10 +119,7 @@ def test_query_before_any_map_says_so(ctx, sockdir, tiny, tmp_path, capsys):
 
 
 def _unused_tcp_endpoint() -> str:
-    probe = zmq.Context.instance().socket(zmq.ROUTER)
-    port = probe.bind_to_random_port("tcp://127.0.0.1")
-    probe.close(linger=0)
-    return f"tcp://127.0.0.1:{port}"
+    return f"tcp://127.0.0.1:{free_port()}"
 
 
 @pytest.mark.parametrize("command", [["status"], ["query", "road"]])

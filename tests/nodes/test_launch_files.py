@@ -2,15 +2,14 @@
 
 import json
 import threading
-import time
 from pathlib import Path
 
 import pytest
-import zmq
 
 from olsplat_nodes.launcher import load_launch, resolve_launch
 from olsplat_nodes.nodes.ground_monitor import GroundMonitorNode
 from olsplat_nodes.nodes.query_server import QueryServerNode
+from tests.helpers import free_port, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -24,9 +23,7 @@ def test_shipped_launch_files_validate(name, tmp_path):
 
 def test_ground_monitor_writes_the_drones_status(tiny, tmp_path):
     scene, _ = tiny
-    socket = zmq.Context.instance().socket(zmq.ROUTER)
-    port = socket.bind_to_random_port("tcp://127.0.0.1")
-    socket.close(0)
+    port = free_port()
     server = QueryServerNode(
         "qs",
         {
@@ -47,9 +44,7 @@ def test_ground_monitor_writes_the_drones_status(tiny, tmp_path):
     for thread in threads:
         thread.start()
     try:
-        deadline = time.monotonic() + 30
-        while not status_file.exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_for(status_file.exists, 30, "the monitor's status file", interval_s=0.05)
         status = json.loads(status_file.read_text())
         assert status["map_version"] == 0 and status["nodes"][0]["node"] == "qs"
     finally:

@@ -1,19 +1,23 @@
 """The query server before any map exists: an explicit "no_map" at once (not a hang), for a query
 with and without a view; a StatusRequest works before any map; and once a snapshot appears
-(the refiner's latest.json), the same server answers from it without a restart."""
+(the refiner's latest.json), the same server answers from it without a restart. With a map, the
+instances of its reply are, byte for byte, the ``Instance`` records msgs/README.md documents."""
 
 from __future__ import annotations
 
 import shutil
 import time
 
+import msgpack
+import numpy as np
 import pytest
 
-from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest
+from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest, decode, encode, load_schema
 from olsplat_nodes.nodes.query_server import QueryServerNode
 from olsplat_nodes.transport import QueryClient
+from tests.helpers import every, wait_for
 
-from .conftest import ENCODE_VIEW, NodeThread, every, raw_socket, send_msg, wait_for
+from .conftest import ENCODE_VIEW, NodeThread, raw_socket, send_msg
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -74,3 +78,96 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
             running.assert_running()
     finally:
         maps.close()
+
+
+# The documented Instance record (msgs/README.md, "Records"), written out here so that the test
+# does not trust the codec it checks: key -> (type, length of the list or None).
+INSTANCE_3D = {
+    "id": (int, None),
+    "kind": (str, None),
+    "n_gaussians": (int, None),
+    "centroid": (float, 3),
+    "box_min": (float, 3),
+    "box_max": (float, 3),
+}
+INSTANCE_2D = {
+    "id": (int, None),
+    "kind": (str, None),
+    "box2d": (int, 4),
+    "centre_px": (float, 2),
+    "area_px": (int, None),
+}
+
+
+def _check_types(instance: dict, spec: dict) -> None:
+    assert list(instance) == list(spec), instance  # exactly these keys, in the documented order
+    for key, (kind, length) in spec.items():
+        value = instance[key]
+        if length is None:
+            assert type(value) is kind, (key, value)
+        else:
+            assert type(value) is list and len(value) == length and all(type(x) is kind for x in value), (key, value)
+
+
+def test_reply_instances_on_the_wire_are_the_documented_records(ctx, sockdir, tiny, tiny_run, tmp_path):
+    import zmq
+
+    scene, _ = tiny
+    shutil.copytree(tiny_run / "views", tmp_path / "views")
+    shutil.copytree(tiny_run / "map", tmp_path / "map")  # a snapshot from the start: loaded at once
+    endpoint = f"ipc://{sockdir}/query.sock"
+    node = QueryServerNode(
+        "query_server",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "map_dir": str(tmp_path / "map"),
+            "views": str(tmp_path / "views"),
+            "query_endpoint": endpoint,
+            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
+            "map_in": f"ipc://{sockdir}/map.sock",
+        },
+    )
+    dealer = raw_socket(ctx, zmq.DEALER, endpoint, bind=False)  # raw frames: what any client receives
+    try:
+        with NodeThread(node) as running:
+            request = QueryRequest(request_id="rec", text="red roof buildings", view=ENCODE_VIEW, heatmap=True)
+            dealer.send_multipart([b"", *encode(request, "query")])
+            assert dealer.poll(60_000), "no reply from the query server"
+            frames = dealer.recv_multipart()
+            running.assert_running()
+    finally:
+        dealer.close()
+    assert frames[0] == b"" and frames[1] == b"query"
+    header = msgpack.unpackb(frames[2], raw=False)
+    assert header["schema"] == "olsplat_msgs/QueryReply" and header["fields"]["status"] == "ok", header["fields"]
+    instances = header["fields"]["instances"]
+    found3d = [i for i in instances if i.get("kind") == "3d"]
+    found2d = [i for i in instances if i.get("kind") == "2d"]
+    assert found3d and found2d and instances == found3d + found2d  # every 3D instance first, then the regions
+
+    schema = load_schema().records["Instance"]
+    assert list(INSTANCE_3D) == [f.name for f in schema.fields_of("3d")]
+    assert list(INSTANCE_2D) == [f.name for f in schema.fields_of("2d")]
+    for instance in found3d:
+        _check_types(instance, INSTANCE_3D)
+        lo, c, hi = (np.array(instance[k]) for k in ("box_min", "centroid", "box_max"))
+        assert np.isfinite([lo, c, hi]).all() and (lo <= c).all() and (c <= hi).all()
+        assert instance["n_gaussians"] >= 20  # the clustering's min_points
+    for instance in found2d:
+        _check_types(instance, INSTANCE_2D)
+        x0, y0, x1, y1 = instance["box2d"]
+        assert 0 <= x0 < x1 <= 320 and 0 <= y0 < y1 <= 240  # the view's pixel grid, end exclusive
+        x, y = instance["centre_px"]
+        assert x0 + 0.5 <= x <= x1 - 0.5 and y0 + 0.5 <= y <= y1 - 0.5  # pixel centres at +0.5
+        assert 50 <= instance["area_px"] <= (x1 - x0) * (y1 - y0)
+    for found, size in ((found3d, "n_gaussians"), (found2d, "area_px")):
+        assert [i["id"] for i in found] == list(range(len(found)))
+        assert [i[size] for i in found] == sorted((i[size] for i in found), reverse=True)
+
+    _, reply = decode(frames[1:])  # the codec reads the same records back
+    assert reply.instances == instances and reply.request_id == "rec"
+    mask = reply.mask.astype(bool)
+    assert mask.shape == (240, 320) and sum(i["area_px"] for i in found2d) <= mask.sum()
+    biggest = found2d[0]
+    x0, y0, x1, y1 = biggest["box2d"]
+    assert mask[y0:y1, x0:x1].any(axis=0)[[0, -1]].all() and mask[y0:y1, x0:x1].any(axis=1)[[0, -1]].all()  # tight box

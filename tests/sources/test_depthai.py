@@ -12,12 +12,9 @@ import time
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v20 import common as mavlink
 
-dai = pytest.importorskip("depthai")
-
-from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
-
-from olsplat_nodes.sources import (
+from olsplat_nodes.sources import (  # depthai itself is imported only when a device is used
     ERROR,
     OK,
     DepthAISource,
@@ -27,15 +24,10 @@ from olsplat_nodes.sources import (
     open_source,
     trim_distortion,
 )
-from olsplat_nodes.telemetry import FlightControllerPoses, TelemetryConfig  # noqa: E402
+from olsplat_nodes.telemetry import FlightControllerPoses, TelemetryConfig
+from tests.helpers import wait_for
 
-
-def wait_until(condition, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
+dai = pytest.importorskip("depthai")
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +39,7 @@ def no_device():
 def test_no_device_is_a_clean_error_and_discovery_is_retried(no_device):
     source = open_source({"source_kind": "depthai", "depthai_retry_s": 0.1})
     try:
-        wait_until(lambda: source.stats["discovery_attempts"] >= 3, 20, "three discovery attempts")
+        wait_for(lambda: source.stats["discovery_attempts"] >= 3, 20, "three discovery attempts")
         level, message = source.status()
         assert level == ERROR and message.startswith("no DepthAI device found") and "retrying every 0.1 s" in message
         assert source.read(0.05) is None and not source.done and source.stats["connects"] == 0
@@ -59,7 +51,7 @@ def test_no_device_is_a_clean_error_and_discovery_is_retried(no_device):
 
 def test_a_named_device_that_is_absent(no_device):
     with DepthAISource(device="1844301011B546F500", retry_s=0.1) as source:
-        wait_until(
+        wait_for(
             lambda: source.stats["discovery_attempts"] >= 1 and source.status()[1].startswith("no DepthAI"),
             20,
             "a status",
@@ -141,16 +133,16 @@ def test_unplug_is_reported_and_the_device_is_picked_up_again():
         width=64, height=48, retry_s=0.05, world_from_camera=pose, discover=device.discover, open_stream=device.open
     ) as source:
         names = []
-        wait_until(
+        wait_for(
             lambda: (f := source.read(0.05)) is not None and names.append(f) is None and len(names) == 3,
             10,
             "three frames",
         )
         assert source.status() == (OK, "streaming from DepthAI device standin-device (64x48 at 10 fps)")
         device.release.set()  # unplug
-        wait_until(lambda: source.stats["disconnects"] >= 1, 10, "the disconnect")
-        wait_until(lambda: device.connects >= 2, 10, "a reconnect")
-        wait_until(
+        wait_for(lambda: source.stats["disconnects"] >= 1, 10, "the disconnect")
+        wait_for(lambda: device.connects >= 2, 10, "a reconnect")
+        wait_for(
             lambda: (f := source.read(0.05)) is not None and names.append(f) is None and len(names) == 4,
             10,
             "a frame after the reconnect",
@@ -183,7 +175,7 @@ def test_poses_come_from_telemetry_and_frames_without_one_are_dropped():
                 got.append(frame)
             return source.stats["frames_without_pose"] >= 2
 
-        wait_until(step, 10, "two frames rejected for want of a pose")  # the last one after max_wait_s
+        wait_for(step, 10, "two frames rejected for want of a pose")  # the last one after max_wait_s
         assert len(got) == 1 and source.stats["frames"] == 1
         np.testing.assert_allclose(
             got[0].camera.world_from_camera[:3, 3], [0.0, 0.5, 50.0], atol=1e-9

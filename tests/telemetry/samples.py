@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -134,14 +132,3 @@ def flight_messages(
         )
     out.sort(key=lambda item: item[:2])
     return [(ms, frame) for ms, _, frame in out]
-
-
-def wait_for(condition: Callable[[], object], timeout_s: float = 3.0, step: Callable[[], object] | None = None):
-    """Call ``step`` then ``condition`` until the latter is truthy or time runs out; returns it."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if step is not None:
-            step()
-        value = condition()
-        if value or time.monotonic() > deadline:
-            return value

@@ -9,8 +9,9 @@ import pytest
 import serial
 
 from olsplat_nodes.telemetry import POSE_MESSAGES, MavlinkDecoder, MavlinkReader
+from tests.helpers import wait_for
 
-from .samples import corrupt, encoder, mixed_frames, pack, wait_for
+from .samples import corrupt, encoder, mixed_frames, pack
 
 
 def msgbufs(messages) -> list[bytes]:

@@ -7,8 +7,9 @@ import pytest
 
 from olsplat_nodes.telemetry import MavlinkDecoder, TelemetryConfig, euler_to_rotmat, geodetic_to_ned, world_from_camera
 from olsplat_nodes.telemetry.source import FlightControllerPoses
+from tests.helpers import wait_for
 
-from .samples import Flight, encoder, flight_messages, pack, wait_for
+from .samples import Flight, encoder, flight_messages, pack
 
 MS = 1_000_000
 OFFSET_NS = 123_456_000_000  # host clock - autopilot boot clock
@@ -16,7 +17,7 @@ OFFSET_NS = 123_456_000_000  # host clock - autopilot boot clock
 
 def feed(source: FlightControllerPoses, messages, delays_ms) -> None:
     decoder = MavlinkDecoder()
-    for (boot_ms, frame), delay in zip(messages, delays_ms):
+    for (boot_ms, frame), delay in zip(messages, delays_ms, strict=False):  # extra delays unused
         for message in decoder.feed(frame):
             source.add_message(message, boot_ms * MS + OFFSET_NS + int(delay * MS))
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from collections.abc import Callable
 
 import pytest
 import zmq
@@ -23,18 +22,6 @@ def ctx():
     context = zmq.Context()
     yield context
     context.destroy(linger=0)
-
-
-def wait_for(condition: Callable[[], object], timeout_s: float = 3.0, step: Callable[[], object] | None = None):
-    """Call ``step`` (if any) then ``condition`` until the latter is truthy or time runs out; returns it."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if step is not None:
-            step()
-        value = condition()
-        if value or time.monotonic() > deadline:
-            return value
-        time.sleep(0.005)
 
 
 def echo_answer(request):

@@ -10,8 +10,9 @@ import zmq
 
 from olsplat_msgs import QueryRequest, StatusRequest
 from olsplat_nodes.transport import NoReply, QueryClient, QueryServer, curve
+from tests.helpers import wait_for
 
-from .conftest import LOCAL, ServerThread, wait_for
+from .conftest import LOCAL, ServerThread
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -32,7 +33,7 @@ def test_generate_writes_a_key_pair(tmp_path):
     assert stat.S_IMODE(secret.stat().st_mode) == 0o600
     pub, sec = zmq.auth.load_certificate(secret)
     assert pub == zmq.auth.load_certificate(public)[0] and sec and len(pub) == 40
-    with pytest.raises(FileExistsError, match="ground.key"):
+    with pytest.raises(FileExistsError, match=r"ground\.key"):
         curve.generate(tmp_path / "k", "ground")
     assert curve.generate(tmp_path / "k", "ground", overwrite=True)[0] == public
     assert zmq.auth.load_certificate(public)[0] != pub  # a new pair

@@ -12,8 +12,9 @@ import zmq
 from olsplat_msgs import DiagnosticStatus
 from olsplat_nodes.cli import main
 from olsplat_nodes.transport import Diagnostics, DiagnosticsCollector
+from tests.helpers import wait_for
 
-from .conftest import LOCAL, wait_for
+from .conftest import LOCAL
 
 pytestmark = pytest.mark.timeout(30)
 

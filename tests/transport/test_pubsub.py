@@ -12,8 +12,9 @@ import zmq
 
 from olsplat_msgs import EndOfStream, ImageFrame, ObservationsAdded, encode
 from olsplat_nodes.transport import Publisher, Subscriber
+from tests.helpers import wait_for
 
-from .conftest import LOCAL, wait_for
+from .conftest import LOCAL
 
 pytestmark = pytest.mark.timeout(30)
 

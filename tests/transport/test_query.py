@@ -13,8 +13,9 @@ import zmq
 
 from olsplat_msgs import EndOfStream, QueryReply, QueryRequest, StatusReply, StatusRequest, decode, encode
 from olsplat_nodes.transport import NoReply, QueryClient, QueryServer
+from tests.helpers import free_port, wait_for
 
-from .conftest import LOCAL, ServerThread, wait_for
+from .conftest import LOCAL, ServerThread
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -50,10 +51,7 @@ def test_ipc_endpoint_and_a_reply_with_arrays(ctx, tmp_path):
 
 
 def test_timeout_raises_no_reply_within_bounded_time(ctx):
-    probe = ctx.socket(zmq.ROUTER)  # reserve a free port, then leave it with nobody listening
-    port = probe.bind_to_random_port("tcp://127.0.0.1")
-    probe.close(linger=0)
-    endpoint = f"tcp://127.0.0.1:{port}"
+    endpoint = f"tcp://127.0.0.1:{free_port()}"  # nobody listening there
     with QueryClient(ctx, endpoint, timeout_s=0.3) as client:
         start = time.monotonic()
         with pytest.raises(NoReply) as info:
@@ -170,7 +168,7 @@ def test_client_skips_garbage_and_stale_replies(ctx):
 
     def fake_server():
         assert router.poll(3000)
-        identity, delimiter, *body = router.recv_multipart()
+        identity, _delimiter, *body = router.recv_multipart()
         _, request = decode(body)
         good = encode(QueryReply(request_id=request.request_id, text="yes"), "query")
         router.send_multipart([identity, b"", b"query", b"\xc1"])
