@@ -53,7 +53,9 @@ def topk_panel(topk_ids: np.ndarray, topk_weights: np.ndarray) -> np.ndarray:
         colorize(count.astype(np.float32), count > 0, 0, kmax),
         colorize(effective, count > 0, 1, kmax),
     ]
-    for panel, text in zip(panels, ("top-1 Gaussian", f"adaptive K (0..{kmax})", f"E inverse Simpson (1..{kmax})")):
+    for panel, text in zip(
+        panels, ("top-1 Gaussian", f"adaptive K (0..{kmax})", f"E inverse Simpson (1..{kmax})"), strict=True
+    ):
         cv2.putText(panel, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
     return np.concatenate(panels, axis=1)
 

@@ -51,7 +51,7 @@ def _polygons(mask: np.ndarray) -> list[tuple[list[list[float]], bool]]:
     """[(points, is_hole)] of a binary mask; points are continuous pixel coordinates."""
     contours, hierarchy = cv2.findContours(mask.astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
     out = []
-    for contour, info in zip(contours, hierarchy[0] if hierarchy is not None else []):
+    for contour, info in zip(contours, hierarchy[0] if hierarchy is not None else [], strict=True):
         if cv2.contourArea(contour) < MIN_REGION_PX:
             continue
         simple = cv2.approxPolyDP(contour, SIMPLIFY_PX, True)[:, 0, :]

@@ -369,8 +369,8 @@ def generate_layout(size_m: float, rng: np.random.Generator) -> Layout:
     )
     builder = _Builder(layout, rng)
     half = size_m / 2
-    xs = [-half] + sorted(c for a, c, _ in roads if a == "y") + [half]
-    ys = [-half] + sorted(c for a, c, _ in roads if a == "x") + [half]
+    xs = [-half, *sorted(c for a, c, _ in roads if a == "y"), half]
+    ys = [-half, *sorted(c for a, c, _ in roads if a == "x"), half]
     widths = {c: hw for _, c, hw in roads}
     blocks = []
     for i in range(len(xs) - 1):
@@ -391,7 +391,7 @@ def generate_layout(size_m: float, rng: np.random.Generator) -> Layout:
         )
     )
     fill = {"residential": _fill_residential, "commercial": _fill_commercial, "park": _fill_park}
-    for block, kind in zip(blocks, rng.permutation(kinds)):
+    for block, kind in zip(blocks, rng.permutation(kinds), strict=True):
         if kind == "parking":
             _parking_lot(builder, (block[0] + 1, block[1] + 1, block[2] - 1, block[3] - 1), layout.ground)
         else:

@@ -23,7 +23,7 @@ LABEL_COLORS = np.array(
 
 def overlay(image_rgb: np.ndarray, annotation: dict) -> np.ndarray:
     """[H, W, 3] BGR: the frame with its annotation regions tinted and outlined."""
-    labels, instances = rasterize_annotation(annotation)
+    labels, _instances = rasterize_annotation(annotation)
     out = image_rgb[..., ::-1].astype(np.float32)
     tint = LABEL_COLORS[np.maximum(labels, 0)].astype(np.float32)
     has = labels >= 0

@@ -95,7 +95,7 @@ def collect(
         altitude = float(rng.uniform(60, 90))
         frames = plan_flight(size_m, FlightSpec(views_per_seed, image[0], image[1], altitude_m=altitude), rng)
         gains = exposure_gains(len(frames), sensor, rng)
-        for frame, gain in zip(frames, gains):
+        for frame, gain in zip(frames, gains, strict=True):
             result = rasterize(truth.gaussians, frame.camera, background=BACKGROUND)
             picture = to_uint8(apply_sensor(result.rgb, gain, sensor, rng))
             truth_labels, _ = label_maps(

@@ -247,7 +247,7 @@ def _car(car, density: float, rng) -> _Part:
     if not car.along_x:  # rotate the car frame by 90 degrees about z
         means = means[:, [1, 0, 2]] * [-1, 1, 1]
         normals = normals[:, [1, 0, 2]] * [-1, 1, 1]
-    means = means + [car.x, car.y, 0.0]
+    means = means + np.array([car.x, car.y, 0.0])  # an array: a shift, not list concatenation
     return _part(means, normals, colors, CATEGORY["car"], car.instance, LABEL["car"])
 
 

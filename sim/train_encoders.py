@@ -186,7 +186,7 @@ def train_all(out: Path = ASSETS, n_seeds: int = 10, views: int = 16, epochs: in
     seeds = list(range(TRAINING_SEED_BASE, TRAINING_SEED_BASE + n_seeds))
     samples = collect(seeds, views, {d.name: (d.image_size, d.crop) for d in DESIGNS})
     log(f"{len(samples.labels)} region crops from {n_seeds} scenes x {views} views in {time.perf_counter() - start:.0f} s; "
-        f"per label: {dict(zip(LABELS, np.bincount(samples.labels, minlength=len(LABELS)).tolist()))}")  # fmt: skip
+        f"per label: {dict(zip(LABELS, np.bincount(samples.labels, minlength=len(LABELS)).tolist(), strict=True))}")  # fmt: skip
     vocab = vocabulary()
     out.mkdir(parents=True, exist_ok=True)
     tmp_vocab = out / "_vocab.json"

@@ -88,7 +88,7 @@ def test_nonfinite_map_needs_the_flag(scene, capsys):
     write_ply(scene / "nan.ply", gaussians)
     assert main(_render_args(scene, ply="nan.ply")) == 1
     assert "--allow-nonfinite" in capsys.readouterr().err
-    assert main(_render_args(scene, ply="nan.ply") + ["--allow-nonfinite"]) == 0
+    assert main([*_render_args(scene, ply="nan.ply"), "--allow-nonfinite"]) == 0
     ids = np.load(scene / "o.npz")["topk_ids"]
     assert ids.max() > 5 and not (ids == 5).any()  # ids still index the file; the NaN one is absent
 

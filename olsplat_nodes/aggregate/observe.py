@@ -59,7 +59,7 @@ def stack_levels(label_maps: np.ndarray, bank: list[np.ndarray]) -> tuple[np.nda
         raise ValueError(f"{len(label_maps)} label maps but {len(bank)} feature levels")
     offsets = np.cumsum([0] + [len(f) for f in bank])
     slots = np.where(label_maps >= 0, label_maps + offsets[:-1, None, None], -1).astype(np.int32)
-    for level, (labels, features) in enumerate(zip(label_maps, bank)):
+    for level, (labels, features) in enumerate(zip(label_maps, bank, strict=True)):
         if labels.max() >= len(features):
             raise ValueError(f"level {level}: region {labels.max()} has no feature (bank has {len(features)} rows)")
     return slots, np.concatenate(bank).astype(np.float32)

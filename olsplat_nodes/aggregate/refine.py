@@ -9,6 +9,8 @@ observation keep F = 0 and count 0.
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 from numba import njit
 
@@ -82,7 +84,7 @@ def streaming_cosine(
     order = np.argsort(view, kind="stable")
     owner, view, strength, features = owner[order], view[order], strength[order], features[order].astype(np.float64)
     bounds = np.flatnonzero(np.r_[True, view[1:] != view[:-1], True])
-    for start, stop in zip(bounds[:-1], bounds[1:]):
+    for start, stop in pairwise(bounds):
         g, f, d = owner[start:stop], features[start:stop], strength[start:stop]
         current = total[g] / np.maximum(weight[g], 1e-12)[:, None]
         norm = np.linalg.norm(f, axis=1) * np.linalg.norm(current, axis=1)

@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     kept = []
     with tempfile.TemporaryDirectory() as tmp:
         store = ObservationStore(Path(tmp) / "store", len(gaussians))
-        for camera, (label_maps, bank) in zip(cameras, features):
+        for camera, (label_maps, bank) in zip(cameras, features, strict=True):
             stages = add_view(gaussians, camera, label_maps, bank, chosen, store)
             for key in times:
                 times[key].append(stages[key])

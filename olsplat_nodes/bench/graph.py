@@ -47,10 +47,10 @@ def run(args: argparse.Namespace) -> int:
 
     from olsplat_msgs import QueryRequest, StatusRequest
 
-    from ..evaluate.scene_eval import label_texts, load_queries
-    from ..launcher import Supervisor, load_launch
     from ..aggregate.snapshot import latest_map
     from ..aggregate.views import load_views
+    from ..evaluate.scene_eval import label_texts, load_queries
+    from ..launcher import Supervisor, load_launch
     from ..transport import NoReply, QueryClient
 
     scene = args.scene.resolve()

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
             if mask.sum() < 200:
                 continue
             ious = []
-            for regions, size in zip(levels.label_maps, sizes):
+            for regions, size in zip(levels.label_maps, sizes, strict=True):
                 ids, overlap = np.unique(regions[mask], return_counts=True)
                 ious.append(float((overlap / (size[ids] + mask.sum() - overlap)).max()))
             best_iou.append(ious)

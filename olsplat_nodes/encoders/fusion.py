@@ -36,17 +36,17 @@ class FusedEncoder:
             raise ValueError(f"mode must be 'concat' or 'sum', got mode={mode!r}")
         total = float(sum(weights))
         self.encoders, self.weights, self.mode = encoders, [w / total for w in weights], mode
-        self.name = "+".join(f"{e.name}:{w:.2f}" for e, w in zip(encoders, self.weights))
+        self.name = "+".join(f"{e.name}:{w:.2f}" for e, w in zip(encoders, self.weights, strict=True))
         self.dim = encoders[0].dim if mode == "sum" else sum(e.dim for e in encoders)
 
     def _fuse(self, parts: list[np.ndarray]) -> np.ndarray:
         if self.mode == "sum":
-            return normalize(sum(w * p for w, p in zip(self.weights, parts)))
-        return normalize(np.concatenate([np.sqrt(w) * p for w, p in zip(self.weights, parts)], axis=-1))
+            return normalize(sum(w * p for w, p in zip(self.weights, parts, strict=True)))
+        return normalize(np.concatenate([np.sqrt(w) * p for w, p in zip(self.weights, parts, strict=True)], axis=-1))
 
     def encode_crops(self, crops: list[np.ndarray]) -> np.ndarray:
         """One [B, S_i, S_i, 3] crop batch per member encoder (its size, its crop style) -> [B, dim]."""
-        return self._fuse([e.encode_images(c) for e, c in zip(self.encoders, crops)])
+        return self._fuse([e.encode_images(c) for e, c in zip(self.encoders, crops, strict=True)])
 
     def encode_text(self, texts: list[str]) -> np.ndarray:
         return self._fuse([e.encode_text(texts) for e in self.encoders])

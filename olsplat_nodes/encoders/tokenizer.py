@@ -13,6 +13,7 @@ import gzip
 import html
 import json
 from functools import lru_cache
+from itertools import pairwise
 from pathlib import Path
 
 import ftfy
@@ -39,7 +40,7 @@ def bytes_to_unicode() -> dict[int, str]:
             printable.append(b)
             chars.append(256 + extra)
             extra += 1
-    return dict(zip(printable, map(chr, chars)))
+    return dict(zip(printable, map(chr, chars), strict=True))
 
 
 def clean(text: str) -> str:
@@ -78,9 +79,9 @@ class ClipTokenizer:
     def _bpe(self, token: str) -> str:
         if token in self._cache:
             return self._cache[token]
-        word = tuple(token[:-1]) + (token[-1] + "</w>",)
+        word = (*token[:-1], token[-1] + "</w>")
         while len(word) > 1:
-            pairs = {(a, b) for a, b in zip(word, word[1:])}
+            pairs = set(pairwise(word))
             best = min(pairs, key=lambda pair: self.ranks.get(pair, float("inf")))
             if best not in self.ranks:
                 break
@@ -108,7 +109,7 @@ class ClipTokenizer:
         """[T, context_length] int64: start, tokens, end, zero padding (cut keeping the end token)."""
         out = np.zeros((len(texts), self.context_length), np.int64)
         for row, text in enumerate(texts):
-            ids = [self.start_id] + self.encode(text)[: self.context_length - 2] + [self.end_id]
+            ids = [self.start_id, *self.encode(text)[: self.context_length - 2], self.end_id]
             out[row, : len(ids)] = ids
         return out
 

@@ -73,7 +73,7 @@ def segmentation_table(results: dict, methods: list[str]) -> list[str]:
     ]
     for scene, runs in _rows_by_scene(results, methods):
         miou, macc = _bold_best([runs[m]["mIoU"] for m in methods]), _bold_best([runs[m]["mAcc"] for m in methods])
-        lines.append(_row([scene, *(c for pair in zip(miou, macc) for c in pair)]))
+        lines.append(_row([scene, *(c for pair in zip(miou, macc, strict=True) for c in pair)]))
     return lines
 
 

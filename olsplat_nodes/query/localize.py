@@ -72,7 +72,7 @@ class Instance3D:
 
 
 def regions_in_view(mask: np.ndarray, min_pixels: int = 50) -> list[Region2D]:
-    count, labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    count, _labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     out = []
     for i in range(1, count):
         x, y, w, h, area = stats[i]

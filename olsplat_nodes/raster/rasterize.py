@@ -92,5 +92,5 @@ def rasterize(
         n_tile_pairs=int(evals[:, 1].sum()),
         n_intersections=len(slots),
         n_visible=int((projected.radii > 0).sum()),
-        seconds=dict(zip(("project", "bin", "composite"), np.diff(clock).tolist())),
+        seconds=dict(zip(("project", "bin", "composite"), np.diff(clock).tolist(), strict=True)),
     )

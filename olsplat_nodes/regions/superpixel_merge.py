@@ -59,7 +59,7 @@ def _adjacency(labels: np.ndarray, gradient: np.ndarray) -> dict[tuple[int, int]
     pairs, grads = np.concatenate(pairs), np.concatenate(grads)
     keys, inverse, lengths = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
     sums = np.bincount(inverse.ravel(), weights=grads, minlength=len(keys))
-    return {(int(a), int(b)): [float(n), float(s)] for (a, b), n, s in zip(keys, lengths, sums)}
+    return {(int(a), int(b)): [float(n), float(s)] for (a, b), n, s in zip(keys, lengths, sums, strict=True)}
 
 
 def propose_regions(image_rgb: np.ndarray, config: RegionConfig = RegionConfig()) -> RegionLevels:

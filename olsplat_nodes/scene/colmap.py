@@ -43,7 +43,7 @@ def _intrinsics_from_params(model: str, params, where: Path) -> tuple[np.ndarray
     names = MODELS[model][1]
     if len(params) != len(names):
         raise SceneFormatError(where, f"camera model {model} needs {len(names)} parameters, got {len(params)}")
-    p = dict(zip(names, map(float, params)))
+    p = dict(zip(names, map(float, params), strict=True))
     fx, fy = (p["f"], p["f"]) if "f" in p else (p["fx"], p["fy"])
     # Missing coefficients of the OpenCV order are zero (radial-only models have p1 = p2 = 0).
     dist = np.array([p.get(name, 0.0) for name in _DIST_ORDER[: _N_DIST[model]]])
@@ -58,7 +58,7 @@ def _params_from_camera(camera: Camera) -> tuple[str, list[float]]:
         )
     values = {"f": camera.fx, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy}
     values.update({name: 0.0 for name in _DIST_ORDER})
-    values.update(zip(_DIST_ORDER, map(float, camera.dist)))
+    values.update(zip(_DIST_ORDER, map(float, camera.dist), strict=False))  # fewer coefficients: the rest stay 0
 
     def fits(model: str) -> bool:
         names = MODELS[model][1]
@@ -142,7 +142,7 @@ def _write_text(folder: Path, cameras: list[Camera], ids: list[int], unique: lis
         f.write("# Image list with two lines of data per image:\n")
         f.write("#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n")
         f.write("#   POINTS2D[] as (X, Y, POINT3D_ID)\n")
-        for image_id, (camera, camera_id) in enumerate(zip(cameras, ids), start=1):
+        for image_id, (camera, camera_id) in enumerate(zip(cameras, ids, strict=True), start=1):
             qvec, tvec = _pose(camera)
             values = " ".join(repr(float(v)) for v in (*qvec, *tvec))
             f.write(f"{image_id} {values} {camera_id} {camera.name}\n\n")
@@ -208,7 +208,7 @@ def _write_binary(folder: Path, cameras: list[Camera], ids: list[int], unique: l
             f.write(struct.pack(f"<{len(params)}d", *params))
     with open(folder / "images.bin", "wb") as f:
         f.write(struct.pack("<Q", len(cameras)))
-        for image_id, (camera, camera_id) in enumerate(zip(cameras, ids), start=1):
+        for image_id, (camera, camera_id) in enumerate(zip(cameras, ids, strict=True), start=1):
             qvec, tvec = _pose(camera)
             f.write(struct.pack("<i7di", image_id, *qvec, *tvec, camera_id))
             f.write(camera.name.encode("utf-8") + b"\x00")

@@ -103,6 +103,6 @@ def write_transforms_json(path: str | Path, cameras: list[Camera]) -> None:
             "cy": camera.cy,
             "transform_matrix": (camera.world_from_camera @ _GL_FROM_CV).tolist(),
         }
-        frame.update({key: float(v) for key, v in zip(_DIST_KEYS, camera.dist)})
+        frame.update({key: float(v) for key, v in zip(_DIST_KEYS, camera.dist, strict=False)})  # fewer: the rest are 0
         frames.append(frame)
     Path(path).write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=2))

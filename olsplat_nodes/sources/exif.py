@@ -274,7 +274,7 @@ class ExifFolderSource(PacedSource):
         self.poses, self.reference, self.heading_sources = pose_priors(photos, reference)
         self.cameras = []
         self.focal_rules = []
-        for photo, pose in zip(photos, self.poses):
+        for photo, pose in zip(photos, self.poses, strict=True):
             try:
                 f, rule = (
                     (float(focal_px), "exif_focal_px") if focal_px > 0 else focal_length_px(photo, sensor_width_mm)
@@ -297,7 +297,7 @@ class ExifFolderSource(PacedSource):
 
     def _frames_of(self):
         first = next((p.stamp_ns for p in self.photos if p.stamp_ns is not None), 0)
-        for seq, (photo, camera) in enumerate(zip(self.photos, self.cameras)):
+        for seq, (photo, camera) in enumerate(zip(self.photos, self.cameras, strict=True)):
             data = photo.path.read_bytes()
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
             if image is None:

@@ -23,7 +23,7 @@ def pool_regions_reference(positions, features, camera, depth, label_maps, n_reg
             if labels[row, col] >= 0:
                 members[level][labels[row, col]].append(features[k])
     out = []
-    for level, n in enumerate(n_regions):
+    for level in range(len(n_regions)):
         out.append(
             np.array([np.mean(m, axis=0) if m else np.zeros(features.shape[1]) for m in members[level]], np.float32)
         )

@@ -62,11 +62,12 @@ class StructuralBranch:
         pooled, counts = pool_regions(self.features, visible, label_maps, [len(b) for b in bank])
         if self.distiller is None:
             self.distiller = OnlineDistiller(self.features.shape[1], bank[0].shape[1], self.config.distill)
-        f3d = np.concatenate([p[c > 0] for p, c in zip(pooled, counts)])
-        f2d = np.concatenate([b[c > 0] for b, c in zip(bank, counts)])
+        f3d = np.concatenate([p[c > 0] for p, c in zip(pooled, counts, strict=True)])
+        f2d = np.concatenate([b[c > 0] for b, c in zip(bank, counts, strict=True)])
         self.losses.append(self.distiller.update(f3d, f2d))
         if not self.distiller.ready:
             return bank
         return [
-            fuse_regions(b, self.distiller.project(p), c, self.config.lambda_f) for b, p, c in zip(bank, pooled, counts)
+            fuse_regions(b, self.distiller.project(p), c, self.config.lambda_f)
+            for b, p, c in zip(bank, pooled, counts, strict=True)
         ]

@@ -53,7 +53,7 @@ def pool_regions(
     [R_l] int64 point counts)."""
     index, rows, cols = visible
     pooled, counts = [], []
-    for labels, n in zip(label_maps, n_regions):
+    for labels, n in zip(label_maps, n_regions, strict=True):
         region = labels[rows, cols]
         ok = region >= 0
         count = np.bincount(region[ok], minlength=n)

@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     if len(set(titles)) < len(titles):
         titles = [str(s.folder) for s in scenes]
     results: dict[str, dict] = {}
-    for title, scene in zip(titles, scenes):
+    for title, scene in zip(titles, scenes, strict=True):
         work = (args.work / title if len(scenes) > 1 else args.work) if args.work else scene.folder / "eval"
         results[title], maps, done = {}, {}, {}
         for r in runs:

@@ -79,7 +79,6 @@ class Diagnostics(Closable):
         return True
 
 
-
 class DiagnosticsCollector(Closable):
     """The collector: a SUB bound to ``endpoint`` (every node's ``Diagnostics`` connects to it).
     ``poll`` takes in what arrived; ``nodes()`` gives the latest status of each node as a dict with
@@ -134,4 +133,3 @@ class DiagnosticsCollector(Closable):
 
     def close(self) -> None:
         self.subscriber.close()
-

@@ -51,7 +51,6 @@ class Publisher(Closable):
         return True
 
 
-
 class Subscriber(Closable):
     """SUB socket on one or more endpoints, receiving only ``topics`` (exact names; ``None`` = all).
 
@@ -204,4 +203,3 @@ class Subscriber(Closable):
             self.socket.disable_monitor()
             self._monitor.close(linger=0)
         self.socket.close(linger=0)
-

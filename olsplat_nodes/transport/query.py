@@ -154,7 +154,6 @@ class QueryServer(Closable):
             self.keys.release(self.context)
 
 
-
 class QueryClient(Closable):
     """DEALER client of one query server. ``request(msg)`` sends and waits up to ``timeout_s`` for
     the matching reply; on timeout the socket is closed and a fresh one connected (lazy pirate:
@@ -245,4 +244,3 @@ class QueryClient(Closable):
             )
             self._reset()
         raise NoReply(self.endpoint, self.timeout_s)
-

@@ -35,7 +35,7 @@ def test_compact_observations_equal_the_dense_equations(level_weights):
 
     a = np.array(level_weights or (0.0, 1.0))  # default: the finest level only
     a = a / a.sum()
-    pixel_features = sum(a[l] * bank[l][np.maximum(label_maps[l], 0)] for l in range(2))
+    pixel_features = sum(a[i] * bank[i][np.maximum(label_maps[i], 0)] for i in range(2))
     valid = (label_maps >= 0).all(0)
     dense_f, dense_d = observe_view_dense(result.topk_ids, result.topk_weights, pixel_features, valid, n, config)
 

@@ -59,9 +59,9 @@ def test_confusion_replaces_rows_by_rows_of_the_same_view():
 
     rng = np.random.default_rng(0)
     bank = [rng.normal(size=(40, 8)).astype(np.float32), rng.normal(size=(200, 8)).astype(np.float32)]
-    assert all(np.array_equal(a, b) for a, b in zip(confuse(bank, 0.0, rng), bank))
+    assert all(np.array_equal(a, b) for a, b in zip(confuse(bank, 0.0, rng), bank, strict=True))
     confused = confuse(bank, 0.5, np.random.default_rng(1))
-    for before, after in zip(bank, confused):
+    for before, after in zip(bank, confused, strict=True):
         changed = (before != after).any(1)
         assert 0.3 < changed.mean() < 0.7  # about p of the rows (a few draw themselves)
         rows = {r.tobytes() for r in before}

@@ -83,13 +83,13 @@ def test_validation_errors_name_the_file_and_the_key(tmp_path, top, nodes, key, 
 
 
 def test_unreadable_and_non_mapping_files(tmp_path):
-    with pytest.raises(LaunchFileError, match="missing.yaml: cannot read the launch file"):
+    with pytest.raises(LaunchFileError, match=r"missing.yaml: cannot read the launch file"):
         load_launch(tmp_path / "missing.yaml")
     (tmp_path / "bad.yaml").write_text("nodes: [a\n")
-    with pytest.raises(LaunchFileError, match="bad.yaml: not valid YAML"):
+    with pytest.raises(LaunchFileError, match=r"bad.yaml: not valid YAML"):
         load_launch(tmp_path / "bad.yaml")
     (tmp_path / "list.yaml").write_text("- a\n")
-    with pytest.raises(LaunchFileError, match="list.yaml: the launch file must be a mapping"):
+    with pytest.raises(LaunchFileError, match=r"list.yaml: the launch file must be a mapping"):
         load_launch(tmp_path / "list.yaml")
     (tmp_path / "date.yaml").write_text(f"nodes: [{{name: a, exec: '{NODES}:Ticker', params: {{note: 2024-01-02}}}}]\n")
     with pytest.raises(

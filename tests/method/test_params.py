@@ -77,5 +77,5 @@ def test_a_store_keeps_its_settings_and_refuses_others(tmp_path):
     ):
         claim_store(store, MethodParams().resolve())
     (store / "manifest.json").write_text("{not json")
-    with pytest.raises(OlsplatInputError, match="manifest.json: unreadable store manifest"):
+    with pytest.raises(OlsplatInputError, match=r"manifest.json: unreadable store manifest"):
         read_manifest(store)

@@ -11,7 +11,7 @@ from olsplat_nodes.query.localize import Instance3D, instances_in_3d
 
 def assert_same_instances(fast: list[Instance3D], slow: list[Instance3D]) -> None:
     assert [i.gaussians for i in fast] == [i.gaussians for i in slow]
-    for a, b in zip(fast, slow):
+    for a, b in zip(fast, slow, strict=True):
         np.testing.assert_array_equal(a.box_min, b.box_min)  # min and max pick points: exact
         np.testing.assert_array_equal(a.box_max, b.box_max)
         np.testing.assert_allclose(a.centre, b.centre, rtol=1e-12, atol=1e-9)
@@ -91,7 +91,7 @@ def test_two_separated_boxes_are_two_instances_with_their_boxes():
     selected[len(small) : len(small) + 100] = False
     instances = instances_in_3d(means, selected)
     assert [i.gaussians for i in instances] == [2000, 700]
-    for instance, box in zip(instances, (big, small)):
+    for instance, box in zip(instances, (big, small), strict=True):
         box = box.astype(np.float32).astype(np.float64)
         assert instance.box_min == tuple(box.min(0)) and instance.box_max == tuple(box.max(0))
         np.testing.assert_allclose(instance.centre, box.mean(0), atol=1e-9)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
@@ -27,7 +29,7 @@ def test_levels_are_nested_cover_the_image_and_hit_their_counts():
     assert levels.label_maps.shape == (3, 240, 320)
     assert levels.counts == config.scaled_counts(240, 320)
     assert (levels.label_maps >= 0).all()
-    for coarse, fine in zip(levels.label_maps[:-1], levels.label_maps[1:]):
+    for coarse, fine in pairwise(levels.label_maps):
         pairs = np.unique(np.stack([fine.ravel(), coarse.ravel()], 1), axis=0)
         assert len(pairs) == fine.max() + 1, "every fine region lies inside one coarse region"
 

@@ -37,14 +37,14 @@ def some_cameras() -> list[Camera]:
     for i, (model, dist) in enumerate(models):
         f = 500.0 + 10 * i
         fy = f if model.startswith(("SIMPLE", "RADIAL")) else f * 1.01
-        pose = look_at(rng.uniform(-50, 50, 3) + [0, 0, 80], rng.uniform(-5, 5, 3), (0, 0, 1))
+        pose = look_at(rng.uniform(-50, 50, 3) + np.array([0, 0, 80]), rng.uniform(-5, 5, 3), (0, 0, 1))
         out.append(Camera(f"img_{i:02d}.jpg", 640, 480, intrinsics(f, fy, 320.5, 239.5), pose, dist, model))
     return out
 
 
 def assert_same_cameras(a: list[Camera], b: list[Camera]):
     assert [c.name for c in a] == [c.name for c in b]
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert (x.width, x.height, x.model) == (y.width, y.height, y.model)
         np.testing.assert_allclose(x.K, y.K)
         np.testing.assert_allclose(x.dist, y.dist)
@@ -83,7 +83,7 @@ def test_colmap_shared_intrinsics_are_written_once(tmp_path):
 def test_colmap_unsupported_model_text(tmp_path):
     (tmp_path / "cameras.txt").write_text("1 OPENCV_FISHEYE 100 80 90 91 50 40 0 0 0 0\n")
     (tmp_path / "images.txt").write_text("")
-    with pytest.raises(SceneFormatError, match="cameras.txt: camera 1 uses the unsupported model OPENCV_FISHEYE"):
+    with pytest.raises(SceneFormatError, match=r"cameras.txt: camera 1 uses the unsupported model OPENCV_FISHEYE"):
         read_colmap(tmp_path)
 
 
@@ -98,7 +98,7 @@ def test_colmap_truncated_binary(tmp_path):
     write_colmap(tmp_path, some_cameras(), binary=True)
     data = (tmp_path / "images.bin").read_bytes()
     (tmp_path / "images.bin").write_bytes(data[:-30])
-    with pytest.raises(SceneFormatError, match="images.bin: file is truncated"):
+    with pytest.raises(SceneFormatError, match=r"images.bin: file is truncated"):
         read_colmap(tmp_path)
 
 
@@ -186,7 +186,7 @@ def test_select_view():
     assert select_view(cameras, "img_03") is cameras[3]
     assert select_view(cameras, "4") is cameras[4]
     assert select_view(cameras, -1) is cameras[-1]
-    with pytest.raises(OlsplatInputError, match="no view 'missing'.*index in 0..5"):
+    with pytest.raises(OlsplatInputError, match=r"no view 'missing'.*index in 0..5"):
         select_view(cameras, "missing")
     with pytest.raises(OlsplatInputError, match="no view '17'"):
         select_view(cameras, 17)

@@ -61,7 +61,7 @@ def test_missing_positions_is_named(tmp_path):
 
 def test_plain_point_cloud_is_refused_with_the_missing_fields(tmp_path):
     _write_raw(tmp_path / "cloud.ply", {"x": np.zeros(3), "y": np.zeros(3), "z": np.zeros(3)})
-    with pytest.raises(SceneFormatError, match="missing Gaussian parameters: no field.*opacity"):
+    with pytest.raises(SceneFormatError, match=r"missing Gaussian parameters: no field.*opacity"):
         read_ply(tmp_path / "cloud.ply")
 
 
@@ -76,7 +76,7 @@ def test_truncated_file(tmp_path):
 @pytest.mark.parametrize("content", [b"", b"hello world\n", b"ply\nformat binary_little_endian 1.0\nelement"])
 def test_garbage_file(tmp_path, content):
     (tmp_path / "bad.ply").write_bytes(content)
-    with pytest.raises(SceneFormatError, match="bad.ply"):
+    with pytest.raises(SceneFormatError, match=r"bad.ply"):
         read_ply(tmp_path / "bad.ply")
 
 

@@ -60,7 +60,7 @@ def test_map_and_cameras_read_back(tiny):
     cameras = read_colmap(out / "sparse" / "0")
     true_cameras = read_colmap(out / "truth" / "true_poses")
     assert [c.name for c in cameras] == sorted(p.name for p in (out / "images").glob("*.jpg"))
-    offsets = [np.linalg.norm(a.center - b.center) for a, b in zip(cameras, true_cameras)]
+    offsets = [np.linalg.norm(a.center - b.center) for a, b in zip(cameras, true_cameras, strict=True)]
     assert 0 < np.mean(offsets) < 0.5  # structure-from-motion error: small, not zero
     for camera in cameras:
         image = cv2.imread(str(out / "images" / camera.name))

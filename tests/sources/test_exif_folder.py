@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -44,7 +45,7 @@ def test_positions_are_enu_around_the_first_photo_and_headings_follow_travel(pho
     assert positions[1, 0] > 10 and positions[3, 1] > 10  # east, then north
     assert source.heading_sources == ["travel"] * 4
     # nadir, image top towards the direction of travel: a ground point ahead projects above the centre
-    for frame, ahead in zip(frames, ([1, 0], [1, 0], [0, 1], [0, 1])):
+    for frame, ahead in zip(frames, ([1, 0], [1, 0], [0, 1], [0, 1]), strict=True):
         camera = frame.camera
         ground = camera.world_from_camera[:3, 3] + np.array([*np.multiply(ahead, 5.0), -50.0])
         u, v = project(camera, ground)
@@ -75,7 +76,7 @@ def test_dji_gimbal_yaw_wins_over_travel(tmp_path):
     camera = source.cameras[0]
     assert source.focal_rules[0] == "FocalLength+FocalPlaneXResolution"
     assert camera.fx == pytest.approx(4.5 * 16393.44 / 25.4 * 160 / 640)  # scaled from the EXIF width to the stored one
-    u, v = project(camera, camera.world_from_camera[:3, 3] + [5.0, 0.0, -50.0])  # east is up in the image
+    _, v = project(camera, camera.world_from_camera[:3, 3] + [5.0, 0.0, -50.0])  # east is up in the image
     assert v < camera.cy - 5
 
 
@@ -126,7 +127,7 @@ def test_caliterra_photos(shared_data):
     # correlation is confident (photos with little rotation between them)
     agree = confident = 0
     frames = list(source)
-    for a, b in zip(frames, frames[1:]):
+    for a, b in pairwise(frames):
         move = b.camera.world_from_camera[:3, 3] - a.camera.world_from_camera[:3, 3]
         if np.linalg.norm(move[:2]) < 3:
             continue

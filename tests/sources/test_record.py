@@ -79,4 +79,6 @@ def test_record_without_a_camera_writes_nothing_and_fails(tmp_path, capsys):
     assert code == 1 and not out.exists()
     assert "no DepthAI device found" in capsys.readouterr().err
     assert main(["record", "--source-kind", "nope", "--out", str(out)]) == 1
-    assert "source.source_kind: expected one of 'replay', 'exif_folder', 'depthai', got 'nope'" in capsys.readouterr().err
+    assert (
+        "source.source_kind: expected one of 'replay', 'exif_folder', 'depthai', got 'nope'" in capsys.readouterr().err
+    )

@@ -23,7 +23,7 @@ def test_pooling_matches_the_reference():
     assert 0 < len(visible[0]) < len(positions)  # some points are hidden or outside
     pooled, counts = pool_regions(features, visible, label_maps, [4, 30])
     reference = pool_regions_reference(positions, features, camera, depth, label_maps, [4, 30], voxel=0.1)
-    for fast, slow, count in zip(pooled, reference, counts):
+    for fast, slow, count in zip(pooled, reference, counts, strict=True):
         np.testing.assert_allclose(fast, slow, atol=1e-5)
         assert (count > 0).sum() == np.abs(slow).sum(1).astype(bool).sum()
 
