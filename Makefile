@@ -1,10 +1,11 @@
 # The two commands of the README: `make demo` and `make test`. Both set everything up first.
+# `make lint` (ruff + mypy) runs in CI before the tests.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test bench clean system-deps
+.PHONY: setup demo test lint bench clean system-deps
 
 setup: $(STAMP)
 
@@ -26,7 +27,7 @@ $(STAMP): pyproject.toml | system-deps
 	$(PY) -m pip install -q --upgrade pip
 	# torch first and pinned: 2.13.0 is the local CPU build, anything else drags in CUDA.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -e '.[test,lint]'
 	# Two files of open_clip (not installed: it needs torchvision): CLIP's BPE vocabulary and
 	# open_clip's tokenizer, the reference the tokenizer tests compare with.
 	$(PY) -m pip download -q --no-deps open_clip_torch==3.3.0 -d $(VENV)/reference
@@ -39,6 +40,14 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest
+
+# ruff (lint rules and formatting) and mypy, configured in pyproject.toml. mypy sees msgs/ and
+# sim/ by their import names (olsplat_msgs, olsplat_sim) through links under build/mypy.
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	@mkdir -p build/mypy && ln -sfn ../../msgs build/mypy/olsplat_msgs && ln -sfn ../../sim build/mypy/olsplat_sim
+	$(VENV)/bin/mypy
 
 bench: setup
 	$(VENV)/bin/olsplat bench raster

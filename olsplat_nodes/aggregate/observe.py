@@ -144,7 +144,7 @@ def observe_view(
         raise ValueError(f"label maps {slot_maps.shape[1:]} do not match the rendered view {(height, width)}")
     q_sum, q_eff, _ = pixel_quality(topk_weights, config)
     valid = (slot_maps >= 0).all(0)  # M_v(p): the pixel has a feature at every level
-    quality = q_sum * q_eff if config.use_quality else np.float32(1.0)
+    quality = q_sum * q_eff if config.use_quality else np.ones_like(q_sum)
     w_tilde = topk_weights * (valid * quality)[..., None]
     ids = topk_ids.reshape(-1)
     w_flat = w_tilde.reshape(-1).astype(np.float32)

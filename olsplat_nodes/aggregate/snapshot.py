@@ -15,6 +15,7 @@ Version 1 files (float16 only, no ``form``) still load.
 from __future__ import annotations
 
 import json
+from typing import Any
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,7 +45,11 @@ class LanguageMap:
         """Write atomically; with ``codebook`` = K, in the codebook form with K centres."""
         path = Path(path)
         tmp = path.with_name(path.stem + ".tmp.npz")
-        common = {"observed": self.observed, "encoder": np.array(self.encoder), "version": FORMAT_VERSION}
+        common: dict[str, Any] = {
+            "observed": self.observed,
+            "encoder": np.array(self.encoder),
+            "version": FORMAT_VERSION,
+        }
         if codebook:
             unit = self.features.astype(np.float32)
             centres = fit_codebook(unit, codebook)

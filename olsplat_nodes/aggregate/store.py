@@ -69,7 +69,7 @@ class ObservationStore:
         final = self.folder / "views" / f"{index:06d}"
         tmp = final.with_name(final.name + ".tmp")
         tmp.mkdir()
-        arrays = {
+        arrays: dict[str, np.ndarray] = {
             "gaussians": observations.gaussians.astype(np.int32),
             "strength": observations.strength.astype(np.float32),
             "offsets": observations.offsets.astype(np.int64),

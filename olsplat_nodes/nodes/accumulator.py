@@ -26,7 +26,7 @@ from ..method import MethodParams
 from ..params import ParameterError
 from ..transport import Diagnostics, Publisher, Subscriber
 from .base import Node
-from .convert import camera_of, split_bank
+from .convert import camera_of, split_bank, split_image
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +101,7 @@ class AccumulatorNode(Node):
                     raise ValueError(f"encoder {message.encoder!r}, but this run's store holds {encoder!r} features")
                 camera = camera_of(message)
                 label_maps, bank = split_bank(message)
+                image = split_image(message)
             except ValueError as exc:
                 self.stats.count("bad_messages")
                 log.warning("view %s (seq %d) dropped: %s", message.name, message.seq, exc)
@@ -108,7 +109,7 @@ class AccumulatorNode(Node):
             if encoder is None:
                 self.manifest = replace(self.manifest, encoder=message.encoder)
                 write_manifest(self.params.store, self.manifest)
-            save_view(self.params.views, len(self.store), camera, message.image)
+            save_view(self.params.views, len(self.store), camera, image)
             kept = int(add_view(self.gaussians, camera, label_maps, bank, self.method, self.store)["kept"])
             self.names.add(message.name)
         added = ObservationsAdded(

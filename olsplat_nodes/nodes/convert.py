@@ -17,10 +17,20 @@ from ..scene import Camera
 def camera_of(message: ImageFrame | RegionFeatures) -> Camera:
     """The ``scene.Camera`` of an ImageFrame / RegionFeatures; ValueError when its fields are
     inconsistent (the photo's size against the camera's)."""
-    camera = Camera(message.name, message.width, message.height, message.K, message.world_from_camera, message.D)
+    K, pose, dist = (_array(message, name) for name in ("K", "world_from_camera", "D"))
+    camera = Camera(message.name, message.width, message.height, K, pose, dist)
     if message.image is not None and message.image.shape != (message.height, message.width, 3):
         raise ValueError(f"image is {message.image.shape}, but the camera says {message.height}x{message.width}x3")
     return camera
+
+
+def _array(message: ImageFrame | RegionFeatures, name: str) -> np.ndarray:
+    """A required array field of a message; ValueError when it is absent (a decoded message
+    always has it: the codec checks; a message built in code might not)."""
+    value = getattr(message, name)
+    if value is None:
+        raise ValueError(f"{type(message).__name__}.{name} is missing")
+    return value
 
 
 def frame_message(frame, seq: int, stamp_ns: int | None = None) -> ImageFrame:
@@ -65,10 +75,15 @@ def regions_message(frame: ImageFrame, label_maps: np.ndarray, bank: list[np.nda
     )
 
 
+def split_image(message: RegionFeatures) -> np.ndarray:
+    """The view's photo [H, W, 3] uint8 RGB that travels with its regions (checked by ``camera_of``)."""
+    return _array(message, "image")
+
+
 def split_bank(message: RegionFeatures) -> tuple[np.ndarray, list[np.ndarray]]:
     """(label maps [L, H, W] int32, bank per level [R_l, D] float32) of a RegionFeatures;
     ValueError naming the inconsistency when the message does not describe itself correctly."""
-    labels, sizes, features = message.label_maps, message.level_sizes, message.features
+    labels, sizes, features = (_array(message, name) for name in ("label_maps", "level_sizes", "features"))
     if labels.ndim != 3 or labels.shape[1:] != (message.height, message.width):
         raise ValueError(f"label maps are {labels.shape}, the image is {message.height}x{message.width}")
     if len(sizes) != len(labels) or (sizes < 0).any() or int(sizes.sum()) != len(features):

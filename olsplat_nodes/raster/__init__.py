@@ -4,7 +4,7 @@ import numba
 
 # open3d ships an old TBB; if it is loaded first, numba would try it, warn and fall back. Ask for
 # OpenMP first so the threading layer is the same whatever was imported before.
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]  # type: ignore[attr-defined]  # set at import
 
 from .config import RasterConfig  # noqa: E402
 from .project import Projected, project  # noqa: E402

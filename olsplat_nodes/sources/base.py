@@ -113,7 +113,7 @@ class PacedSource(Source):
         super().__init__()
         self._frames = iter(frames)
         self._pacer = Pacer(rate_hz, fast)
-        self._next = None
+        self._next: SourceFrame | None = None
 
     def read(self, timeout_s: float = 0.1) -> SourceFrame | None:
         if self.done:

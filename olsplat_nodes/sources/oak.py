@@ -31,6 +31,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
+from typing import cast
 
 import numpy as np
 
@@ -138,7 +139,7 @@ def open_device_stream(
             while not closing.is_set():
                 if not pipeline.isRunning() or device.isClosed():
                     raise RuntimeError("the pipeline stopped")
-                message = queue.tryGet()
+                message = cast("dai.ImgFrame | None", queue.tryGet())  # the queue of an ImgFrame output
                 if message is None:
                     if time.monotonic() - last > frame_timeout_s:
                         raise RuntimeError(f"no frame for {frame_timeout_s:g} s")
@@ -331,7 +332,7 @@ class DepthAISource(Source):
 
     @property
     def stats(self) -> dict[str, float]:
-        out = dict(self.counts)
+        out: dict[str, float] = dict(self.counts)
         out["pending_pose"] = len(self._pending)
         if self.poses is not None:
             out.update({f"telemetry_{k}": v for k, v in self.poses.stats.items()})

@@ -54,7 +54,7 @@ def attach(sock: zmq.Socket, endpoints: list[str], bind: bool) -> list[str]:
                 if endpoint.startswith("ipc://"):
                     Path(endpoint[len("ipc://") :]).parent.mkdir(parents=True, exist_ok=True)
                 sock.bind(endpoint)
-                resolved.append(sock.last_endpoint.decode())
+                resolved.append(sock.get_string(zmq.LAST_ENDPOINT))
             else:
                 sock.connect(endpoint)
                 resolved.append(endpoint)

@@ -113,6 +113,8 @@ class Subscriber(Closable):
         return self.endpoints[0]
 
     def _reconnect_dropped(self) -> None:
+        if self._monitor is None:  # a bound subscriber has nothing to reconnect
+            return
         while True:
             try:
                 event = parse_monitor_message(self._monitor.recv_multipart(flags=zmq.NOBLOCK))

@@ -149,7 +149,7 @@ class QueryServer(Closable):
             pass
         self._monitor.close(linger=0)
         self.socket.close(linger=0)
-        if self._keys_applied:
+        if self._keys_applied and self.keys is not None:
             self._keys_applied = False
             self.keys.release(self.context)
 
