@@ -75,7 +75,8 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
 
     truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
     log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
-        f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x {preset.size_m:.0f} m")  # fmt: skip
+        f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x "
+        f"{preset.size_m:.0f} m")  # fmt: skip
     spec = FlightSpec(
         preset.n_views,
         preset.width,

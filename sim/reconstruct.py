@@ -7,9 +7,9 @@ structure-from-motion are slightly wrong. Optimisation also leaves layers of lar
 Gaussians over and around the surfaces (densification residue): a real trained splat
 (``donut_fused.ply``) has 38 % of its Gaussians below opacity 0.5 and a median effective number
 of contributors per pixel of ~7 (90th percentile ~13); without these layers our maps had 2 %
-and ~5 (~9). With ``layered`` = 0.4 they come to ~30 % and the figures in sim/README.md. ``reconstruct`` applies all of that, keeps each
-surviving Gaussian's truth labels (floaters get label -1), and shuffles the map so that
-nothing can be read from the order.
+and ~5 (~9). With ``layered`` = 0.4 they come to ~30 % and the figures in sim/README.md.
+``reconstruct`` applies all of that, keeps each surviving Gaussian's truth labels (floaters get
+label -1), and shuffles the map so that nothing can be read from the order.
 """
 
 from __future__ import annotations

@@ -173,8 +173,8 @@ def export_design(design: Design, image_tower, text_tower, vocab: list[str], out
         )
         export_tower(text_tower, torch.from_numpy(tokenizer(["a red roof", "a road"])), folder / "text.onnx", "tokens")
     write_manifest(
-        folder, design.name, EMBED_DIM, design.image_size, CONTEXT, tokenizer.vocab_size, MEAN, STD, "vocab.json", "words",
-        crop={"context": design.crop.context, "fade": design.crop.fade, "min_box_px": design.crop.min_box_px},
+        folder, design.name, EMBED_DIM, design.image_size, CONTEXT, tokenizer.vocab_size, MEAN, STD, "vocab.json",
+        "words", crop={"context": design.crop.context, "fade": design.crop.fade, "min_box_px": design.crop.min_box_px},
         trained_on="olsplat simulator renders, seeds >= 1000 (never the evaluation seeds)",
     )  # fmt: skip
     return folder
@@ -185,8 +185,9 @@ def train_all(out: Path = ASSETS, n_seeds: int = 10, views: int = 16, epochs: in
     start = time.perf_counter()
     seeds = list(range(TRAINING_SEED_BASE, TRAINING_SEED_BASE + n_seeds))
     samples = collect(seeds, views, {d.name: (d.image_size, d.crop) for d in DESIGNS})
-    log(f"{len(samples.labels)} region crops from {n_seeds} scenes x {views} views in {time.perf_counter() - start:.0f} s; "
-        f"per label: {dict(zip(LABELS, np.bincount(samples.labels, minlength=len(LABELS)).tolist(), strict=True))}")  # fmt: skip
+    log(f"{len(samples.labels)} region crops from {n_seeds} scenes x {views} views "
+        f"in {time.perf_counter() - start:.0f} s; per label: "
+        f"{dict(zip(LABELS, np.bincount(samples.labels, minlength=len(LABELS)).tolist(), strict=True))}")  # fmt: skip
     vocab = vocabulary()
     out.mkdir(parents=True, exist_ok=True)
     tmp_vocab = out / "_vocab.json"

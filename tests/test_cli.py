@@ -66,7 +66,8 @@ def test_bad_inputs_give_one_line_and_exit_1(scene, capsys):
     (scene / "model" / "cameras.txt").write_text("1 OPENCV_FISHEYE 10 10 1 1 5 5 0 0 0 0\n")
     (scene / "model" / "images.txt").write_text("")
     (scene / "noK.json").write_text(
-        '{"w": 4, "h": 4, "frames": [{"file_path": "x", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}'
+        '{"w": 4, "h": 4, "frames": [{"file_path": "x", '
+        '"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}'
     )
     cases = [
         (_render_args(scene, ply="cut.ply"), "cut.ply: not a readable PLY file"),

@@ -15,9 +15,9 @@ Version 1 files (float16 only, no ``form``) still load.
 from __future__ import annotations
 
 import json
-from typing import Any
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 

@@ -69,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
     c = cameras[0]
     per_view = sum(np.mean(v) for v in times.values())
     print(
-        f"scene {scene.folder.name}: {len(gaussians):,} Gaussians, {len(cameras)} views of {c.width}x{c.height}, method {args.method}"
+        f"scene {scene.folder.name}: {len(gaussians):,} Gaussians, {len(cameras)} views of {c.width}x{c.height}, "
+        f"method {args.method}"
     )
     for key, values in times.items():
         print(f"  {key:10s} {np.mean(values):.3f} s/view (p95 {np.percentile(values, 95):.3f})")
@@ -78,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
         f"  refine     {refine_seconds:.1f} s for all {len(cameras)} views ({int(observed.sum()):,} Gaussians observed)"
     )
     print(
-        f"  map write  {save_seconds:.2f} s; language map {map_mb:.0f} MB; store {store_mb:.0f} MB ({store_mb / len(cameras):.1f} MB/view)"
+        f"  map write  {save_seconds:.2f} s; language map {map_mb:.0f} MB; store {store_mb:.0f} MB "
+        f"({store_mb / len(cameras):.1f} MB/view)"
     )
     print(f"  peak RSS   {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     return 0

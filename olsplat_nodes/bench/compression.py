@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     for name, (values, bytes_per) in forms.items():
         r = evaluate_map(scene, LanguageMap(values, observed, encoder.name), encoder)
         print(
-            f"  {name:14s} {bytes_per:7.1f} B/Gaussian  mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}"
+            f"  {name:14s} {bytes_per:7.1f} B/Gaussian  mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 "
+            f"{r['loc50']:5.1f}"
         )
     return 0

@@ -70,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     levels = propose_regions(image)
     print(
-        f"regions: {time.perf_counter() - start:.2f} s for {sum(levels.counts)} regions in {levels.n_levels} levels {levels.counts}"
+        f"regions: {time.perf_counter() - start:.2f} s for {sum(levels.counts)} regions in {levels.n_levels} levels "
+        f"{levels.counts}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         folders = [Path(p) for p in args.encoders.split(",")] if args.encoders else []
@@ -84,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
             start = time.perf_counter()
             encode_regions(image, levels, encoder)
             seconds = time.perf_counter() - start
-            print(f"features, {encoder.name} ({encoder.dim}-d, {encoder.input_size} px crops): {seconds:.2f} s per view "
-                  f"({seconds / sum(levels.counts) * 1e3:.1f} ms per region)")  # fmt: skip
+            print(
+                f"features, {encoder.name} ({encoder.dim}-d, {encoder.input_size} px crops): {seconds:.2f} s per view "
+                f"({seconds / sum(levels.counts) * 1e3:.1f} ms per region)"
+            )
     return 0

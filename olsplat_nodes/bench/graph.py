@@ -105,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
             busy = np.mean([v.get("busy_ms", 0.0) for v in values])
             drops = int(values[-1].get("dropped", 0)) + int(values[-1].get("gaps", 0))
             print(
-                f"  {name:15s} handled {values[-1]['handled']:4d}  peak rate {rate:5.2f} Hz  mean latency {latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}"
+                f"  {name:15s} handled {values[-1]['handled']:4d}  peak rate {rate:5.2f} Hz  mean latency "
+                f"{latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}"
             )
         labels, queries = load_queries(scene)
         texts = label_texts(labels, queries)

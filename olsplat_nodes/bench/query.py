@@ -70,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
         answer_query(language_map, gaussians, encoder, text, [t for t in texts if t != text])
         answers.append(time.perf_counter() - t0)
     print(
-        f"map {args.map}: {len(features):,} Gaussians x {features.shape[1]} dims; view {camera.name} {camera.width}x{camera.height}"
+        f"map {args.map}: {len(features):,} Gaussians x {features.shape[1]} dims; view {camera.name} "
+        f"{camera.width}x{camera.height}"
     )
     print(_line("relevance", relevance))
     print(_line("heatmap", heat))

@@ -69,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
 
     threads = numba.get_num_threads()
     print(
-        f"machine: {platform.processor() or platform.machine()}, {threads} numba threads, python {platform.python_version()}"
+        f"machine: {platform.processor() or platform.machine()}, {threads} numba threads, python "
+        f"{platform.python_version()}"
     )
     print(
         f"{'gaussians':>10} {'image':>9} {'in view':>9} {'tiles x G':>10} {'s/view':>7} {'s/view':>8} "
@@ -98,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.skip_reference:
         reference, fast = reference_speedup(threads)
         print(
-            f"reference (numpy, 64x48, 3,000 Gaussians): {reference:.2f} s; fast: {fast * 1e3:.2f} ms; speed-up {reference / fast:,.0f}x"
+            f"reference (numpy, 64x48, 3,000 Gaussians): {reference:.2f} s; fast: {fast * 1e3:.2f} ms; speed-up "
+            f"{reference / fast:,.0f}x"
         )
     print("evals: Gaussian-pixel pairs whose sigma was computed (each Gaussian only over its alpha >= 1/255 box);")
     print("gsplat pairs: the pairs a per-pixel tile-list loop (gsplat classic) tests for the same image;")

@@ -73,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'level':>5} {'regions':>8} {'ASA':>6} {'IoU>=0.5':>9}")
     for level in range(len(asa)):
         print(
-            f"{level:>5} {np.mean(counts[level]):>8.0f} {np.mean(asa[level]):>6.3f} {np.mean(best[:, level] >= 0.5):>9.3f}"
+            f"{level:>5} {np.mean(counts[level]):>8.0f} {np.mean(asa[level]):>6.3f} "
+            f"{np.mean(best[:, level] >= 0.5):>9.3f}"
         )
     print(f"{'any':>5} {'':>8} {'':>6} {np.mean(best.max(1) >= 0.5):>9.3f}")
     print(f"seconds per view: {np.median(seconds):.2f} (median)")

@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         raise OlsplatInputError(f"--features: comma-separated 2d, 2d3d; got {args.features!r}")
     index = {c.name: i for i, c in enumerate(scene.cameras)}
     print(
-        f"{scene.folder.name}: {len(scene.cameras)} views; p = share of each view's regions given another region's feature"
+        f"{scene.folder.name}: {len(scene.cameras)} views; p = share of each view's regions given another region's "
+        "feature"
     )
     for p in (float(x) for x in args.confusion.split(",")):
 
@@ -78,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
                 )
                 r = evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
             print(
-                f"  p {p:4.2f}  {label:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  ({stats['seconds']:.0f} s)",
+                f"  p {p:4.2f}  {label:28s} mIoU {r['mIoU']:5.1f}  mAcc {r['mAcc']:5.1f}  Loc@50 {r['loc50']:5.1f}  "
+                f"({stats['seconds']:.0f} s)",
                 flush=True,
             )
     return 0

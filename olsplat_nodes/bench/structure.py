@@ -62,7 +62,10 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         branch.fuse_view(camera, depth, label_maps, bank)
         seconds.append(time.perf_counter() - t0)
-    print(f"  per view: {np.mean(seconds):.3f} s (pooling + h_theta update + fusion; p95 {np.percentile(seconds, 95):.3f}); "
-          f"distillation loss first/last view {branch.losses[0]:.3f}/{branch.losses[-1]:.3f}")  # fmt: skip
+    print(
+        f"  per view: {np.mean(seconds):.3f} s (pooling + h_theta update + fusion; "
+        f"p95 {np.percentile(seconds, 95):.3f}); "
+        f"distillation loss first/last view {branch.losses[0]:.3f}/{branch.losses[-1]:.3f}"
+    )
     print(f"  peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     return 0

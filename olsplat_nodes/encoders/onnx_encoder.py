@@ -64,7 +64,8 @@ class OnnxEncoder:
             raise OlsplatInputError(str(exc)) from None
         if self.tokenizer.vocab_size != vocab_size:
             raise OlsplatInputError(
-                f"{files['vocab']}: {self.tokenizer.vocab_size} tokens, but the text tower was exported for {vocab_size}: "
+                f"{files['vocab']}: {self.tokenizer.vocab_size} tokens, but the text tower was exported for "
+                f"{vocab_size}: "
                 "not the vocabulary of this text tower"
             )
 

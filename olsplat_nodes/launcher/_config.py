@@ -160,7 +160,8 @@ def apply_overrides(data: dict, overrides: Sequence[str], source: str = "<launch
         if target == LAUNCH_TARGET:
             if key not in _TOP_KEYS or key == "nodes":
                 raise LaunchFileError(
-                    f"{where.source}: --set {item!r}: unknown top-level key {key!r}; known: {', '.join(k for k in _TOP_KEYS if k != 'nodes')}"
+                    f"{where.source}: --set {item!r}: unknown top-level key {key!r}; known: "
+                    f"{', '.join(k for k in _TOP_KEYS if k != 'nodes')}"
                 )
             data[key] = value
             continue
@@ -168,7 +169,8 @@ def apply_overrides(data: dict, overrides: Sequence[str], source: str = "<launch
         if not matches:
             known = [str(n.get("name")) for n in nodes or [] if isinstance(n, dict)]
             raise LaunchFileError(
-                f"{where.source}: --set {item!r}: no node named {target!r}; nodes: {', '.join(known)} (or 'launch' for a top-level key)"
+                f"{where.source}: --set {item!r}: no node named {target!r}; nodes: {', '.join(known)} (or 'launch' "
+                "for a top-level key)"
             )
         node = matches[0]
         params = node.get("params") or {}
@@ -271,7 +273,8 @@ def _check_param_value(value: Any, key: str, where: _Where) -> None:
         return
     where.fail(
         key,
-        f"unsupported value {value!r} ({type(value).__name__}); use a string, number, bool, list or mapping (quote dates and the like)",
+        f"unsupported value {value!r} ({type(value).__name__}); use a string, number, bool, list or mapping (quote "
+        "dates and the like)",
     )
 
 

@@ -87,7 +87,8 @@ def resolve_params(
             {t for k, v in params.items() if _is_topic_param(k, v) for t in ([v] if isinstance(v, str) else v)}
         )
         raise LaunchFileError(
-            f"{where}.remap.{sorted(unused)[0]}: matches none of the node's topic names (topic* params); they are: {', '.join(topics) or '(none)'}"
+            f"{where}.remap.{sorted(unused)[0]}: matches none of the node's topic names (topic* params); they are: "
+            f"{', '.join(topics) or '(none)'}"
         )
     if composed:
         params = {key: _map_strings(value, _to_inproc) for key, value in params.items()}
@@ -109,7 +110,8 @@ def _substitute(value: Any, values: dict[str, str], strict: bool, where: str) ->
                 return values[word]
             if strict:
                 raise LaunchFileError(
-                    f"{where}: unknown placeholder {whole} in {text!r}; known: {{run_dir}}, {{namespace}}, {{name}} (write {{{{ and }}}} for literal braces)"
+                    f"{where}: unknown placeholder {whole} in {text!r}; known: {{run_dir}}, {{namespace}}, {{name}} "
+                    "(write {{ and }} for literal braces)"
                 )
             return whole
 

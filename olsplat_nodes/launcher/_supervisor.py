@@ -207,7 +207,8 @@ class Supervisor:
                 )
             else:
                 self._status(
-                    f"{slot.node.name}: did not stop within {self.config.stop_timeout_s:g} s; left running (a thread cannot be killed)"
+                    f"{slot.node.name}: did not stop within {self.config.stop_timeout_s:g} s; left running (a thread "
+                    "cannot be killed)"
                 )
         return all(s.state != "running" for s in self._slots)
 

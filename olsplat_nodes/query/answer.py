@@ -52,8 +52,8 @@ def answer_query(
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
-    with ``threshold``, where its cosine heatmap exceeds that value. Raises OlsplatInputError on an empty text or a map that
-    does not match the Gaussians."""
+    with ``threshold``, where its cosine heatmap exceeds that value. Raises OlsplatInputError on
+    an empty text or a map that does not match the Gaussians."""
     text = text.strip()
     if not text:
         raise OlsplatInputError("the query text is empty")

@@ -128,7 +128,8 @@ def _voxelise(points: np.ndarray, eps: float):
     dims = np.floor((highest - lowest) / eps).astype(np.int64) + 3  # floor is monotonic
     if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
         raise ValueError(
-            f"eps={eps!r} m is too small for the selection's extent {np.ptp(points, 0)} m: too many voxels for int64 keys"
+            f"eps={eps!r} m is too small for the selection's extent {np.ptp(points, 0)} m: too many voxels for int64 "
+            "keys"
         )
     point_keys = _voxel_keys(points, lowest, eps, dims)
     order = np.argsort(point_keys)

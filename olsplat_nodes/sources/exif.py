@@ -183,7 +183,8 @@ def focal_length_px(photo: ExifPhoto, sensor_width_mm: float = 0.0) -> tuple[flo
         return photo.focal_mm * photo.width / sensor_width_mm, "FocalLength+sensor_width_mm"
     raise ValueError(
         f"{photo.path.name}: no focal length in pixels can be derived from its EXIF "
-        f"(FocalLength={photo.focal_mm}, FocalLengthIn35mmFilm={photo.focal_35mm}); set exif_focal_px or exif_sensor_width_mm"
+        f"(FocalLength={photo.focal_mm}, FocalLengthIn35mmFilm={photo.focal_35mm}); set exif_focal_px or "
+        "exif_sensor_width_mm"
     )
 
 
@@ -266,7 +267,8 @@ class ExifFolderSource(PacedSource):
             log.warning("%d photos without EXIF GPS skipped: %s", len(without_gps), ", ".join(without_gps[:5]))
         if not photos:
             raise OlsplatInputError(
-                f"exif_folder source: no JPEG with EXIF GPS latitude/longitude/altitude in {folder} ({len(files)} JPEG files)"
+                f"exif_folder source: no JPEG with EXIF GPS latitude/longitude/altitude in {folder} ({len(files)} "
+                "JPEG files)"
             )
         if all(p.stamp_ns is not None for p in photos):
             photos.sort(key=lambda p: (p.stamp_ns, p.path.name))
@@ -287,7 +289,8 @@ class ExifFolderSource(PacedSource):
         super().__init__(self._frames_of(), rate_hz, fast)
         self.counts.update(photos=len(photos), photos_without_gps=len(without_gps), unreadable_images=0)
         log.info(
-            "exif_folder %s: %d photos, world origin (ENU) lat %.7f lon %.7f alt %.2f m; headings from %s; focal from %s",
+            "exif_folder %s: %d photos, world origin (ENU) lat %.7f lon %.7f alt %.2f m; headings from %s; focal from "
+            "%s",
             folder,
             len(photos),
             *self.reference,

@@ -44,7 +44,8 @@ def structural_points(gaussians: Gaussians, tau_o: float = 0.1, voxel: float | N
     keep = np.flatnonzero((opacity > tau_o) & np.isfinite(gaussians.means).all(1))
     if len(keep) == 0:
         raise OlsplatInputError(
-            f"no Gaussian has opacity above tau_o = {tau_o} (of {len(gaussians):,}): the 3D branch has nothing to work on"
+            f"no Gaussian has opacity above tau_o = {tau_o} (of {len(gaussians):,}): the 3D branch has nothing to "
+            "work on"
         )
     means = gaussians.means[keep].astype(np.float64)
     voxel = auto_voxel(means) if voxel is None else float(voxel)

@@ -46,11 +46,13 @@ class TelemetryConfig:
             raise ValueError(f"reference must be (lat_deg, lon_deg, alt_m), got reference={self.reference!r}")
         if len(self.mount_rpy_deg) != 3 or (self.mount_matrix is not None and len(self.mount_matrix) != 9):
             raise ValueError(
-                f"need 3 mount angles and 9 matrix entries, got mount_rpy_deg={self.mount_rpy_deg!r}, mount_matrix={self.mount_matrix!r}"
+                f"need 3 mount angles and 9 matrix entries, got mount_rpy_deg={self.mount_rpy_deg!r}, "
+                f"mount_matrix={self.mount_matrix!r}"
             )
         if not (self.tolerance_s > 0 and self.max_wait_s >= 0 and self.baudrate > 0):
             raise ValueError(
-                f"need tolerance_s > 0, max_wait_s >= 0, baudrate > 0, got {self.tolerance_s}, {self.max_wait_s}, {self.baudrate}"
+                f"need tolerance_s > 0, max_wait_s >= 0, baudrate > 0, got {self.tolerance_s}, {self.max_wait_s}, "
+                f"{self.baudrate}"
             )
         self.mount()  # a bad rotation or lever arm fails here, at configuration time
 

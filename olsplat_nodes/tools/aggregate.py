@@ -53,6 +53,9 @@ def run_aggregate(args: argparse.Namespace) -> int:
     stats = aggregate_scene(
         scene, method, encoder, args.out, lambda xs: tqdm(xs, desc=args.method, unit="view"), args.codebook
     )
-    print(f"{args.method}: {len(scene.cameras)} views in {stats['seconds']:.1f} s ({stats['views_per_second']:.2f} views/s), "
-          f"peak memory {stats['peak_rss_mb']:.0f} MB, {stats['observed_gaussians']:,} Gaussians observed -> {args.out}")  # fmt: skip
+    print(
+        f"{args.method}: {len(scene.cameras)} views in {stats['seconds']:.1f} s "
+        f"({stats['views_per_second']:.2f} views/s), peak memory {stats['peak_rss_mb']:.0f} MB, "
+        f"{stats['observed_gaussians']:,} Gaussians observed -> {args.out}"
+    )
     return 0

@@ -103,7 +103,8 @@ class Ground:
             }
         )
         print(
-            f"  ground: {text!r:22} map v{reply.map_version:<3d} {reply.status:6s} {len(found):3d} instances in 3D  ({self.log[-1]['round_trip_s']:.2f} s)"
+            f"  ground: {text!r:22} map v{reply.map_version:<3d} {reply.status:6s} {len(found):3d} instances in 3D  "
+            f"({self.log[-1]['round_trip_s']:.2f} s)"
         )
         return reply
 
@@ -158,7 +159,8 @@ def run(args: argparse.Namespace) -> int:
     thread = threading.Thread(target=lambda: exit_code.append(supervisor.run()), daemon=True)
     thread.start()
     print(
-        f"graph: {len(config.nodes)} nodes launched (logs in {run_dir / 'logs'}); streaming {made.get('views', '?')} frames"
+        f"graph: {len(config.nodes)} nodes launched (logs in {run_dir / 'logs'}); streaming {made.get('views', '?')} "
+        "frames"
     )
     ground = Ground(endpoint, texts)
     asked_version = 0
@@ -181,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
             raise OlsplatInputError(f"the flight was not processed within {args.timeout:.0f} s; see {run_dir / 'logs'}")
         stream_seconds = time.perf_counter() - started
         print(
-            f"final map: version {record['version']}, {record['views']} views, {record['observed_gaussians']:,} Gaussians observed"
+            f"final map: version {record['version']}, {record['views']} views, {record['observed_gaussians']:,} "
+            "Gaussians observed"
         )
         view = sorted((flight / "annotations").glob("*.json"))[0].stem  # an annotated view
         pictures = out / "ground"
@@ -237,7 +240,8 @@ def write_summary_md(path: Path, s: dict) -> None:
         "| phase | query | view | map version | status | 3D instances | 2D regions | round trip s |",
         "|---|---|---|---|---|---|---|---|",
         *[
-            f"| {q['phase']} | {q['text']} | {q['view']} | {q['map_version']} | {q['status']} | {q['instances_3d']} | {q['regions_2d']} | {q['round_trip_s']} |"
+            f"| {q['phase']} | {q['text']} | {q['view']} | {q['map_version']} | {q['status']} | {q['instances_3d']} | "
+            f"{q['regions_2d']} | {q['round_trip_s']} |"
             for q in s["queries"]
         ],
     ]

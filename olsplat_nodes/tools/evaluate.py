@@ -45,8 +45,8 @@ def add_parser(subparsers) -> None:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="a method parameter for every method, as in launch files (tau_d=0.3, beta=[1,2,4], topk_max=24); repeatable; "
-        "names: olsplat_nodes/method/params.py",
+        help="a method parameter for every method, as in launch files (tau_d=0.3, beta=[1,2,4], topk_max=24); "
+        "repeatable; names: olsplat_nodes/method/params.py",
     )
     ev.add_argument("--work", type=Path, help="folder for the per-run maps (default: SCENE/eval)")
     ev.add_argument("--json", type=Path, help="write the results here")
@@ -129,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
             if r.kind == "method":
                 maps[r.label] = language_map
             print(f"{title}: {r.label:28s} mIoU {scores['mIoU']:5.1f}  mAcc {scores['mAcc']:5.1f}  Loc@40/50/60 "
-                  f"{scores['loc40']:5.1f} {scores['loc50']:5.1f} {scores['loc60']:5.1f}  ({scores['seconds']:.0f} s)")  # fmt: skip
+                  f"{scores['loc40']:5.1f} {scores['loc50']:5.1f} {scores['loc60']:5.1f}  ({scores['seconds']:.0f} "
+                  "s)")  # fmt: skip
         if args.figures:
             folder = args.figures / title if len(scenes) > 1 else args.figures
             files = qualitative_figures(

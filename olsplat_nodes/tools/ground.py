@@ -94,7 +94,8 @@ def print_status(reply, as_json: bool) -> int:
         print(
             f"  {node['node']:16s} {LEVEL_NAMES.get(node['level'], node['level']):5s} age {node['age_s']:5.1f} s  "
             f"rate {v.get('rate_hz', 0):5.2f} Hz  latency {v.get('latency_ms', 0):8.1f} ms  "
-            f"handled {v.get('handled', 0):5d}  drops {v.get('dropped', 0) + v.get('gaps', 0):4d}  bad {v.get('bad_messages', 0):3d}  {node['message']}"
+            f"handled {v.get('handled', 0):5d}  drops {v.get('dropped', 0) + v.get('gaps', 0):4d}  bad "
+            f"{v.get('bad_messages', 0):3d}  {node['message']}"
         )
     return 0
 
@@ -123,12 +124,14 @@ def print_answer(reply, as_json: bool, out: Path | None) -> int:
         found3d = [i for i in reply.instances if i["kind"] == "3d"]
         found2d = [i for i in reply.instances if i["kind"] == "2d"]
         print(
-            f'"{reply.text}" (map version {reply.map_version}, {reply.seconds:.2f} s): {reply.message}; {len(found3d)} instances in 3D'
+            f'"{reply.text}" (map version {reply.map_version}, {reply.seconds:.2f} s): {reply.message}; '
+            f"{len(found3d)} instances in 3D"
         )
         for inst in found3d[:20]:
             c, lo, hi = inst["centroid"], inst["box_min"], inst["box_max"]
             print(
-                f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst['n_gaussians']} Gaussians"
+                f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x "
+                f"{hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst['n_gaussians']} Gaussians"
             )
         if reply.view:
             print(f"view {reply.view}: {len(found2d)} regions")

@@ -9,7 +9,8 @@ from pathlib import Path
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "launch", help="run the nodes of a launch file (restarts, per-node logs, Ctrl-C stops all)",
-        description="Exit code: 0 when the exit_when nodes have finished, 1 on failure, 130 on Ctrl-C (143 on SIGTERM).",
+        description="Exit code: 0 when the exit_when nodes have finished, 1 on failure, "
+        "130 on Ctrl-C (143 on SIGTERM).",
     )  # fmt: skip
     parser.add_argument("file", type=Path, help="launch file, e.g. launch/replay.yaml")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="NODE.PARAM=VALUE",

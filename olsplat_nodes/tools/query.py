@@ -45,12 +45,14 @@ def run(args: argparse.Namespace) -> int:
     camera = select_view(scene.cameras, args.view if args.view is not None else 0)
     answer = answer_query(language_map, gaussians, encoder_for_map(language_map), text, negatives, camera)
     print(
-        f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; {len(answer.instances)} instances in 3D'
+        f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; '
+        f"{len(answer.instances)} instances in 3D"
     )
     for i, inst in enumerate(answer.instances[:20]):
         c, lo, hi = inst.centre, inst.box_min, inst.box_max
         print(
-            f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
+            f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} "
+            f"x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
         )
     print(f"view {camera.name}: {int(answer.mask.sum()):,} pixels, {len(answer.regions)} regions")
     for i, region in enumerate(answer.regions[:20]):

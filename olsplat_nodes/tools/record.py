@@ -21,8 +21,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--source-kind", default="replay", help="replay | exif_folder | depthai (default replay)")
     parser.add_argument("--source", default="", help="replay log or folder (replay, exif_folder)")
     parser.add_argument("--set", dest="params", action="append", default=[], metavar="PARAM=VALUE",
-                        help="a source parameter as in the ingest node (depthai_fps=15, telemetry_url=/dev/ttyACM0, ...); "
-                             "value parsed as YAML; repeatable. Finite sources are read with fast=true unless set")  # fmt: skip
+                        help="a source parameter as in the ingest node (depthai_fps=15, "
+                             "telemetry_url=/dev/ttyACM0, ...); value parsed as YAML; repeatable. Finite sources "
+                             "are read with fast=true unless set")  # fmt: skip
     parser.add_argument("--out", required=True, type=Path, help="the MCAP replay log to write")
     parser.add_argument("--frames", type=int, help="stop after this many frames")
     parser.add_argument("--seconds", type=float, help="stop after this many seconds")

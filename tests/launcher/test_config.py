@@ -130,8 +130,9 @@ def test_bad_overrides_are_errors(tmp_path, override, message):
 def test_placeholders_are_substituted_in_launch_values_and_defaults(tmp_path):
     config = parse_launch({"namespace": "uav1", "run_dir": "rel/run", "nodes": [
         {"name": "talk", "exec": f"{NODES}:Talker", "params": {"period_s": 0.1}},
-        {"name": "tick", "exec": f"{NODES}:Ticker", "params": {"note": "{name} in {namespace} at {run_dir}, {{literal}}",
-                                                             "extra": ["{run_dir}/x", {"k": "{name}"}]}},
+        {"name": "tick", "exec": f"{NODES}:Ticker",
+         "params": {"note": "{name} in {namespace} at {run_dir}, {{literal}}",
+                    "extra": ["{run_dir}/x", {"k": "{name}"}]}},
     ]})  # fmt: skip
     run_dir = (tmp_path / "rel" / "run").resolve()
     params = resolve_launch(config, run_dir)
@@ -148,7 +149,8 @@ def test_unknown_placeholder_and_unknown_param_are_errors(tmp_path):
     config = parse_launch({"nodes": [dict(TICKER, params={"tiks": 2})]}, source="f.yaml")
     with pytest.raises(
         LaunchFileError,
-        match=r"f.yaml: nodes\[0\] \(a\).params.tiks: unknown parameter of .*Ticker; did you mean ticks\? known: crash_how",
+        match=r"f.yaml: nodes\[0\] \(a\).params.tiks: unknown parameter of .*Ticker; "
+        r"did you mean ticks\? known: crash_how",
     ):
         resolve_launch(config, tmp_path)
     config = parse_launch({"nodes": [dict(TICKER, exec="tests.launcher.nowhere:Ticker")]}, source="f.yaml")
@@ -186,7 +188,9 @@ def test_remap_then_namespace_applies_to_topic_params_only(tmp_path):
 
 
 def test_per_node_namespace_overrides_the_launch_namespace(tmp_path):
-    config = parse_launch({"namespace": "fleet", "nodes": [{"name": "t", "exec": f"{NODES}:Talker", "namespace": "uav2"},
-                                                           {"name": "l", "exec": f"{NODES}:Listener"}]})  # fmt: skip
+    config = parse_launch({"namespace": "fleet", "nodes": [
+        {"name": "t", "exec": f"{NODES}:Talker", "namespace": "uav2"},
+        {"name": "l", "exec": f"{NODES}:Listener"},
+    ]})  # fmt: skip
     params = resolve_launch(config, tmp_path)
     assert params["t"]["topic_out"] == "uav2/chatter" and params["l"]["topic_in"] == "fleet/chatter"

@@ -46,7 +46,8 @@ def test_checkpoint_round_trip_and_errors(tmp_path):
     torch.save(bad, tmp_path / "bad.pt")
     with pytest.raises(
         SceneFormatError,
-        match=r"1 missing keys .*up4\.1\.1\.net\.4\.bn\.weight.*1 unexpected keys .*head\.weight.*stem\.0\.kernel \(27, 3, 32\) \(expected \(27, 4, 32\)\)",
+        match=r"1 missing keys .*up4\.1\.1\.net\.4\.bn\.weight.*1 unexpected keys .*head\.weight.*"
+        r"stem\.0\.kernel \(27, 3, 32\) \(expected \(27, 4, 32\)\)",
     ):
         load_minkunet(tmp_path / "bad.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
