@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
+from typing import Any
 
 from .presets import PRESETS
 
@@ -108,7 +109,7 @@ def run_zeroshot(args: argparse.Namespace) -> int:
     from .labels import LABELS
     from .zeroshot import evaluate, label_queries
 
-    encoders = {name: shipped_encoder(name) for name in SHIPPED}
+    encoders: dict[str, Any] = {name: shipped_encoder(name) for name in SHIPPED}
     encoders["fusion (lambda_2D = 0.6)"] = default_encoder()
     for folder in (args.encoders or "").split(",") if args.encoders else []:
         encoder = OnnxEncoder(Path(folder))

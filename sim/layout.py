@@ -71,12 +71,13 @@ class Car:
 class Layout:
     size_m: float
     roads: list[tuple[str, float, float]]  # (axis "x" or "y", coordinate of the centre line, half width)
+    ground: np.ndarray  # [R, R] uint8 CATEGORY codes
+    markings: np.ndarray  # [R, R] bool white paint
     buildings: list[Building] = field(default_factory=list)
     trees: list[Tree] = field(default_factory=list)
     cars: list[Car] = field(default_factory=list)
-    ground: np.ndarray = None  # [R, R] uint8 CATEGORY codes
-    markings: np.ndarray = None  # [R, R] bool white paint
-    shadow: np.ndarray = None  # [R, R] float32 0 (sunlit) .. 1 (full shadow)
+    # [R, R] float32 0 (sunlit) .. 1 (full shadow); computed last, from everything above
+    shadow: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
 
     def cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raster (row, column) of world points [M, 2], clipped to the raster."""
@@ -316,8 +317,8 @@ def _roads(b: _Builder, ground) -> None:
             for t in np.arange(-half + 6, half - 6, rng.uniform(9, 14)):
                 if any(abs(t - other) < 14 for other in crossings[axis]):
                     continue
-                side = c + (hw + 1.2) * (1 if rng.random() < 0.5 else -1)
-                x, y = (t, side) if axis == "x" else (side, t)
+                pavement = c + (hw + 1.2) * (1 if rng.random() < 0.5 else -1)
+                x, y = (t, pavement) if axis == "x" else (pavement, t)
                 if not _overlaps((x - 1, y - 1, x + 1, y + 1), b.footprints, 0.5):
                     b.tree(x, y, rng.uniform(2.8, 4.5))
         # cars on the lanes

@@ -125,6 +125,7 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
                     seen[LABELS.index(shape["label"])].add(shape["group_id"])
             if i in preview_at:
                 decoded = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+                assert decoded is not None  # we encoded it just above
                 previews.append((f"{frame.camera.name} ({frame.kind})", decoded, overlay(decoded[..., ::-1], doc)))
             if (i + 1) % max(1, len(frames) // 10) == 0 or i + 1 == len(frames):
                 log(f"frames: {i + 1}/{len(frames)} ({time.perf_counter() - start:.0f} s)")

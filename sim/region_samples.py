@@ -85,7 +85,7 @@ def collect(
     min_pixels: int = 40,
 ) -> RegionSamples:
     """Region crops (one array per named crop style: size and CropConfig) with their majority labels."""
-    crops = {name: [] for name in crop_styles}
+    crops: dict[str, list[np.ndarray]] = {name: [] for name in crop_styles}
     labels, purities = [], []
     sensor = SensorSpec()
     regions_config = RegionConfig(level_counts=(40, 120, 400))  # many regions per view: more, varied samples
@@ -97,6 +97,7 @@ def collect(
         gains = exposure_gains(len(frames), sensor, rng)
         for frame, gain in zip(frames, gains, strict=True):
             result = rasterize(truth.gaussians, frame.camera, background=BACKGROUND)
+            assert result.topk_ids is not None and result.topk_weights is not None  # kept by default
             picture = to_uint8(apply_sensor(result.rgb, gain, sensor, rng))
             truth_labels, _ = label_maps(
                 result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance

@@ -228,7 +228,7 @@ def _car(car, density: float, rng) -> _Part:
         ((0, hw, car.height / 2), (0, 1, 0), (hl, 0, 0), (0, 0, car.height / 2)),
         ((0, -hw, car.height / 2), (0, -1, 0), (hl, 0, 0), (0, 0, car.height / 2)),
     ]
-    means, normals, colors = [], [], []
+    parts: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] = ([], [], [])  # means, normals, colours
     for centre, normal, eu, ev in faces:
         area = 4 * np.linalg.norm(eu) * np.linalg.norm(ev)
         m = max(3, rng.poisson(density * area))
@@ -240,10 +240,10 @@ def _car(car, density: float, rng) -> _Part:
         else:
             glass = local[:, 2] > car.height * 0.62
         rgb[glass] = GLASS * 0.8
-        means.append(local)
-        normals.append(np.tile(normal, (m, 1)).astype(float))
-        colors.append(rgb * _shade(np.asarray(normal, float)[None])[0])
-    means, normals, colors = np.concatenate(means), np.concatenate(normals), np.concatenate(colors)
+        parts[0].append(local)
+        parts[1].append(np.tile(normal, (m, 1)).astype(float))
+        parts[2].append(rgb * _shade(np.asarray(normal, float)[None])[0])
+    means, normals, colors = (np.concatenate(p) for p in parts)
     if not car.along_x:  # rotate the car frame by 90 degrees about z
         means = means[:, [1, 0, 2]] * [-1, 1, 1]
         normals = normals[:, [1, 0, 2]] * [-1, 1, 1]

@@ -196,8 +196,8 @@ def train_all(out: Path = ASSETS, n_seeds: int = 10, views: int = 16, epochs: in
     tmp_vocab.unlink()
     folders = []
     for i, design in enumerate(DESIGNS):
-        towers = train_design(design, samples, tokenizer, epochs, seed=i, log=log)
-        folders.append(export_design(design, *towers, vocab, out))
+        image_tower, text_tower = train_design(design, samples, tokenizer, epochs, seed=i, log=log)
+        folders.append(export_design(design, image_tower, text_tower, vocab, out))
     unused = sorted({w for text, _, _ in QUERIES for w in tokenizer.words(text)} - set(vocab))
     log(f"query words the text towers never saw (map to a known singular or to <unknown>): {unused}")
     log(f"done in {time.perf_counter() - start:.0f} s -> {', '.join(map(str, folders))}")

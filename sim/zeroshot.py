@@ -8,6 +8,9 @@ regions, balanced accuracy (mean over labels), and per-label accuracy.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 from olsplat_nodes.encoders import CropConfig, FusedEncoder
@@ -22,7 +25,7 @@ def label_queries() -> list[str]:
     return [by_label.get(label, label) for label in LABELS]
 
 
-def evaluate(encoders: dict[str, object], seeds: list[int], views: int) -> dict[str, dict]:
+def evaluate(encoders: Mapping[str, Any], seeds: list[int], views: int) -> dict[str, Any]:
     """name -> {"accuracy", "balanced", "per_label" [L], "n"} for each encoder (or FusedEncoder)."""
     if any(seed >= TRAINING_SEED_BASE for seed in seeds):
         raise ValueError(f"evaluation seeds must be below {TRAINING_SEED_BASE} (the training seeds), got {seeds}")
@@ -33,7 +36,7 @@ def evaluate(encoders: dict[str, object], seeds: list[int], views: int) -> dict[
     styles = {name: (m.input_size, getattr(m, "crop_config", None) or CropConfig()) for name, m in members.items()}
     samples = collect(seeds, views, styles)
     texts = label_queries()
-    results = {}
+    results: dict[str, Any] = {}
     for name, encoder in encoders.items():
         if isinstance(encoder, FusedEncoder):
             images = encoder.encode_crops([samples.crops[m.name] for m in encoder.encoders])

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     gaussians = read_ply(scene.ply)
     features = [view_features(scene, c, encoder) for c in tqdm(cameras, desc="features (cached)", unit="view")]
     rasterize(gaussians, cameras[0], chosen.raster)  # warm-up: numba compile, page faults
-    times = {"rasterize": [], "observe": [], "append": []}
+    times: dict[str, list[float]] = {"rasterize": [], "observe": [], "append": []}
     kept = []
     with tempfile.TemporaryDirectory() as tmp:
         store = ObservationStore(Path(tmp) / "store", len(gaussians))

@@ -16,13 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OlsplatInputError
+
 
 def _frame(scene: Path | None) -> np.ndarray:
     import cv2
 
     if scene is not None:
         files = sorted((scene / "images").glob("*.jpg"))
-        return cv2.resize(cv2.imread(str(files[len(files) // 2])), (640, 480))[..., ::-1].copy()
+        bgr = cv2.imread(str(files[len(files) // 2])) if files else None
+        if bgr is None:
+            raise OlsplatInputError(f"{scene / 'images'}: no readable JPEG frame")
+        return cv2.resize(bgr, (640, 480))[..., ::-1].copy()
     from olsplat_sim import generate_scene
 
     from ..raster import rasterize

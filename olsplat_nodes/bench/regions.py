@@ -28,35 +28,39 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import cv2
 
+    from ..errors import OlsplatInputError
     from ..evaluate.annotations import read_annotation
     from ..evaluate.scene_eval import load_queries
     from ..regions import RegionConfig, propose_regions
 
     files = sorted((args.scene / "annotations").glob("*.json"))[:: args.every]
     if not files:
-        from ..errors import OlsplatInputError
-
         raise OlsplatInputError(f"{args.scene / 'annotations'}: no annotation files")
     names, _ = load_queries(args.scene)
     config = RegionConfig()
-    asa, best_iou, counts, seconds = None, [], None, []
+    n = len(config.level_counts)
+    asa: list[list[float]] = [[] for _ in range(n)]  # per level, per view
+    counts: list[list[int]] = [[] for _ in range(n)]
+    best_iou: list[list[float]] = []
+    seconds: list[float] = []
     for path in files:
         doc = json.loads(path.read_text())
-        image = cv2.imread(str((path.parent / doc["imagePath"]).resolve()))[..., ::-1].copy()
+        photo = (path.parent / doc["imagePath"]).resolve()
+        bgr = cv2.imread(str(photo))
+        if bgr is None:
+            raise OlsplatInputError(f"{path}: its image {photo} is missing or unreadable")
+        image = bgr[..., ::-1].copy()
         labels, instances = read_annotation(doc, names)
         start = time.perf_counter()
         levels = propose_regions(image, config)
         seconds.append(time.perf_counter() - start)
-        n = levels.n_levels
-        asa = [[] for _ in range(n)] if asa is None else asa
-        counts = [[] for _ in range(n)] if counts is None else counts
         valid = labels >= 0
         segment = np.where(valid, labels.astype(np.int64) * 100_003 + instances + 1, -1)
         for level, regions in enumerate(levels.label_maps):
             table = np.zeros((regions.max() + 1, labels.max() + 1))
             np.add.at(table, (regions[valid], labels[valid]), 1)
-            asa[level].append(table.max(1).sum() / max(valid.sum(), 1))
-            counts[level].append(regions.max() + 1)
+            asa[level].append(float(table.max(1).sum() / max(valid.sum(), 1)))
+            counts[level].append(int(regions.max()) + 1)
         sizes = [np.bincount(r.ravel()) for r in levels.label_maps]
         for key in np.unique(segment[valid]):
             mask = segment == key

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -58,7 +59,7 @@ def encode_regions(
 def save_bank(path: Path, label_maps: np.ndarray, bank: FeatureBank | None) -> None:
     """One view's regions (and features) as the scene cache keeps them: ``label_maps`` [L, H, W]
     int32, ``features_<l>`` [R_l, D] float16, ``encoder``; written to a temp file, then renamed."""
-    arrays = {"label_maps": label_maps}
+    arrays: dict[str, Any] = {"label_maps": label_maps}
     if bank is not None:
         arrays.update({f"features_{i}": f.astype(np.float16) for i, f in enumerate(bank.features)})
         arrays["encoder"] = np.array(bank.encoder)

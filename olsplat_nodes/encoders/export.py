@@ -102,9 +102,10 @@ def write_manifest(folder: Path, name: str, embed_dim: int, image_size: int, con
 
 
 def _gzip_copy(src, dst) -> None:
+    """Gzip ``src`` to ``dst`` with no name or time in the header: the same vocabulary, the same bytes."""
     import gzip
 
-    with open(src, "rb") as f, gzip.open(dst, "wb", mtime=0) as g:
+    with open(src, "rb") as f, open(dst, "wb") as raw, gzip.GzipFile(filename="", fileobj=raw, mode="wb", mtime=0) as g:
         g.write(f.read())
 
 

@@ -11,6 +11,8 @@ L2-normalised again.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from functools import reduce
 from typing import Literal
 
 import numpy as np
@@ -21,7 +23,7 @@ from .base import VisionLanguageEncoder, normalize
 class FusedEncoder:
     def __init__(
         self,
-        encoders: list[VisionLanguageEncoder],
+        encoders: Sequence[VisionLanguageEncoder],
         weights: list[float] | None = None,
         mode: Literal["concat", "sum"] = "concat",
     ):
@@ -41,7 +43,7 @@ class FusedEncoder:
 
     def _fuse(self, parts: list[np.ndarray]) -> np.ndarray:
         if self.mode == "sum":
-            return normalize(sum(w * p for w, p in zip(self.weights, parts, strict=True)))
+            return normalize(reduce(np.add, [w * p for w, p in zip(self.weights, parts, strict=True)]))
         return normalize(np.concatenate([np.sqrt(w) * p for w, p in zip(self.weights, parts, strict=True)], axis=-1))
 
     def encode_crops(self, crops: list[np.ndarray]) -> np.ndarray:

@@ -22,6 +22,6 @@ def shipped_encoder(name: str) -> OnnxEncoder:
     return OnnxEncoder(ASSETS / name)
 
 
-def default_encoder(weights: tuple[float, float] = DEFAULT_WEIGHTS) -> FusedEncoder:
+def default_encoder(weights: tuple[float, ...] = DEFAULT_WEIGHTS) -> FusedEncoder:
     """Both shipped encoders fused with lambda_2D = weights[0]."""
     return FusedEncoder([shipped_encoder(n) for n in SHIPPED], list(weights))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Literal
 
 from ..errors import OlsplatInputError
 from .fusion import FusedEncoder
@@ -11,7 +12,11 @@ from .onnx_encoder import OnnxEncoder
 from .shipped import DEFAULT_WEIGHTS, SHIPPED, default_encoder, shipped_encoder
 
 
-def encoder_from_spec(spec: str = "shipped", weights: str | Sequence[float] | None = None, fusion: str = "concat"):
+def encoder_from_spec(
+    spec: str = "shipped",
+    weights: str | Sequence[float] | None = None,
+    fusion: Literal["concat", "sum"] = "concat",
+):
     """'shipped' -> both shipped encoders fused (lambda_2D = 0.6); else comma-separated shipped
     names or folders made by ``olsplat export-clip``, fused with ``weights`` (lambda_2D per
     encoder, as numbers or as the command line's "0.6,0.4") when several."""

@@ -99,7 +99,7 @@ class ClipTokenizer:
 
     def encode(self, text: str) -> list[int]:
         """Token ids of ``text`` without start/end tokens."""
-        ids = []
+        ids: list[int] = []
         for piece in _SPLIT.findall(clean(text)):
             piece = "".join(self.byte_encoder[b] for b in piece.encode("utf-8"))
             ids.extend(self.encoder[t] for t in self._bpe(piece).split(" "))

@@ -24,16 +24,18 @@ def read_annotation(doc: dict | str | Path, labels: list[str] | tuple[str, ...])
     raises SceneFormatError naming the file (or ValueError for an in-memory document).
     """
     where = None
-    if not isinstance(doc, dict):
+    if isinstance(doc, dict):
+        data: dict = doc
+    else:
         where = Path(doc)
         try:
-            doc = json.loads(where.read_text())
+            data = json.loads(where.read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise SceneFormatError(where, f"not a readable annotation ({type(exc).__name__}: {exc})") from None
     index = {name: i for i, name in enumerate(labels)}
-    h, w = int(doc["imageHeight"]), int(doc["imageWidth"])
+    h, w = int(data["imageHeight"]), int(data["imageWidth"])
     groups: dict[tuple[str, int], list[list]] = {}
-    for shape in doc["shapes"]:
+    for shape in data["shapes"]:
         if shape["label"] not in index:
             problem = f"unknown annotation label {shape['label']!r}; known: {', '.join(labels)}"
             raise SceneFormatError(where, problem) if where else ValueError(problem)

@@ -67,7 +67,7 @@ def qualitative_figures(scene, maps: dict, encoder, out: Path, n_views: int = 2)
             for name, (share, winners, alpha) in rendered.items():
                 heat = colorize(share[ids].sum(0), alpha > 0.5, 0.0, 1.0).astype(np.float32)
                 panel = (0.35 * photo + 0.65 * heat).astype(np.uint8)
-                predicted = winners[ids].any(0).astype(np.uint8)
+                predicted = np.asarray(winners[ids].any(0), np.uint8)
                 contours, _ = cv2.findContours(predicted, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
                 cv2.drawContours(panel, contours, -1, (255, 255, 255), 1)
                 _caption(cv2, panel, name)

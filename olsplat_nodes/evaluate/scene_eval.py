@@ -61,7 +61,7 @@ def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = 
         labelled = truth >= 0
         for q in queries:
             ids = [label_index[name] for name in q["labels"]]
-            predicted = winners[ids].any(0)
+            predicted = np.asarray(winners[ids].any(0))
             target = np.isin(truth, ids)
             scores[q["text"]].add_view(predicted, target, labelled, instances if q["instances"] else None)
     out = summarize(scores)

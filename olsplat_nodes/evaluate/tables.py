@@ -13,6 +13,8 @@ value of each row is in bold.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 ABLATIONS = ("outlangsplat", "outlangsplat-noquality", "outlangsplat-noconsistency")
@@ -24,7 +26,7 @@ def overall(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
     out = {}
     for name in methods:
         runs = [scene[name] for scene in results.values() if name in scene]
-        merged = {
+        merged: dict[str, Any] = {
             key: float(np.mean([r[key] for r in runs]))
             for key in ("mIoU", "mAcc", "loc40", "loc50", "loc60", "seconds", "peak_rss_mb")
         }

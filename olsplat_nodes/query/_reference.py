@@ -23,6 +23,10 @@ def _touching(voxel: tuple[int, int, int]):
                     yield (i + di, j + dj, k + dk)
 
 
+def _xyz(v: np.ndarray) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
+
+
 def instances_in_3d_bfs(
     means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20
 ) -> list[Instance3D]:
@@ -35,8 +39,8 @@ def instances_in_3d_bfs(
     core = within.sum(1) >= min_points  # DBSCAN's test; each point is within eps of itself
     voxel = [(int(i), int(j), int(k)) for i, j, k in np.floor((points - points.min(0)) / eps).astype(np.int64)]
     core_in: dict[tuple[int, int, int], list[int]] = {}  # voxel -> its core points
-    for n in np.flatnonzero(core):
-        core_in.setdefault(voxel[n], []).append(int(n))
+    for index in np.flatnonzero(core):
+        core_in.setdefault(voxel[index], []).append(int(index))
 
     cluster_of: dict[tuple[int, int, int], tuple[int, int, int]] = {}  # voxel -> its cluster's lowest voxel
     for start in sorted(core_in):
@@ -67,9 +71,9 @@ def instances_in_3d_bfs(
         if len(inside) >= max(min_points, 1):
             out.append(
                 Instance3D(
-                    tuple(map(float, inside.min(0))),
-                    tuple(map(float, inside.max(0))),
-                    tuple(map(float, inside.mean(0))),
+                    _xyz(inside.min(0)),
+                    _xyz(inside.max(0)),
+                    _xyz(inside.mean(0)),
                     len(inside),
                 )
             )

@@ -11,6 +11,7 @@ stable sort of all its contributions by weight. Use it only on tiny scenes.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -95,7 +96,7 @@ def rasterize_reference(
     config: RasterConfig | None = None,
     features: np.ndarray | None = None,  # [N, D]
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-) -> dict[str, np.ndarray]:
+) -> dict[str, Any]:
     """Returns rgb, alpha, depth, features (if given), topk_ids, topk_weights as in RenderResult,
     and tile_pairs (RenderResult.n_tile_pairs)."""
     config = config or RasterConfig()
@@ -104,7 +105,8 @@ def rasterize_reference(
     order = order[np.argsort(proj["depth"][order], kind="stable")]
     h, w, t, kmax = camera.height, camera.width, config.tile_size, config.topk_max
     d = 0 if features is None else features.shape[1]
-    out = {
+    rows = np.zeros((len(gaussians), 0)) if features is None else features  # [N, D], D = 0 without features
+    out: dict[str, Any] = {
         "rgb": np.zeros((h, w, 3)),
         "alpha": np.zeros((h, w)),
         "depth": np.zeros((h, w)),
@@ -135,7 +137,7 @@ def rasterize_reference(
                 rgb += weight * proj["color"][g]
                 depth += weight * proj["depth"][g]
                 if d:
-                    feat += weight * features[g]
+                    feat += weight * rows[g]
                 contributions.append((weight, g))
                 trans *= 1.0 - alpha
             total = 1.0 - trans

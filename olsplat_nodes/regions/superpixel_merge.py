@@ -56,9 +56,9 @@ def _adjacency(labels: np.ndarray, gradient: np.ndarray) -> dict[tuple[int, int]
         cut = a != b
         pairs.append(np.stack([np.minimum(a[cut], b[cut]), np.maximum(a[cut], b[cut])], 1))
         grads.append(g[cut])
-    pairs, grads = np.concatenate(pairs), np.concatenate(grads)
-    keys, inverse, lengths = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
-    sums = np.bincount(inverse.ravel(), weights=grads, minlength=len(keys))
+    all_pairs, all_grads = np.concatenate(pairs), np.concatenate(grads)
+    keys, inverse, lengths = np.unique(all_pairs, axis=0, return_inverse=True, return_counts=True)
+    sums = np.bincount(inverse.ravel(), weights=all_grads, minlength=len(keys))
     return {(int(a), int(b)): [float(n), float(s)] for (a, b), n, s in zip(keys, lengths, sums, strict=True)}
 
 

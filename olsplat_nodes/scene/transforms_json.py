@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -51,12 +53,13 @@ def read_transforms_json(path: str | Path) -> list[Camera]:
         where = f"frame {index}"
         if not isinstance(frame, dict) or "transform_matrix" not in frame or "file_path" not in frame:
             raise SceneFormatError(path, f"{where} lacks 'file_path' or 'transform_matrix'")
-        value = {**meta, **frame}.get
+        value: Callable[..., Any] = {**meta, **frame}.get
         size = (value("w"), value("h"))
         if None in size:
-            size = _image_size(path.parent, frame["file_path"])
-            if size is None:
+            read = _image_size(path.parent, frame["file_path"])
+            if read is None:
                 raise SceneFormatError(path, f"{where}: no image size ('w'/'h') and the image cannot be read")
+            size = read
         width, height = int(size[0]), int(size[1])
         fx, fy = value("fl_x"), value("fl_y")
         if fx is None and value("camera_angle_x") is not None:

@@ -8,7 +8,7 @@ import numpy as np
 def pool_regions_reference(positions, features, camera, depth, label_maps, n_regions, voxel, relative=0.02, voxels=2.0):
     """Per level, per region: the mean feature of the visible points projecting into it (0 if none)."""
     R, t = camera.camera_from_world[:3, :3], camera.camera_from_world[:3, 3]
-    members = [[[] for _ in range(n)] for n in n_regions]
+    members: list[list[list[np.ndarray]]] = [[[] for _ in range(n)] for n in n_regions]
     for k in range(len(positions)):
         x, y, z = R @ positions[k] + t
         if z <= 1e-6:

@@ -94,7 +94,9 @@ def geometric_descriptors(points: StructuralPoints, camera_centres: np.ndarray) 
         _eigen_features(cloud, 48),
     ]
     for radius in (3.0 * voxel, 6.0 * voxel):
-        fpfh = o3d.pipelines.registration.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius, 64))
+        search = o3d.geometry.KDTreeSearchParamHybrid(radius, 64)
+        # open3d's stub names only the overload with ``indices``; the two-argument one exists
+        fpfh = o3d.pipelines.registration.compute_fpfh_feature(cloud, search)  # type: ignore[call-arg]
         columns.append(np.asarray(fpfh.data).T / 100.0)
     columns.append(points.opacity[:, None])
     features = np.concatenate(columns, axis=1)

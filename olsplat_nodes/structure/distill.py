@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -95,7 +96,7 @@ class OnlineDistiller:
         return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
 
     def save(self, path: str | Path) -> None:
-        arrays = {f"param_{i}": p.detach().numpy() for i, p in enumerate(self.model.parameters())}
+        arrays: dict[str, Any] = {f"param_{i}": p.detach().numpy() for i, p in enumerate(self.model.parameters())}
         np.savez(
             path,
             in_dim=self.in_dim,

@@ -55,7 +55,7 @@ def structural_points(gaussians: Gaussians, tau_o: float = 0.1, voxel: float | N
     lo, hi = means.min(0) - voxel, means.max(0) + voxel
     down, _, members = cloud.voxel_down_sample_and_trace(voxel, lo, hi, False)
     source = np.empty(len(members), np.int64)
-    for p, group in enumerate(members):  # the most opaque Gaussian of each voxel
-        group = np.asarray(group)
+    for p, traced in enumerate(members):  # the most opaque Gaussian of each voxel
+        group = np.asarray(traced)
         source[p] = keep[group[np.argmax(opacity[keep[group]])]]
     return StructuralPoints(np.asarray(down.points), opacity[source].astype(np.float32), source, voxel)

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Literal
 
+import numpy as np
+
 from .pose import CameraMount
 
 
@@ -67,7 +69,5 @@ class TelemetryConfig:
 
     def mount(self) -> CameraMount:
         if self.mount_matrix is not None:
-            return CameraMount(
-                [self.mount_matrix[0:3], self.mount_matrix[3:6], self.mount_matrix[6:9]], self.lever_arm_m
-            )
+            return CameraMount(np.reshape(self.mount_matrix, (3, 3)), np.asarray(self.lever_arm_m))
         return CameraMount.from_angles(*self.mount_rpy_deg, lever_arm_m=self.lever_arm_m)

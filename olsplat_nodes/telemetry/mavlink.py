@@ -216,12 +216,14 @@ class MavlinkReader:
         """Messages completed by what has arrived, waiting up to ``timeout_s`` for the first byte."""
         if not self.open():
             return []
+        port = self.port
+        assert port is not None  # open() returned True
         try:
-            if self.port.timeout != timeout_s:
-                self.port.timeout = timeout_s
-            data = self.port.read(1)  # blocks until a byte arrives or the timeout
-            if data and self.port.in_waiting:
-                data += self.port.read(self.port.in_waiting)
+            if port.timeout != timeout_s:
+                port.timeout = timeout_s
+            data = port.read(1)  # blocks until a byte arrives or the timeout
+            if data and port.in_waiting:
+                data += port.read(port.in_waiting)
         except (serial.SerialException, OSError) as exc:  # unplugged mid-flight
             self._fail(exc)
             return []

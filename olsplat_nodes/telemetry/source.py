@@ -69,9 +69,9 @@ class FlightControllerPoses:
             if self._valid(values):
                 return self._count("attitude_samples", self.buffer.add_attitude(stamp_ns, euler_to_quat(*values)))
         elif name == "ATTITUDE_QUATERNION" and self.config.attitude == name:
-            values = (message.q1, message.q2, message.q3, message.q4)  # w, x, y, z
-            if self._valid(values) and any(values):
-                return self._count("attitude_samples", self.buffer.add_attitude(stamp_ns, values))
+            quaternion = (message.q1, message.q2, message.q3, message.q4)  # w, x, y, z
+            if self._valid(quaternion) and any(quaternion):
+                return self._count("attitude_samples", self.buffer.add_attitude(stamp_ns, quaternion))
         elif name == "LOCAL_POSITION_NED" and self.config.position == "local":
             values = (message.x, message.y, message.z)
             if self._valid(values):

@@ -4,6 +4,7 @@ language map on the scene's annotations, print and write the paper's tables."""
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 from pathlib import Path
 
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
                     methods[r.method],
                     encoder,
                     out,
-                    lambda xs, n=r.label: tqdm(xs, desc=n, unit="view"),
+                    functools.partial(tqdm, desc=r.label, unit="view"),
                     structure=r.structure,
                 )
                 language_map = LanguageMap.load(out / "language_map.npz")

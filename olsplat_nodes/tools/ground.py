@@ -53,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
     except zmq.ZMQError as exc:  # a malformed endpoint (no port, unknown transport): same exit as an unreachable one
+        reason = zmq.strerror(exc.errno or 0)
         print(
-            f"olsplat ground {args.ground_command}: error: cannot connect to {args.connect}: {zmq.strerror(exc.errno)}",
+            f"olsplat ground {args.ground_command}: error: cannot connect to {args.connect}: {reason}",
             file=sys.stderr,
         )
         return 2

@@ -44,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
         negatives = list(CANONICAL_NEGATIVES)
     camera = select_view(scene.cameras, args.view if args.view is not None else 0)
     answer = answer_query(language_map, gaussians, encoder_for_map(language_map), text, negatives, camera)
+    assert answer.mask is not None  # answered over a view: camera is given
     print(
         f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; '
         f"{len(answer.instances)} instances in 3D"

@@ -36,14 +36,16 @@ def run(args: argparse.Namespace) -> int:
     gaussians = read_ply(args.ply, on_nonfinite="keep" if args.allow_nonfinite else "error")
     camera = select_view(read_cameras(args.cameras), args.view)
     result = rasterize(gaussians, camera)
+    topk_ids, topk_weights = result.topk_ids, result.topk_weights
+    assert topk_ids is not None and topk_weights is not None  # kept by default (want_topk)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         args.out,
         rgb=result.rgb,
         alpha=result.alpha,
         depth=result.depth,
-        topk_ids=result.topk_ids,
-        topk_weights=result.topk_weights,
+        topk_ids=topk_ids,
+        topk_weights=topk_weights,
     )
     if args.png:
         write_png(args.png, rgb_to_bgr8(result.rgb))

@@ -176,3 +176,16 @@ def test_bad_checkpoints_and_folders(checkpoint, vocab, tmp_path, capsys):
         OnnxEncoder(out)
     with pytest.raises(OlsplatInputError, match=r"encoder\.json: missing"):
         OnnxEncoder(tmp_path)
+
+
+def test_a_plain_text_vocabulary_is_gzipped_reproducibly(tmp_path):
+    """``export-clip --vocab merges.txt`` (not gzipped) stores it gzipped, the same bytes every time."""
+    from olsplat_nodes.encoders.export import _gzip_copy
+
+    plain = tmp_path / "merges.txt"
+    plain.write_text("#version: 0.2\n" + "\n".join(MERGES) + "\n", encoding="utf-8")
+    _gzip_copy(plain, tmp_path / "a.txt.gz")
+    _gzip_copy(plain, tmp_path / "b.txt.gz")
+    assert gzip.decompress((tmp_path / "a.txt.gz").read_bytes()) == plain.read_bytes()
+    assert (tmp_path / "a.txt.gz").read_bytes() == (tmp_path / "b.txt.gz").read_bytes()
+    assert ClipTokenizer(tmp_path / "a.txt.gz").vocab_size == 519
