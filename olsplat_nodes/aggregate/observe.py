@@ -25,7 +25,6 @@ import numpy as np
 from numba import njit
 
 from .config import AggregationConfig
-from .quality import pixel_quality
 
 
 @dataclass
@@ -66,31 +65,108 @@ def stack_levels(label_maps: np.ndarray, bank: list[np.ndarray]) -> tuple[np.nda
 
 
 @njit(cache=True)
-def _mixtures(order, k, weight_of, kept_of, n_kept, slot_maps, level_weights, strength):
-    """Per kept Gaussian, the distinct (slot, summed weight) over its entries, per level.
+def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
+    """[P] float32 M_v(p) * q_sum(p) * q_eff(p) (or M_v(p) without quality): w~ = w * factor.
 
-    ``order`` lists flat Top-K entries (pixel * k + rank) grouped by kept Gaussian;
-    ``kept_of[entry]`` is the entry's kept-Gaussian index, ``weight_of[entry]`` its w~.
-    """
+    The same equations as ``quality.pixel_quality``, one pixel at a time, with no [P, K]
+    temporaries: on a small machine allocating and faulting in those cost more than the math."""
+    n_pixels, k = topk_weights.shape
+    out = np.zeros(n_pixels, np.float32)
+    for p in range(n_pixels):
+        if not valid[p]:
+            continue
+        if not use_quality:
+            out[p] = 1.0
+            continue
+        total = np.float32(0.0)
+        for r in range(k):
+            total += topk_weights[p, r]
+        squares = np.float32(0.0)
+        for r in range(k):
+            pi = topk_weights[p, r] / (total + eps)
+            squares += pi * pi
+        effective = 1.0 / (squares + eps)
+        q_sum = min(max(total, q_min), 1.0)
+        q_eff = np.exp(-max(effective - tau_e, 0.0) / kappa)
+        out[p] = np.float32(q_sum) * np.float32(q_eff)
+    return out
+
+
+@njit(cache=True)
+def _strengths(topk_ids, topk_weights, factors, n_gaussians):
+    """[N] float64 d_i = sum over the view's pixels and ranks of w~ (entries with w~ > 0)."""
+    strength = np.zeros(n_gaussians, np.float64)
+    n_pixels, k = topk_ids.shape
+    for p in range(n_pixels):
+        f = factors[p]
+        if f == 0.0:
+            continue
+        for r in range(k):
+            i = topk_ids[p, r]
+            if i < 0:
+                continue
+            w = topk_weights[p, r] * f
+            if w > 0.0:
+                strength[i] += w
+    return strength
+
+
+@njit(cache=True)
+def _group_entries(topk_ids, topk_weights, factors, kept_of, n_kept):
+    """The kept Gaussians' entries grouped by Gaussian, in pixel order within a group:
+    (offsets [n_kept + 1], pixel [E] int32, w~ [E] float32). A counting sort in two passes."""
+    n_pixels, k = topk_ids.shape
+    offsets = np.zeros(n_kept + 1, np.int64)
+    for p in range(n_pixels):
+        f = factors[p]
+        if f == 0.0:
+            continue
+        for r in range(k):
+            i = topk_ids[p, r]
+            if i >= 0 and kept_of[i] >= 0 and topk_weights[p, r] * f > 0.0:
+                offsets[kept_of[i] + 1] += 1
+    for j in range(n_kept):
+        offsets[j + 1] += offsets[j]
+    fill = offsets[:-1].copy()
+    pixels = np.empty(offsets[n_kept], np.int32)
+    weights = np.empty(offsets[n_kept], np.float32)
+    for p in range(n_pixels):
+        f = factors[p]
+        if f == 0.0:
+            continue
+        for r in range(k):
+            i = topk_ids[p, r]
+            if i < 0:
+                continue
+            j = kept_of[i]
+            w = topk_weights[p, r] * f
+            if j >= 0 and w > 0.0:
+                pixels[fill[j]] = p
+                weights[fill[j]] = w
+                fill[j] += 1
+    return offsets, pixels, weights
+
+
+@njit(cache=True)
+def _mixtures(entry_offsets, pixels, weights, slot_maps, level_weights, strength):
+    """Per kept Gaussian, the distinct (slot, summed weight) over its entries, per level with a
+    non-zero level weight; mixture weights normalised by the Gaussian's d."""
     n_levels = slot_maps.shape[0]
-    cap = order.shape[0] * n_levels
+    n_kept = entry_offsets.shape[0] - 1
+    cap = pixels.shape[0] * n_levels
     out_slots = np.empty(cap, np.int32)
     out_weights = np.empty(cap, np.float32)
     offsets = np.zeros(n_kept + 1, np.int64)
     local_slots = np.empty(256, np.int32)
     local_weights = np.empty(256, np.float64)
     n_out = 0
-    start = 0
-    while start < order.shape[0]:
-        j = kept_of[order[start]]
-        stop = start
-        while stop < order.shape[0] and kept_of[order[stop]] == j:
-            stop += 1
+    for j in range(n_kept):
         for level in range(n_levels):
+            if level_weights[level] == 0.0:  # an unused level adds nothing: no zero-weight entries
+                continue
             n_local = 0
-            for e in range(start, stop):
-                entry = order[e]
-                slot = slot_maps[level, entry // k]
+            for e in range(entry_offsets[j], entry_offsets[j + 1]):
+                slot = slot_maps[level, pixels[e]]
                 if slot < 0:
                     continue
                 found = -1
@@ -106,29 +182,13 @@ def _mixtures(order, k, weight_of, kept_of, n_kept, slot_maps, level_weights, st
                         local_slots[found] = slot
                         local_weights[found] = 0.0
                         n_local += 1
-                local_weights[found] += weight_of[entry]
+                local_weights[found] += weights[e]
             for s in range(n_local):
                 out_slots[n_out] = local_slots[s]
                 out_weights[n_out] = level_weights[level] * local_weights[s] / strength[j]
                 n_out += 1
         offsets[j + 1] = n_out
-        start = stop
     return offsets, out_slots[:n_out].copy(), out_weights[:n_out].copy()
-
-
-@njit(cache=True)
-def _stable_group(keys, n_groups):
-    """Indices that order ``keys`` (ints in [0, n_groups)) stably: a counting sort, O(n)."""
-    start = np.zeros(n_groups + 1, np.int64)
-    for k in keys:
-        start[k + 1] += 1
-    for g in range(n_groups):
-        start[g + 1] += start[g]
-    order = np.empty(keys.shape[0], np.int64)
-    for i in range(keys.shape[0]):
-        order[start[keys[i]]] = i
-        start[keys[i]] += 1
-    return order
 
 
 def observe_view(
@@ -142,32 +202,27 @@ def observe_view(
     height, width, k = topk_ids.shape
     if slot_maps.shape[1:] != (height, width):
         raise ValueError(f"label maps {slot_maps.shape[1:]} do not match the rendered view {(height, width)}")
-    q_sum, q_eff, _ = pixel_quality(topk_weights, config)
-    valid = (slot_maps >= 0).all(0)  # M_v(p): the pixel has a feature at every level
-    quality = q_sum * q_eff if config.use_quality else np.ones_like(q_sum)
-    w_tilde = topk_weights * (valid * quality)[..., None]
-    ids = topk_ids.reshape(-1)
-    w_flat = w_tilde.reshape(-1).astype(np.float32)
-    live = (ids >= 0) & (w_flat > 0)
-    entries = np.flatnonzero(live)
-    strength = np.bincount(ids[entries], weights=w_flat[entries], minlength=n_gaussians)
+    ids = np.ascontiguousarray(topk_ids.reshape(height * width, k))
+    w = np.ascontiguousarray(topk_weights.reshape(height * width, k), np.float32)
+    valid = (slot_maps >= 0).all(0).reshape(-1)  # M_v(p): the pixel has a feature at every level
+    factors = _pixel_factors(w, valid, config.q_min, config.tau_e, config.kappa, config.eps, config.use_quality)
+    strength = _strengths(ids, w, factors, n_gaussians)
     kept = np.flatnonzero(strength > config.tau_d).astype(np.int32)
     if config.mass_gate is not None:  # the fewest, strongest Gaussians holding mass_gate of the view's d
         ranked = kept[np.argsort(-strength[kept], kind="stable")]
         cumulative = np.cumsum(strength[ranked])
         count = int(np.searchsorted(cumulative, config.mass_gate * cumulative[-1])) + 1 if len(ranked) else 0
         kept = np.sort(ranked[:count]).astype(np.int32)
-    kept_of = np.full(n_gaussians, -1, np.int64)
-    kept_of[kept] = np.arange(len(kept))
-    entries = entries[kept_of[ids[entries]] >= 0]
-    order = entries[_stable_group(kept_of[ids[entries]], len(kept))]
+    kept_of = np.full(n_gaussians, -1, np.int32)
+    kept_of[kept] = np.arange(len(kept), dtype=np.int32)
     levels = slot_maps.shape[0]
     a = np.eye(levels)[-1] if config.level_weights is None else np.asarray(config.level_weights, np.float64)
     if len(a) != levels or a.min() < 0 or a.sum() <= 0:
         raise ValueError(f"level_weights must give {levels} non-negative weights, got {config.level_weights}")
     a = a / a.sum()
     kept_strength = strength[kept]
+    entry_offsets, pixels, entry_weights = _group_entries(ids, w, factors, kept_of, len(kept))
     offsets, slots, weights = _mixtures(
-        order, k, w_flat, kept_of[ids], len(kept), slot_maps.reshape(levels, -1), a, kept_strength
-    )  # fmt: skip
+        entry_offsets, pixels, entry_weights, slot_maps.reshape(levels, -1), a, kept_strength
+    )
     return ViewObservations(kept, kept_strength.astype(np.float32), offsets, slots, weights)

@@ -7,11 +7,18 @@ frames sent / aggregated / dropped, the sustained aggregation rate, and per node
 mean latency (acquisition stamp to end of handling, queueing included) and mean busy time per
 message. Then, on the final map, ``--queries`` ground-station queries over the real ZeroMQ link:
 relevance only (every Gaussian scored, 3D instances) and with the heatmap of one view.
+
+``--json FILE`` writes ``frames_sent``, ``frames_aggregated``, ``frames_dropped``,
+``views_per_s`` (aggregated per second of stream: frames_aggregated / (frames_sent / rate)),
+``seconds`` (until the final map), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms`` and
+``nodes.<name>.{busy_ms, latency_ms, drops, handled}`` (means over the flight's heartbeats; the
+accumulator's latency_ms is the frame-to-store latency).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import tempfile
 import time
@@ -32,6 +39,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"))
     parser.add_argument("--port", type=int, default=5610)
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
+    parser.add_argument("--json", type=Path, help="also write the figures here (keys: see the module docstring)")
     parser.set_defaults(run=run)
 
 
@@ -90,22 +98,39 @@ def run(args: argparse.Namespace) -> int:
             record = latest_map(run_dir / "map")
         seconds = time.monotonic() - start
         last = {name: values[-1] for name, values in samples.items()}
-        sent = int(last.get("ingest", {}).get("published", 0))
+        sent = int(last.get("ingest", {}).get("handled", 0))  # frames (published also counts EndOfStream)
+        aggregated = int(record["views"])
+        views_per_s = aggregated / (sent / args.rate) if sent else 0.0
+        figures: dict = {
+            "frames_sent": sent,
+            "frames_aggregated": aggregated,
+            "frames_dropped": sent - aggregated,
+            "views_per_s": round(views_per_s, 3),
+            "seconds": round(seconds, 1),
+            "nodes": {},
+        }
         print(
-            f"graph on {scene.name}: {sent} frames sent at {args.rate:g}/s, {record['views']} aggregated, "
-            f"{sent - record['views']} dropped, final map version {record['version']} after {seconds:.0f} s"
+            f"graph on {scene.name}: {sent} frames sent at {args.rate:g}/s, {aggregated} aggregated, "
+            f"{sent - aggregated} dropped, final map version {record['version']} after {seconds:.0f} s"
         )
-        print(f"  sustained aggregation rate {record['views'] / seconds:.2f} views/s")
+        print(f"  sustained aggregation rate {views_per_s:.2f} views/s (aggregated per second of stream)")
         for name in ("ingest", "region_encoder", "accumulator", "refiner", "query_server"):
             values = [v for v in samples.get(name, []) if v.get("handled", 0)]
             if not values:
                 continue
             rate = max(v.get("rate_hz", 0.0) for v in values)
-            latency = np.mean([v.get("latency_ms", 0.0) for v in values])
-            busy = np.mean([v.get("busy_ms", 0.0) for v in values])
+            latency = float(np.mean([v.get("latency_ms", 0.0) for v in values]))
+            busy = float(np.mean([v.get("busy_ms", 0.0) for v in values]))
             drops = int(values[-1].get("dropped", 0)) + int(values[-1].get("gaps", 0))
+            handled = int(values[-1]["handled"])
+            figures["nodes"][name] = {
+                "busy_ms": round(busy, 1),
+                "latency_ms": round(latency, 1),
+                "drops": drops,
+                "handled": handled,
+            }
             print(
-                f"  {name:15s} handled {values[-1]['handled']:4d}  peak rate {rate:5.2f} Hz  mean latency "
+                f"  {name:15s} handled {handled:4d}  peak rate {rate:5.2f} Hz  mean latency "
                 f"{latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}"
             )
         labels, queries = load_queries(scene)
@@ -130,6 +155,12 @@ def run(args: argparse.Namespace) -> int:
                 if reply.status != "ok":
                     raise RuntimeError(f"query {text!r}: {reply.status}: {reply.message}")
             print(f"  query {kind:9s} (round trip over the ground link) {_percentiles(times)}")
+            if times:
+                figures[f"query_{kind}_p95_ms"] = round(float(np.percentile(1000 * np.asarray(times), 95)), 1)
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(figures, indent=1))
+            print(f"  figures -> {args.json}")
     finally:
         client.close()
         supervisor.request_stop(0)

@@ -16,12 +16,13 @@ SHIPPED = ("olsplat-cnn64", "olsplat-vit48")
 DEFAULT_WEIGHTS = (0.6, 0.4)  # the paper's lambda_2D = 0.6 for the first encoder
 
 
-def shipped_encoder(name: str) -> OnnxEncoder:
+def shipped_encoder(name: str, threads: int = 0) -> OnnxEncoder:
+    """A shipped encoder; ``threads``: onnxruntime's intra-op threads (0 = one per core)."""
     if name not in SHIPPED:
         raise ValueError(f"no shipped encoder {name!r}; shipped: {', '.join(SHIPPED)}")
-    return OnnxEncoder(ASSETS / name)
+    return OnnxEncoder(ASSETS / name, threads)
 
 
-def default_encoder(weights: tuple[float, ...] = DEFAULT_WEIGHTS) -> FusedEncoder:
+def default_encoder(weights: tuple[float, ...] = DEFAULT_WEIGHTS, threads: int = 0) -> FusedEncoder:
     """Both shipped encoders fused with lambda_2D = weights[0]."""
-    return FusedEncoder([shipped_encoder(n) for n in SHIPPED], list(weights))
+    return FusedEncoder([shipped_encoder(n, threads) for n in SHIPPED], list(weights))

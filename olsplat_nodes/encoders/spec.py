@@ -16,18 +16,23 @@ def encoder_from_spec(
     spec: str = "shipped",
     weights: str | Sequence[float] | None = None,
     fusion: Literal["concat", "sum"] = "concat",
+    threads: int = 0,
 ):
     """'shipped' -> both shipped encoders fused (lambda_2D = 0.6); else comma-separated shipped
     names or folders made by ``olsplat export-clip``, fused with ``weights`` (lambda_2D per
-    encoder, as numbers or as the command line's "0.6,0.4") when several."""
+    encoder, as numbers or as the command line's "0.6,0.4") when several. ``threads``:
+    onnxruntime's intra-op threads per encoder (0 = one per core; a node sharing the CPU with
+    others wants 1)."""
     try:
         parsed = [float(w) for w in (weights.split(",") if isinstance(weights, str) else weights)] if weights else None
     except ValueError:
         raise OlsplatInputError(f"fusion weights must be numbers such as 0.6,0.4, got {weights!r}") from None
     try:
         if spec == "shipped":
-            return default_encoder(tuple(parsed) if parsed else DEFAULT_WEIGHTS)
-        members = [shipped_encoder(p) if p in SHIPPED else OnnxEncoder(Path(p)) for p in spec.split(",")]
+            return default_encoder(tuple(parsed) if parsed else DEFAULT_WEIGHTS, threads)
+        members = [
+            shipped_encoder(p, threads) if p in SHIPPED else OnnxEncoder(Path(p), threads) for p in spec.split(",")
+        ]
         return FusedEncoder(members, parsed, fusion) if len(members) > 1 or parsed else members[0]
     except ValueError as exc:
         raise OlsplatInputError(str(exc)) from None

@@ -43,6 +43,7 @@ class AccumulatorNode(Node):
         topic_regions: str = "regions"
         topic_observations: str = "observations"
         hwm: int = 4
+        threads: int = 1  # numba threads of the rasterizer and observations (0 = one per core)
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -60,6 +61,7 @@ class AccumulatorNode(Node):
         from ..scene import read_ply
 
         p = self.params
+        self.limit_threads(p.threads)
         self.method = method_params_of(p).resolve()
         self.gaussians = read_ply(p.map)
         self.manifest = claim_store(p.store, self.method)
@@ -102,6 +104,12 @@ class AccumulatorNode(Node):
                 camera = camera_of(message)
                 label_maps, bank = split_bank(message)
                 image = split_image(message)
+                weights = self.method.aggregation.level_weights
+                if weights is not None and len(weights) != len(label_maps):
+                    raise ValueError(
+                        f"{len(label_maps)} region levels, but level_weights has {len(weights)} weights "
+                        "(set region_encoder.level_counts to as many levels)"
+                    )
             except ValueError as exc:
                 self.stats.count("bad_messages")
                 log.warning("view %s (seq %d) dropped: %s", message.name, message.seq, exc)

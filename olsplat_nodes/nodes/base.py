@@ -113,6 +113,16 @@ class Node:
         publisher.send(topic, self.seqs.stamp(message))
         self.stats.count("published")
 
+    def limit_threads(self, threads: int) -> None:
+        """Run this node's numba kernels on ``threads`` worker threads (0 = one per core). The
+        graph's processes share a small CPU: several pools of one thread per core each would
+        only fight over it. numba's setting is per calling thread, so each node of a composed
+        launch keeps its own."""
+        if threads > 0:
+            import numba
+
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
+
     def unexpected(self, message, topic: str) -> None:
         """A well-formed message of a type this input does not take: counted, logged, dropped."""
         self.stats.count("bad_messages")

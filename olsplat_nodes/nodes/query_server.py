@@ -51,11 +51,13 @@ class QueryServerNode(Node):
         server_secret: str = ""  # CURVE: this server's secret key file ("" = no encryption)
         allow_dir: str = ""  # CURVE: folder of allowed client public keys
         max_text_chars: int = 200
+        threads: int = 2  # numba threads of heatmap rendering and clustering (0 = one per core)
 
     def setup(self) -> None:
         from ..scene import read_ply  # heavy imports here and below: the launcher imports node classes
 
         p = self.params
+        self.limit_threads(p.threads)
         self.gaussians = read_ply(p.map)
         self.language_map: LanguageMap | None = None
         self.version = 0

@@ -46,6 +46,7 @@ class RefinerNode(Node):
         diagnostics: str = ""
         topic_observations: str = "observations"
         topic_map: str = "map"
+        threads: int = 1  # numba threads of the refinement (0 = one per core)
 
     def setup(self) -> None:
         from ..aggregate import ObservationStore, latest_map  # heavy imports here: the launcher imports node classes
@@ -57,6 +58,7 @@ class RefinerNode(Node):
             raise OlsplatInputError(
                 f"node {self.name!r}: need 0 < max_duty <= 1 and codebook 0 or 2..65534, got {p.max_duty}, {p.codebook}"
             )
+        self.limit_threads(p.threads)
         self.store = ObservationStore(p.store, len(read_ply(p.map)))
         self.map_dir = Path(p.map_dir)
         previous = latest_map(self.map_dir)

@@ -43,7 +43,10 @@ class RegionEncoderNode(Node):
     class Params:
         encoder: str = "shipped"  # encoder spec as in ``olsplat encode --encoders``
         encoder_weights: tuple[float, ...] = ()  # lambda_2D per encoder, e.g. [0.6, 0.4]; [] = the default
-        level_counts: tuple[int, ...] = (24, 80, 240)  # regions per level at 640x480, coarse to fine
+        # regions per level at 640x480, coarse to fine; the method aggregates the finest level
+        # only (unless accumulator.level_weights says otherwise), so only that one is made
+        level_counts: tuple[int, ...] = (240,)
+        threads: int = 1  # onnxruntime and OpenCV threads (0 = one per core)
         latest_wins: bool = True
         recent: int = 8  # results kept to answer re-sent frames
         frames_in: str = "ipc://{run_dir}/frames.sock"
@@ -59,7 +62,11 @@ class RegionEncoderNode(Node):
         from ..regions import RegionConfig
 
         p = self.params
-        self.encoder = encoder_from_spec(p.encoder, p.encoder_weights or None)
+        self.encoder = encoder_from_spec(p.encoder, p.encoder_weights or None, threads=p.threads)
+        if p.threads > 0:
+            import cv2
+
+            cv2.setNumThreads(p.threads)
         try:
             self.region_config = RegionConfig(level_counts=p.level_counts)
         except ValueError as exc:

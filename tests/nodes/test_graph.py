@@ -156,3 +156,30 @@ def test_a_recorded_session_replays_through_the_graph_composed_in_one_process(ti
     assert manifest["method"]["name"] == "outlangsplat" and manifest["encoder"] == record["encoder"]
     assert manifest["method"]["aggregation"]["tau_d"] == 0.3 and manifest["method"]["aggregation"]["beta"] == [1, 2]
     assert read_manifest(run_dir / "store").method.aggregation.tau_d == 0.3
+
+
+@pytest.mark.timeout(600)
+def test_the_streamed_map_equals_the_offline_map(tiny, tmp_path):
+    """The graph (regions of the finest level only, one thread per node, passes as views arrive)
+    and ``olsplat aggregate`` (every level cached, one pass at the end) give the same map for the
+    same views, to the bit."""
+    import shutil
+
+    import numpy as np
+
+    from olsplat_nodes.aggregate import LanguageMap
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.method import named_method
+    from olsplat_nodes.pipeline import Scene, aggregate_scene
+
+    scene, _ = tiny
+    run_dir = tmp_path / "run"
+    assert Supervisor(launch_tiny(scene, run_dir, free_port(), "launch.compose=true")).run() == 0
+    streamed = LanguageMap.load(latest_map(run_dir / "map")["path"])
+    copy = tmp_path / "scene"
+    shutil.copytree(scene, copy)
+    aggregate_scene(Scene.open(copy), named_method("outlangsplat"), encoder_from_spec(), tmp_path / "offline")
+    offline = LanguageMap.load(tmp_path / "offline" / "language_map.npz")
+    assert streamed.encoder == offline.encoder
+    assert np.array_equal(streamed.observed, offline.observed) and streamed.observed.sum() > 1000
+    np.testing.assert_array_equal(streamed.features, offline.features)

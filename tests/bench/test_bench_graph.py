@@ -1,0 +1,35 @@
+"""``olsplat bench graph --json`` on the tiny flight: the real graph over ZeroMQ, and every key
+the issue names in the JSON (the figures are not asserted against targets: the machines are
+shared and noisy; only what must hold whatever the load)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from olsplat_nodes.cli import main
+
+from ..helpers import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.timeout(600)
+def test_bench_graph_writes_the_documented_figures(tiny, tmp_path, capsys):
+    scene, _ = tiny
+    out = tmp_path / "graph.json"
+    args = ["bench", "graph", "--scene", str(scene), "--rate", "4", "--queries", "3", "--heatmap-queries", "2"]
+    args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port()), "--json", str(out)]
+    assert main(args) == 0
+    figures = json.loads(out.read_text())
+    assert figures["frames_sent"] == 12  # the tiny flight, every frame sent once (latest-wins)
+    assert 0 < figures["frames_aggregated"] <= 12
+    assert figures["frames_dropped"] == 12 - figures["frames_aggregated"]
+    assert figures["views_per_s"] == pytest.approx(4 * figures["frames_aggregated"] / 12, abs=1e-3)
+    assert figures["query_relevance_p95_ms"] > 0 and figures["query_heatmap_p95_ms"] > 0
+    for node in ("region_encoder", "accumulator"):
+        assert set(figures["nodes"][node]) == {"busy_ms", "latency_ms", "drops", "handled"}
+        assert figures["nodes"][node]["busy_ms"] > 0
+    assert f"{figures['frames_sent']} frames sent at 4/s" in capsys.readouterr().out
