@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import aggregate, compression, encode, graph, query, raster, regions, robustness, structure
+from . import aggregate, compression, encode, frame, graph, query, raster, regions, robustness, structure
 
 
 def add_parser(subparsers) -> None:
@@ -12,6 +12,7 @@ def add_parser(subparsers) -> None:
     regions.add_parser(targets)
     encode.add_parser(targets)
     aggregate.add_parser(targets)
+    frame.add_parser(targets)
     query.add_parser(targets)
     graph.add_parser(targets)
     compression.add_parser(targets)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import re
 import shutil
 
+import pytest
+
 from olsplat_nodes.cli import main
 
 
@@ -108,3 +110,14 @@ def test_structure_benchmark_runs(tiny, tmp_path, capsys):
         r"MinkUNet \(random weights\) \d+\.\d s \(96 dims\)", out
     ), out
     assert re.search(r"per view: \d+\.\d+ s", out)
+
+
+def test_frame_benchmark_prints_every_stage(tiny, tmp_path, capsys):
+    import json
+
+    assert main(["bench", "frame", "--scene", str(tiny[0]), "--views", "2", "--json", str(tmp_path / "f.json")]) == 0
+    out = capsys.readouterr().out
+    for stage in ("regions", "features", "rasterize", "observe", "store", "photo", "total"):
+        assert re.search(rf"{stage}\s+\d+\.\d+ s", out), out
+    figures = json.loads((tmp_path / "f.json").read_text())
+    assert figures["total"] == pytest.approx(sum(v for k, v in figures.items() if k != "total"), abs=1e-3)
