@@ -178,6 +178,25 @@ class NodeThread:
 # test-owned sockets
 
 
+def query_server(scene: Path, sockdir: Path, map_dir: Path, views: Path, **params: Any):
+    """A query server over ``scene``'s map with its sockets under ``sockdir`` (query.sock,
+    diagnostics.sock, map.sock); ``params`` override any other parameter."""
+    from olsplat_nodes.nodes.query_server import QueryServerNode
+
+    return QueryServerNode(
+        "query_server",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "map_dir": str(map_dir),
+            "views": str(views),
+            "query_endpoint": f"ipc://{sockdir}/query.sock",
+            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
+            "map_in": f"ipc://{sockdir}/map.sock",
+            **params,
+        },
+    )
+
+
 def raw_socket(ctx, kind: int, endpoint: str, bind: bool, hwm: int = 1000) -> zmq.Socket:
     sock = ctx.socket(kind)
     sock.linger = 0

@@ -43,6 +43,7 @@ from .conftest import (
     bad_variants,
     image_frame,
     oversized,
+    query_server,
     raw_socket,
     send,
     send_msg,
@@ -411,22 +412,10 @@ def test_query_server_answers_bad_requests_counts_bad_input_on_every_socket_and_
 ):
     import shutil
 
-    from olsplat_nodes.nodes.query_server import QueryServerNode
-
     scene, _ = tiny
     query = f"ipc://{sockdir}/query.sock"
     maps = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/map.sock", bind=True)
-    node = QueryServerNode(
-        "query_server",
-        {
-            "map": str(scene / "map" / "point_cloud.ply"),
-            "map_dir": str(tmp_path / "map"),
-            "views": str(tiny_run / "views"),
-            "query_endpoint": query,
-            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
-            "map_in": f"ipc://{sockdir}/map.sock",
-        },
-    )
+    node = query_server(scene, sockdir, tmp_path / "map", tiny_run / "views")
     dealer = heartbeat = None
     try:
         with NodeThread(node) as running:

@@ -13,11 +13,10 @@ import numpy as np
 import pytest
 
 from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest, decode, encode, load_schema
-from olsplat_nodes.nodes.query_server import QueryServerNode
 from olsplat_nodes.transport import QueryClient
 from tests.helpers import every, wait_for
 
-from .conftest import ENCODE_VIEW, NodeThread, raw_socket, send_msg
+from .conftest import ENCODE_VIEW, NodeThread, query_server, raw_socket, send_msg
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -28,17 +27,7 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
     scene, _ = tiny
     endpoint = f"ipc://{sockdir}/query.sock"
     maps = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/map.sock", bind=True)
-    node = QueryServerNode(
-        "query_server",
-        {
-            "map": str(scene / "map" / "point_cloud.ply"),
-            "map_dir": str(tmp_path / "map"),
-            "views": str(tmp_path / "views"),
-            "query_endpoint": endpoint,
-            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
-            "map_in": f"ipc://{sockdir}/map.sock",
-        },
-    )
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views")
     try:
         with NodeThread(node) as running, QueryClient(ctx, endpoint, timeout_s=10.0) as client:
             status = client.request(StatusRequest(request_id="s1"))  # also waits for the node to be up
@@ -116,17 +105,7 @@ def test_reply_instances_on_the_wire_are_the_documented_records(ctx, sockdir, ti
     shutil.copytree(tiny_run / "views", tmp_path / "views")
     shutil.copytree(tiny_run / "map", tmp_path / "map")  # a snapshot from the start: loaded at once
     endpoint = f"ipc://{sockdir}/query.sock"
-    node = QueryServerNode(
-        "query_server",
-        {
-            "map": str(scene / "map" / "point_cloud.ply"),
-            "map_dir": str(tmp_path / "map"),
-            "views": str(tmp_path / "views"),
-            "query_endpoint": endpoint,
-            "diagnostics_bind": f"ipc://{sockdir}/diagnostics.sock",
-            "map_in": f"ipc://{sockdir}/map.sock",
-        },
-    )
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views")
     dealer = raw_socket(ctx, zmq.DEALER, endpoint, bind=False)  # raw frames: what any client receives
     try:
         with NodeThread(node) as running:
