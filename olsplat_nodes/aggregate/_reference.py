@@ -58,3 +58,22 @@ def refine_dense(features, strength, config: AggregationConfig):
                 if after / before < config.min_retained_views:
                     F[i] = F0[i]
     return F
+
+
+def streaming_cosine_reference(owner, view, strength, features, n):
+    """VALA's streaming update in plain numpy, view by view: (F [n, D], count [n]). A new
+    observation enters the running mean with weight d (1 + cos(f, F)) / 2, the first with d."""
+    total = np.zeros((n, features.shape[1]), np.float64)
+    weight = np.zeros(n, np.float64)
+    order = np.argsort(view, kind="stable")
+    owner, view, strength, features = owner[order], view[order], strength[order], features[order].astype(np.float64)
+    for v in np.unique(view):
+        here = view == v
+        g, f, d = owner[here], features[here], strength[here]
+        current = total[g] / np.maximum(weight[g], 1e-12)[:, None]
+        norm = np.linalg.norm(f, axis=1) * np.linalg.norm(current, axis=1)
+        cos = np.where(norm > 0, (f * current).sum(1) / np.maximum(norm, 1e-12), 1.0)
+        w = d * np.where(weight[g] > 0, (1.0 + cos) / 2.0, 1.0)
+        np.add.at(total, g, w[:, None] * f)
+        np.add.at(weight, g, w)
+    return (total / np.maximum(weight, 1e-12)[:, None]).astype(np.float32), np.bincount(owner, minlength=n)

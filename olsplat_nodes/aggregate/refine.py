@@ -1,35 +1,199 @@
 """Consistency-aware aggregation over views (paper eqs. initial_gaussian_feature and
-robust_feature_update), on a flat list of observations.
+robust_feature_update), Gaussian by Gaussian.
 
 An observation is (gaussian i, strength d_iv, feature f_iv). F0 is the d-weighted mean of a
 Gaussian's features; then, T times, each observation is re-weighted by rho = d exp(beta_t c)
 with c its cosine to the current F, and F becomes the rho-weighted mean. Gaussians with no
 observation keep F = 0 and count 0.
+
+A Gaussian's result depends on its own observations only, so the kernels work one Gaussian at
+a time on its few observations (one per view that saw it), in cache, and never build [O, D]
+temporaries: a refinement pass costs O(observations of the refined Gaussians x D x T). The
+features stay in the store's mixture form, f = sum_e w_e bank[slot_e], and are mixed inside the
+kernel. ``_reference.py`` holds the dense equations (``refine_dense``) and the numpy streaming
+update (``streaming_cosine_reference``) these kernels are tested against.
 """
 
 from __future__ import annotations
 
-from itertools import pairwise
+from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .config import AggregationConfig
 
 
+@dataclass(frozen=True)
+class MixedObservations:
+    """Observations whose features are mixtures of bank rows (the store's form).
+
+    owner [O] int64 Gaussian index (0..n-1), in arrival order (view by view); strength [O]
+    float32 d_iv; observation o's feature is sum over e in entry_offsets[o]:entry_offsets[o+1]
+    of weights[e] * bank[slots[e]], with entry_offsets [O+1] int64, slots [E] int64,
+    weights [E] float32 and bank [S, D] float32.
+    """
+
+    owner: np.ndarray
+    strength: np.ndarray
+    entry_offsets: np.ndarray
+    slots: np.ndarray
+    weights: np.ndarray
+    bank: np.ndarray
+
+    @staticmethod
+    def dense(owner: np.ndarray, strength: np.ndarray, features: np.ndarray) -> MixedObservations:
+        """Observations with one plain feature each: features [O, D]."""
+        count = len(owner)
+        return MixedObservations(
+            np.ascontiguousarray(owner, np.int64),
+            np.ascontiguousarray(strength, np.float32),
+            np.arange(count + 1, dtype=np.int64),
+            np.arange(count, dtype=np.int64),
+            np.ones(count, np.float32),
+            np.ascontiguousarray(features, np.float32).reshape(count, -1),
+        )
+
+    def __len__(self) -> int:
+        return len(self.owner)
+
+
 @njit(cache=True)
-def _weighted_mean(owner: np.ndarray, weights: np.ndarray, features: np.ndarray, n: int, eps: float) -> np.ndarray:
-    """[n, D] float64: per Gaussian, sum w f / (sum w + eps) over its observations."""
-    total = np.zeros((n, features.shape[1]), np.float64)
-    norm = np.zeros(n, np.float64)
+def _group_by_owner(owner, n):
+    """(first [n+1], order [O]): observations of Gaussian g are order[first[g]:first[g+1]], in
+    their original order (a stable counting sort)."""
+    first = np.zeros(n + 1, np.int64)
     for o in range(owner.shape[0]):
-        g, w = owner[o], weights[o]
-        norm[g] += w
-        for d in range(features.shape[1]):
-            total[g, d] += w * features[o, d]
+        first[owner[o] + 1] += 1
     for g in range(n):
-        total[g] /= norm[g] + eps
+        first[g + 1] += first[g]
+    fill = first[:-1].copy()
+    order = np.empty(owner.shape[0], np.int64)
+    for o in range(owner.shape[0]):
+        order[fill[owner[o]]] = o
+        fill[owner[o]] += 1
+    return first, order
+
+
+@njit(inline="always", fastmath=True)
+def _dot(a, b):
+    total = 0.0
+    for d in range(a.shape[0]):
+        total += a[d] * b[d]
     return total
+
+
+@njit(inline="always")
+def _mix(features, norms, strength_out, strength, order, a, entry_offsets, slots, weights, bank):
+    """Fill features [k, D] float64 with the mixed features of observations order[a:a+k]."""
+    for j in range(features.shape[0]):
+        o = order[a + j]
+        strength_out[j] = strength[o]
+        features[j, :] = 0.0
+        for e in range(entry_offsets[o], entry_offsets[o + 1]):
+            w = weights[e]
+            row = bank[slots[e]]
+            for d in range(features.shape[1]):
+                features[j, d] += w * row[d]
+        norms[j] = np.sqrt(_dot(features[j], features[j]))
+
+
+@njit(inline="always")
+def _weighted_mean(features, w, eps, out):
+    out[:] = 0.0
+    total = 0.0
+    for j in range(features.shape[0]):
+        total += w[j]
+        for d in range(features.shape[1]):
+            out[d] += w[j] * features[j, d]
+    out /= total + eps
+
+
+@njit(inline="always")
+def _effective_views(w):
+    """Kish's effective number of views, (sum w)^2 / sum w^2."""
+    return np.sum(w) ** 2 / max(np.sum(w * w), 1e-300)
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def _consistency(first, order, strength, entry_offsets, slots, weights, bank, betas, eps, min_retained):
+    """[n, D] float32 F per Gaussian; betas [T] beta_t; min_retained <= 0 turns the F0 fallback off."""
+    n, dim = first.shape[0] - 1, bank.shape[1]
+    out = np.zeros((n, dim), np.float32)
+    for g in prange(n):
+        a, k = first[g], first[g + 1] - first[g]
+        if k == 0:
+            continue
+        features, norms = np.empty((k, dim)), np.empty(k)
+        d, rho = np.empty(k), np.empty(k)
+        _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
+        F0 = np.empty(dim)
+        _weighted_mean(features, d, eps, F0)
+        F = F0.copy()
+        rho[:] = d
+        for beta in betas:
+            norm_F = np.sqrt(_dot(F, F))
+            for j in range(k):
+                cosine = _dot(features[j], F) / (norms[j] * norm_F + eps)
+                rho[j] = d[j] * np.exp(beta * cosine)
+            _weighted_mean(features, rho, eps, F)
+        if min_retained > 0 and betas.shape[0] > 0:
+            before = _effective_views(d)
+            retained = _effective_views(rho) / max(before, 1e-300) if before > 0 else 1.0
+            if retained < min_retained:
+                F[:] = F0
+        out[g] = F
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _streaming(first, order, strength, entry_offsets, slots, weights, bank):
+    """[n, D] float32: VALA's streaming update per Gaussian, observations in arrival order."""
+    n, dim = first.shape[0] - 1, bank.shape[1]
+    out = np.zeros((n, dim), np.float32)
+    for g in prange(n):
+        a, k = first[g], first[g + 1] - first[g]
+        if k == 0:
+            continue
+        features, norms = np.empty((k, dim)), np.empty(k)
+        d = np.empty(k)
+        _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
+        total, weight = np.zeros(dim), 0.0
+        for j in range(k):
+            scale = 1.0 / max(weight, 1e-12)  # the current F is total * scale
+            norm = norms[j] * np.sqrt(_dot(total, total)) * scale
+            cosine = _dot(features[j], total) * scale / max(norm, 1e-12) if norm > 0 else 1.0
+            w = d[j] * ((1.0 + cosine) / 2.0 if weight > 0 else 1.0)
+            for dd in range(dim):
+                total[dd] += w * features[j, dd]
+            weight += w
+        out[g] = total / max(weight, 1e-12)
+    return out
+
+
+def refine_mixed(
+    observations: MixedObservations, n: int, config: AggregationConfig = AggregationConfig()
+) -> tuple[np.ndarray, np.ndarray]:
+    """(F [n, D] float32, observation count [n] int64) combining each Gaussian's observations
+    as ``config.combine`` says: the consistency update with config.iterations iterations, or
+    the streaming cosine update in arrival order."""
+    first, order = _group_by_owner(observations.owner, n)
+    arrays = (
+        first,
+        order,
+        np.ascontiguousarray(observations.strength, np.float32),
+        np.ascontiguousarray(observations.entry_offsets, np.int64),
+        np.ascontiguousarray(observations.slots, np.int64),
+        np.ascontiguousarray(observations.weights, np.float32),
+        np.ascontiguousarray(observations.bank, np.float32),
+    )
+    if config.combine == "streaming_cosine":
+        F = _streaming(*arrays)
+    else:
+        betas = np.array([config.beta_at(t) for t in range(1, config.iterations + 1)], np.float64)
+        min_retained = -1.0 if config.min_retained_views is None else float(config.min_retained_views)
+        F = _consistency(*arrays, betas, float(config.eps), min_retained)
+    return F, np.diff(first)
 
 
 def refine_observations(
@@ -39,34 +203,9 @@ def refine_observations(
     n: int,
     config: AggregationConfig = AggregationConfig(),
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(F [n, D] float32, observation count [n] int) after config.iterations iterations."""
-    owner = np.ascontiguousarray(owner, np.int64)
-    features = np.ascontiguousarray(features, np.float64)
-    strength = np.ascontiguousarray(strength, np.float64)
-    F0 = F = _weighted_mean(owner, strength, features, n, config.eps)
-    feature_norm = np.linalg.norm(features, axis=1)
-    rho = strength
-    for t in range(1, config.iterations + 1):
-        current = F[owner]
-        cos = (features * current).sum(1) / (feature_norm * np.linalg.norm(current, axis=1) + config.eps)
-        rho = strength * np.exp(config.beta_at(t) * cos)
-        F = _weighted_mean(owner, rho, features, n, config.eps)
-    if config.min_retained_views is not None and config.iterations > 0:
-        F = np.where(_retained_views(owner, strength, rho, n)[:, None] < config.min_retained_views, F0, F)
-    return F.astype(np.float32), np.bincount(owner, minlength=n)
-
-
-def _retained_views(owner: np.ndarray, strength: np.ndarray, rho: np.ndarray, n: int) -> np.ndarray:
-    """[n]: effective number of views under the final weights rho over that under d (Kish,
-    (sum w)^2 / sum w^2); 1 where unobserved. ~1 when the consistency weights only trim
-    outliers, small when they keep one of several disagreeing groups of views."""
-
-    def effective(w):
-        total, square = np.bincount(owner, w, n), np.bincount(owner, w * w, n)
-        return total**2 / np.maximum(square, 1e-300)
-
-    before = effective(strength)
-    return np.where(before > 0, effective(rho) / np.maximum(before, 1e-300), 1.0)
+    """(F [n, D] float32, observation count [n] int) after config.iterations iterations (the
+    consistency update; observations with plain features)."""
+    return refine_mixed(MixedObservations.dense(owner, strength, features), n, config)
 
 
 def streaming_cosine(
@@ -79,18 +218,6 @@ def streaming_cosine(
     """VALA-style streaming update, view by view in arrival order: a new observation enters the
     running weighted mean with weight d * (1 + cos(f, F)) / 2 (its agreement with the current
     feature; the first observation of a Gaussian enters with weight d). Returns (F, count)."""
-    total = np.zeros((n, features.shape[1]), np.float64)
-    weight = np.zeros(n, np.float64)
     order = np.argsort(view, kind="stable")
-    owner, view, strength, features = owner[order], view[order], strength[order], features[order].astype(np.float64)
-    bounds = np.flatnonzero(np.r_[True, view[1:] != view[:-1], True])
-    for start, stop in pairwise(bounds):
-        g, f, d = owner[start:stop], features[start:stop], strength[start:stop]
-        current = total[g] / np.maximum(weight[g], 1e-12)[:, None]
-        norm = np.linalg.norm(f, axis=1) * np.linalg.norm(current, axis=1)
-        cos = np.where(norm > 0, (f * current).sum(1) / np.maximum(norm, 1e-12), 1.0)
-        w = d * np.where(weight[g] > 0, (1.0 + cos) / 2.0, 1.0)
-        np.add.at(total, g, w[:, None] * f)
-        np.add.at(weight, g, w)
-    F = total / np.maximum(weight, 1e-12)[:, None]
-    return F.astype(np.float32), np.bincount(owner, minlength=n)
+    observations = MixedObservations.dense(owner[order], strength[order], features[order])
+    return refine_mixed(observations, n, AggregationConfig(combine="streaming_cosine"))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,22 +23,27 @@ from numba import njit
 
 from .config import AggregationConfig
 from .observe import ViewObservations
-from .refine import refine_observations, streaming_cosine
+from .refine import MixedObservations, refine_mixed
 
 _ARRAYS = ("gaussians", "strength", "offsets", "slots", "weights", "bank")
 
 
 @njit(cache=True)
-def _mix_rows(bank, slots, weights, offsets, rows):
-    """[len(rows), D] float32: for each chosen row j, sum_e weights[e] * bank[slots[e]] over its entries."""
-    out = np.zeros((rows.shape[0], bank.shape[1]), np.float32)
+def _take_entries(offsets, slots, weights, rows, slot_base):
+    """The mixture entries of the chosen rows: (entry_offsets [len(rows)+1], slots + slot_base,
+    weights), so that they index a bank stacked over views."""
+    counts = np.empty(rows.shape[0] + 1, np.int64)
+    counts[0] = 0
     for i in range(rows.shape[0]):
-        for e in range(offsets[rows[i]], offsets[rows[i] + 1]):
-            w = weights[e]
-            row = bank[slots[e]]
-            for d in range(bank.shape[1]):
-                out[i, d] += w * row[d]
-    return out
+        counts[i + 1] = counts[i] + offsets[rows[i] + 1] - offsets[rows[i]]
+    out_slots = np.empty(counts[-1], np.int64)
+    out_weights = np.empty(counts[-1], np.float32)
+    for i in range(rows.shape[0]):
+        e0 = offsets[rows[i]]
+        for j in range(counts[i + 1] - counts[i]):
+            out_slots[counts[i] + j] = slots[e0 + j] + slot_base
+            out_weights[counts[i] + j] = weights[e0 + j]
+    return counts, out_slots, out_weights
 
 
 class ObservationStore:
@@ -87,34 +93,45 @@ class ObservationStore:
         self.touched[observations.gaussians] = True
         return index
 
-    def load(self, index: int) -> tuple[ViewObservations, np.ndarray]:
-        folder = self.segments()[index]
+    def load(self, index: int, segments: list[Path] | None = None) -> tuple[ViewObservations, np.ndarray]:
+        """View ``index``'s observations and bank, memory-mapped; ``segments`` is a listing of
+        ``segments()`` to reuse (a pass over all views lists the folder once)."""
+        folder = (self.segments() if segments is None else segments)[index]
         a = {key: np.load(folder / f"{key}.npy", mmap_mode="r") for key in _ARRAYS}
         obs = ViewObservations(a["gaussians"], a["strength"], a["offsets"], a["slots"], a["weights"])
         return obs, a["bank"]
 
-    def gather(self, selected: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(owner, view, strength, dense features) of every observation of the selected Gaussians [N] bool."""
-        owners, views, strengths, features = [], [], [], []
-        for index in range(len(self.segments())):
-            obs, bank = self.load(index)
-            rows = np.flatnonzero(selected[obs.gaussians])
+    def gather(self, selected: np.ndarray, segments: list[Path] | None = None) -> MixedObservations:
+        """Every observation of the selected Gaussians [N] bool, view by view in store order, with
+        its features as mixtures of the views' banks stacked into one [S, D] float32 bank."""
+        segments = self.segments() if segments is None else segments
+        parts: list[tuple] = []
+        banks: list[np.ndarray] = []
+        slot_base = 0
+        for index in range(len(segments)):
+            obs, bank = self.load(index, segments)
+            rows = np.flatnonzero(selected[np.asarray(obs.gaussians)])
             if not len(rows):
                 continue
-            dense = _mix_rows(
-                np.asarray(bank, np.float32),
-                np.asarray(obs.slots),
-                np.asarray(obs.weights),
-                np.asarray(obs.offsets),
-                rows,
+            entries = _take_entries(
+                np.asarray(obs.offsets), np.asarray(obs.slots), np.asarray(obs.weights), rows, slot_base
             )
-            owners.append(np.asarray(obs.gaussians)[rows])
-            views.append(np.full(len(rows), index))
-            strengths.append(np.asarray(obs.strength)[rows])
-            features.append(dense)
-        if not owners:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 0), np.float32)
-        return np.concatenate(owners), np.concatenate(views), np.concatenate(strengths), np.concatenate(features)
+            parts.append((np.asarray(obs.gaussians)[rows], np.asarray(obs.strength)[rows], *entries))
+            banks.append(np.asarray(bank, np.float32))
+            slot_base += len(bank)
+        if not parts:
+            return MixedObservations.dense(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 0)))
+        entry_offsets = [parts[0][2]]
+        for part in parts[1:]:  # each part's offsets continue from the entries before it
+            entry_offsets.append(part[2][1:] + entry_offsets[-1][-1])
+        return MixedObservations(
+            np.concatenate([p[0] for p in parts]).astype(np.int64),
+            np.concatenate([p[1] for p in parts]),
+            np.concatenate(entry_offsets),
+            np.concatenate([p[3] for p in parts]),
+            np.concatenate([p[4] for p in parts]),
+            np.concatenate(banks),
+        )
 
     def names(self) -> list[str]:
         """The view names in store order (a node uses them to accept each view once)."""
@@ -125,14 +142,15 @@ class ObservationStore:
         than the writer learns of new views from the disk); returns the number of views."""
         segments = self.segments()
         for index in range(first, len(segments)):
-            self.touched[np.asarray(self.load(index)[0].gaussians)] = True
+            self.touched[np.asarray(self.load(index, segments)[0].gaussians)] = True
         return len(segments)
 
-    def observation_counts(self) -> np.ndarray:
+    def observation_counts(self, segments: list[Path] | None = None) -> np.ndarray:
         """[N] int64: in how many views each Gaussian has a kept observation."""
+        segments = self.segments() if segments is None else segments
         counts = np.zeros(self.n_gaussians, np.int64)
-        for index in range(len(self.segments())):
-            counts[np.asarray(self.load(index)[0].gaussians)] += 1  # a Gaussian appears once per view
+        for index in range(len(segments)):
+            counts[np.asarray(self.load(index, segments)[0].gaussians)] += 1  # a Gaussian appears once per view
         return counts
 
     def refine(
@@ -140,40 +158,39 @@ class ObservationStore:
         F: np.ndarray | None,
         config: AggregationConfig,
         only_touched: bool = True,
-        max_observations: int = 400_000,
+        max_observations: int = 4_000_000,
     ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
         rows of F. ``observed`` marks the Gaussians with at least one kept observation among
-        the recomputed ones. Gaussians are processed in index ranges holding at most
-        ``max_observations`` observations (~1 GB of working memory at D = 128), so memory does
-        not grow with the map or the flight."""
+        the recomputed ones. A pass costs the observations of the recomputed Gaussians (a
+        Gaussian is recomputed from all of its views) plus a scan of each view's id list.
+        Gaussians are processed in index ranges holding at most ``max_observations``
+        observations (~45 bytes each in mixture form), so memory does not grow with the map or
+        the flight; a Gaussian's result does not depend on the ranges."""
         selected = self.touched.copy() if (only_touched and F is not None) else np.ones(self.n_gaussians, bool)
+        segments = self.segments()
         observed = np.zeros(self.n_gaussians, bool)
         out = None if F is None else F.copy()
-        cumulative = np.cumsum(self.observation_counts() * selected)
+        cumulative = np.cumsum(self.observation_counts(segments) * selected)
         first = 0
         while first < self.n_gaussians:
             done_before = cumulative[first - 1] if first else 0
             stop = max(int(np.searchsorted(cumulative, done_before + max_observations, side="right")), first + 1)
+            lo, first = first, stop
             part = np.zeros(self.n_gaussians, bool)
-            part[first:stop] = selected[first:stop]
-            first = stop
+            part[lo:stop] = selected[lo:stop]
             if not part.any():
                 continue
-            owner, view, strength, features = self.gather(part)
-            if not len(owner):
+            observations = self.gather(part, segments)
+            if not len(observations):
                 continue
             if out is None:
-                out = np.zeros((self.n_gaussians, features.shape[1]), np.float32)
-            rows, local = np.unique(owner, return_inverse=True)  # work on this range's Gaussians only
-            local = local.reshape(-1)
-            if config.combine == "streaming_cosine":
-                refined, count = streaming_cosine(local, view, strength, features, len(rows))
-            else:
-                refined, count = refine_observations(local, strength, features, len(rows), config)
-            out[part] = 0.0  # recomputed; those with observations are set next
-            out[rows] = refined
-            observed[rows] = count > 0
+                out = np.zeros((self.n_gaussians, observations.bank.shape[1]), np.float32)
+            local = replace(observations, owner=observations.owner - lo)  # this range's Gaussians only
+            refined, count = refine_mixed(local, stop - lo, config)
+            here = part[lo:stop]
+            out[lo:stop][here] = refined[here]  # recomputed; unobserved ones get 0
+            observed[lo:stop] = here & (count > 0)
         self.touched[:] = False
         return out, observed

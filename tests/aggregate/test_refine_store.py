@@ -154,3 +154,46 @@ def test_streaming_cosine_update():
         np.zeros(2, int), np.array([0, 1]), np.array([1.0, 3.0]), np.array([[1.0, 0.0], [0.0, 1.0]]), 1
     )
     np.testing.assert_allclose(F[0], [1.0 / 2.5, 1.5 / 2.5])  # second view: weight 3 * (1 + 0) / 2
+
+
+def test_streaming_cosine_equals_the_numpy_reference():
+    from olsplat_nodes.aggregate._reference import streaming_cosine_reference
+    from olsplat_nodes.aggregate.refine import streaming_cosine
+
+    rng = np.random.default_rng(5)
+    n, views, dim = 50, 8, 6
+    seen = rng.random((n, views)) < 0.7  # at most one observation per Gaussian and view
+    owner, view = np.nonzero(seen)
+    shuffle = rng.permutation(len(owner))  # arrival order comes from `view`, not from the list order
+    owner, view = owner[shuffle], view[shuffle]
+    strength = rng.uniform(0.1, 1.0, len(owner))
+    features = rng.normal(size=(len(owner), dim))
+    features[::7] = 0.0  # zero features: the cosine falls back to 1
+    expected, expected_count = streaming_cosine_reference(owner, view, strength, features, n)
+    got, count = streaming_cosine(owner, view, strength, features, n)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(count, expected_count)
+
+
+def test_mixed_features_equal_their_dense_form(tmp_path):
+    """The store refines from the views' banks and mixture entries; the same observations with
+    their features mixed out beforehand give the same map."""
+    from olsplat_nodes.aggregate.refine import refine_mixed
+
+    n = 150
+    store = ObservationStore(tmp_path, n)
+    for name, obs, bank in _views(4, n):
+        store.append(name, obs, bank)
+    mixed = store.gather(np.ones(n, bool))
+    dense = np.stack(
+        [
+            (mixed.weights[a:b, None] * mixed.bank[mixed.slots[a:b]]).sum(0)
+            for a, b in zip(mixed.entry_offsets[:-1], mixed.entry_offsets[1:], strict=True)
+        ]
+    )
+    config = AggregationConfig()
+    got, count = refine_mixed(mixed, n, config)
+    expected, expected_count = refine_observations(mixed.owner, mixed.strength, dense, n, config)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(count, expected_count)
+    assert len(mixed.slots) > len(mixed)  # some observations do mix several regions
