@@ -47,3 +47,24 @@ def test_encode_scene(tiny, tmp_path, capsys):
     assert "no images/ folder" in capsys.readouterr().err
     assert main(["encode", "--scene", str(scene), "--levels", "9"]) == 1
     assert "--levels must be 1..6" in capsys.readouterr().err
+
+
+def test_the_feature_cache_is_keyed_by_the_region_settings(tiny, tmp_path):
+    """A cache made with other region settings (here `olsplat encode --levels 2`) is not
+    reused by the offline runs: they compute their own regions and replace it."""
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.pipeline import Scene
+    from olsplat_nodes.pipeline.scene_folder import view_features
+    from olsplat_nodes.regions import RegionConfig
+
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(tiny[0], scene_dir)
+    assert main(["encode", "--scene", str(scene_dir), "--limit", "1", "--levels", "2"]) == 0
+    cache = scene_dir / "cache" / "encode" / "frame_0000.npz"
+    assert np.load(cache)["label_maps"].shape[0] == 2
+    scene = Scene.open(scene_dir)
+    maps, bank = view_features(scene, scene.cameras[0], encoder_from_spec())
+    assert maps.shape[0] == len(RegionConfig().level_counts) == len(bank)
+    assert str(np.load(cache)["regions"]) == repr(RegionConfig())
+    again, _ = view_features(scene, scene.cameras[0], encoder_from_spec())  # now from the cache
+    np.testing.assert_array_equal(again, maps)

@@ -56,10 +56,11 @@ def encode_regions(
     return FeatureBank(features, encoder.name)
 
 
-def save_bank(path: Path, label_maps: np.ndarray, bank: FeatureBank | None) -> None:
+def save_bank(path: Path, label_maps: np.ndarray, bank: FeatureBank | None, regions: str) -> None:
     """One view's regions (and features) as the scene cache keeps them: ``label_maps`` [L, H, W]
-    int32, ``features_<l>`` [R_l, D] float16, ``encoder``; written to a temp file, then renamed."""
-    arrays: dict[str, Any] = {"label_maps": label_maps}
+    int32, ``features_<l>`` [R_l, D] float16, ``encoder``, ``regions`` (the region proposer's
+    settings, e.g. ``repr(RegionConfig)``); written to a temp file, then renamed."""
+    arrays: dict[str, Any] = {"label_maps": label_maps, "regions": np.array(regions)}
     if bank is not None:
         arrays.update({f"features_{i}": f.astype(np.float16) for i, f in enumerate(bank.features)})
         arrays["encoder"] = np.array(bank.encoder)
@@ -69,12 +70,15 @@ def save_bank(path: Path, label_maps: np.ndarray, bank: FeatureBank | None) -> N
     tmp.replace(path)
 
 
-def load_bank(path: Path, encoder_name: str) -> tuple[np.ndarray, list[np.ndarray]] | None:
-    """(label maps, float32 features per level) from a cache file made for ``encoder_name``, else None."""
+def load_bank(path: Path, encoder_name: str, regions: str) -> tuple[np.ndarray, list[np.ndarray]] | None:
+    """(label maps, float32 features per level) from a cache file made for ``encoder_name`` with
+    the region settings ``regions``, else None (the caller computes them again)."""
     if not path.exists():
         return None
     data = np.load(path)
     if "encoder" not in data or str(data["encoder"]) != encoder_name:
+        return None
+    if "regions" not in data or str(data["regions"]) != regions:
         return None
     maps = data["label_maps"]
     return maps, [data[f"features_{i}"].astype(np.float32) for i in range(len(maps))]

@@ -9,7 +9,8 @@ node keeps running, heartbeating and looking for it); its counters go out as ``s
 Two delivery modes (parameter ``lossless``):
 - lossless (default for replays): at most ``window`` frames are in flight; a frame counts as
   delivered when the accumulator acknowledges it (``ObservationsAdded`` with its name) and is
-  sent again when no acknowledgement came within ``ack_timeout_s``. Downstream nodes accept a
+  sent again when no acknowledgement came within ``ack_timeout_s`` (sooner while the graph is
+  starting, ``ack_timeout_start_s``). Downstream nodes accept a
   view once (by name), so "at least once" here gives "exactly once" in the map, also across a
   crash and restart of any node.
 - latest-wins (live cameras): frames go out at their pace; a slow consumer drops old frames
@@ -46,6 +47,11 @@ class IngestNode(Node):
         lossless: bool = True
         window: int = 2  # frames in flight without acknowledgement (lossless)
         ack_timeout_s: float = 20.0  # send a frame again when it was not acknowledged in time
+        # ... but until the first acknowledgement of this run, after this long, doubling up to
+        # ack_timeout_s: frames published before the graph's subscribers have connected are
+        # lost (ZeroMQ's late joiners), and waiting the full timeout for them was most of the
+        # start-up time. A frame sent twice is answered from the region encoder's cache.
+        ack_timeout_start_s: float = 2.0
         frames_out: str = "ipc://{run_dir}/frames.sock"
         acks_in: str = "ipc://{run_dir}/observations.sock"
         map_in: str = "ipc://{run_dir}/map.sock"
@@ -65,7 +71,9 @@ class IngestNode(Node):
         self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
         self.acked = self._load_acknowledged()
         self.final_map = False
-        self.pending: OrderedDict[str, tuple[object, float]] = OrderedDict()  # name -> (frame, last send time)
+        # name -> (frame, last send time, sends so far)
+        self.pending: OrderedDict[str, tuple[object, float, int]] = OrderedDict()
+        self.heard_back = False  # an acknowledgement came: the graph is connected
         self.names: list[str] = []
         self.phase = "streaming"  # -> "delivering" (source done, frames in flight) -> "ending" (EndOfStream sent)
         self.last_eos = 0.0
@@ -115,7 +123,7 @@ class IngestNode(Node):
                 self._service(0.1)
             if frame.name in self.acked:
                 return  # a restarted ingest: this view is already in the map
-            self.pending[frame.name] = (frame, time.monotonic())
+            self.pending[frame.name] = (frame, time.monotonic(), 1)
         self._send(frame)
         self._service(0)
 
@@ -141,6 +149,7 @@ class IngestNode(Node):
         """Take in acknowledgements and map announcements; resend overdue frames; heartbeat."""
         p = self.params
         for _, message in self.acks.drain(int(timeout_s * 1000)):
+            self.heard_back |= isinstance(message, ObservationsAdded)
             if isinstance(message, ObservationsAdded) and message.name not in self.acked:
                 self.acked.add(message.name)
                 self.pending.pop(message.name, None)
@@ -153,11 +162,17 @@ class IngestNode(Node):
                 # (EndOfStream: forwarded by the accumulator)
                 self.unexpected(message, " / ".join(self.acks.topics))
         now = time.monotonic()
-        for name, (frame, sent) in list(self.pending.items()):
-            if now - sent > p.ack_timeout_s:
-                log.warning("frame %s not acknowledged in %.0f s: sending it again", name, p.ack_timeout_s)
+        for name, (frame, sent, sends) in list(self.pending.items()):
+            timeout = p.ack_timeout_s
+            if not self.heard_back:
+                timeout = min(timeout, p.ack_timeout_start_s * 2 ** (sends - 1))
+            if now - sent > timeout:
+                if self.heard_back:
+                    log.warning("frame %s not acknowledged in %.0f s: sending it again", name, timeout)
+                else:
+                    log.info("frame %s: no acknowledgement yet (graph starting?): sending it again", name)
                 self.stats.count("resent")
-                self.pending[name] = (frame, now)
+                self.pending[name] = (frame, now, sends + 1)
                 self._send(frame)
         self._beat()
 

@@ -46,6 +46,7 @@ class RegionEncoderNode(Node):
         # regions per level at 640x480, coarse to fine; the method aggregates the finest level
         # only (unless accumulator.level_weights says otherwise), so only that one is made
         level_counts: tuple[int, ...] = (240,)
+        region_scale: float = 1.0  # superpixels and merging on the image resized by this (RegionConfig.work_scale)
         threads: int = 1  # onnxruntime and OpenCV threads (0 = one per core)
         latest_wins: bool = True
         recent: int = 8  # results kept to answer re-sent frames
@@ -68,7 +69,7 @@ class RegionEncoderNode(Node):
 
             cv2.setNumThreads(p.threads)
         try:
-            self.region_config = RegionConfig(level_counts=p.level_counts)
+            self.region_config = RegionConfig(level_counts=p.level_counts, work_scale=p.region_scale)
         except ValueError as exc:
             raise OlsplatInputError(f"node {self.name!r}: {exc}") from exc
         self.sub = self.own(Subscriber(self.context, [p.frames_in], [p.topic_frames], hwm=p.hwm))

@@ -52,14 +52,16 @@ def view_features(
     scene: Scene, camera: Camera, encoder, region_config: RegionConfig | None = None
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """(label maps [L, H, W], bank per level) of one view, from the scene's cache when it holds
-    this encoder's features (``olsplat encode``), else computed and cached."""
+    this encoder's features for these region settings (``olsplat encode``), else computed and
+    cached."""
     cache = scene.folder / "cache" / "encode" / f"{Path(camera.name).stem}.npz"
-    cached = load_bank(cache, encoder.name)
+    region_config = region_config or RegionConfig()
+    cached = load_bank(cache, encoder.name, repr(region_config))
     if cached is not None:
         return cached
     image = scene.image(camera)
-    levels = propose_regions(image, region_config or RegionConfig())
+    levels = propose_regions(image, region_config)
     bank = encode_regions(image, levels, encoder)
-    save_bank(cache, levels.label_maps, bank)
+    save_bank(cache, levels.label_maps, bank, repr(region_config))
     # through float16 as the cache stores them: computed and cached runs give the same numbers
     return levels.label_maps, [f.astype(np.float16).astype(np.float32) for f in bank.features]

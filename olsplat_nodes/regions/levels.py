@@ -34,8 +34,17 @@ class RegionLevels:
 
 def relabel_contiguous(labels: np.ndarray) -> np.ndarray:
     """Map the ids of ``labels`` (any ints >= 0) onto 0..K-1, keeping their order; -1 stays -1."""
-    out = np.full(labels.shape, -1, np.int32)
     valid = labels >= 0
+    top = int(labels.max()) if labels.size else -1
+    if top < 0:
+        return np.full(labels.shape, -1, np.int32)
+    if top <= 4 * labels.size:  # ids as dense as a label map's: a lookup table, no sort
+        present = np.zeros(top + 2, bool)
+        present[labels[valid]] = True
+        lookup = (np.cumsum(present) - 1).astype(np.int32)
+        lookup[-1] = -1  # index -1 (an invalid pixel) reads this entry
+        return lookup[np.where(valid, labels, -1)]
+    out = np.full(labels.shape, -1, np.int32)
     _, inverse = np.unique(labels[valid], return_inverse=True)
-    out[valid] = inverse
+    out[valid] = inverse.reshape(-1)
     return out

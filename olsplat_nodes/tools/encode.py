@@ -76,6 +76,12 @@ def _overlay(image_rgb: np.ndarray, label_maps: np.ndarray) -> np.ndarray:
     return np.concatenate(panels, axis=1)
 
 
+def _same_regions(cache_file: Path, regions: str) -> bool:
+    """Whether a cache file was made with these region settings (else it is made again)."""
+    with np.load(cache_file) as data:
+        return "regions" in data and str(data["regions"]) == regions
+
+
 def run(args: argparse.Namespace) -> int:
     import cv2
     from tqdm import tqdm
@@ -93,14 +99,15 @@ def run(args: argparse.Namespace) -> int:
     views = _views(args.scene)[: args.limit]
     for path in tqdm(views, desc="encode", unit="view"):
         target = cache / f"{path.stem}.npz"
-        if target.exists() and not args.force:
+        if target.exists() and not args.force and _same_regions(target, repr(config)):
             continue
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise OlsplatInputError(f"{path}: not a readable image")
         image = np.ascontiguousarray(bgr[..., ::-1])
         levels = propose_regions(image, config)
-        save_bank(target, levels.label_maps, encode_regions(image, levels, encoder) if encoder is not None else None)
+        bank = encode_regions(image, levels, encoder) if encoder is not None else None
+        save_bank(target, levels.label_maps, bank, repr(config))
         if args.png:
             cv2.imwrite(str(cache / f"{path.stem}_regions.png"), _overlay(image, levels.label_maps))
     print(f"{len(views)} views -> {cache}")

@@ -34,6 +34,26 @@ def test_levels_are_nested_cover_the_image_and_hit_their_counts():
         assert len(pairs) == fine.max() + 1, "every fine region lies inside one coarse region"
 
 
+def test_work_scale_gives_the_full_size_targets_and_follows_objects():
+    """At half resolution: full-size label maps, the full-size region counts, objects still
+    found (edges on a 2-pixel grid)."""
+    image, truth = blocks_image(1)
+    config = RegionConfig(level_counts=(8, 30, 100), work_scale=0.5)
+    levels = propose_regions(image, config)
+    assert levels.label_maps.shape == (3, 240, 320)
+    assert levels.counts == config.scaled_counts(240, 320)
+    for obj in (1, 2, 3):
+        mask = truth == obj
+        best = 0.0
+        for level in levels.label_maps:
+            ids, overlap = np.unique(level[mask], return_counts=True)
+            sizes = np.bincount(level.ravel())[ids]
+            best = max(best, float((overlap / (sizes + mask.sum() - overlap)).max()))
+        assert best > 0.9, f"object {obj}: best region IoU {best:.2f}"
+    with pytest.raises(ValueError, match="work_scale"):
+        RegionConfig(work_scale=0.0)
+
+
 def test_objects_come_out_as_regions():
     image, truth = blocks_image(1)
     levels = propose_regions(image, RegionConfig(level_counts=(8, 30, 100)))
@@ -62,6 +82,13 @@ def test_deterministic_and_validated():
 def test_relabel_contiguous():
     labels = np.array([[7, 7, -1], [3, 9, 3]])
     np.testing.assert_array_equal(relabel_contiguous(labels), [[1, 1, -1], [0, 2, 0]])
+    sparse = labels * 10_000_000  # ids far apart: the sorting path
+    np.testing.assert_array_equal(relabel_contiguous(np.where(labels < 0, -1, sparse)), [[1, 1, -1], [0, 2, 0]])
+    rng = np.random.default_rng(0)
+    random = rng.integers(-1, 50, (30, 40))
+    _, expected = np.unique(random[random >= 0], return_inverse=True)
+    np.testing.assert_array_equal(relabel_contiguous(random)[random >= 0], expected)
+    assert (relabel_contiguous(random)[random < 0] == -1).all()
 
 
 def test_regions_respect_simulator_labels(tmp_path):
