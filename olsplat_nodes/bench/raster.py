@@ -9,9 +9,11 @@ the whole map is in view: the hardest case for one view. Each figure is the medi
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -59,6 +61,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--sizes", nargs="+", default=["640x480", "960x720", "1280x960"])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--skip-reference", action="store_true", help="skip the slow reference comparison")
+    parser.add_argument("--json", type=Path, help="also write one row per case here")
     parser.set_defaults(run=run)
 
 
@@ -80,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         f"{'':>10} {'':>9} {'':>9} {'':>10} {'top-K':>7} {'no top-K':>8} {'(M)':>6} {'per core':>9} "
         f"{'pairs(M)':>7} {'per core':>9} {'(s)':>8} {'(s)':>6} {'(s)':>8}"
     )
+    rows: list[dict] = []
     for n in args.gaussians:
         gaussians = generate_scene(n, size_m=150.0, seed=0).gaussians
         for size in args.sizes:
@@ -96,12 +100,28 @@ def run(args: argparse.Namespace) -> int:
                 f"{result.n_tile_pairs / per_core:>9.1f} "
                 f"{stages['project']:>8.3f} {stages['bin']:>6.3f} {stages['composite']:>8.3f}"
             )
+            rows.append(
+                {
+                    "gaussians": len(gaussians),
+                    "width": width,
+                    "height": height,
+                    "in_view": result.n_visible,
+                    "s_per_view_topk": with_topk,
+                    "s_per_view": without_topk,
+                    "evaluations": result.n_evaluations,
+                    "evals_per_s_per_core": result.n_evaluations / (with_topk * threads),
+                    "threads": threads,
+                    "stages_s": stages,
+                }
+            )
     if not args.skip_reference:
         reference, fast = reference_speedup(threads)
         print(
             f"reference (numpy, 64x48, 3,000 Gaussians): {reference:.2f} s; fast: {fast * 1e3:.2f} ms; speed-up "
             f"{reference / fast:,.0f}x"
         )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
     print("evals: Gaussian-pixel pairs whose sigma was computed (each Gaussian only over its alpha >= 1/255 box);")
     print("gsplat pairs: the pairs a per-pixel tile-list loop (gsplat classic) tests for the same image;")
     print("rates per core divide by (s/view with top-K) x threads; stage times are of the median top-K run.")

@@ -3,6 +3,7 @@ their figures (the figures themselves are not asserted: the machines are shared 
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 
@@ -121,3 +122,17 @@ def test_frame_benchmark_prints_every_stage(tiny, tmp_path, capsys):
         assert re.search(rf"{stage}\s+\d+\.\d+ s", out), out
     figures = json.loads((tmp_path / "f.json").read_text())
     assert figures["total"] == pytest.approx(sum(v for k, v in figures.items() if k != "total"), abs=1e-3)
+
+
+def test_raster_benchmark_writes_one_row_per_case(tmp_path, capsys):
+    out = tmp_path / "raster.json"
+    args = ["bench", "raster", "--gaussians", "2000", "--sizes", "64x48", "96x64", "--repeat", "1", "--skip-reference"]
+    assert main([*args, "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert [(r["width"], r["height"]) for r in rows] == [(64, 48), (96, 64)]
+    for row in rows:
+        assert row["gaussians"] > 1000 and row["s_per_view_topk"] > 0 and row["s_per_view"] > 0
+        assert row["evals_per_s_per_core"] == pytest.approx(
+            row["evaluations"] / (row["s_per_view_topk"] * row["threads"])
+        )
+    assert "Mevals/s" in capsys.readouterr().out
