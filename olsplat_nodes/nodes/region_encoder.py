@@ -46,7 +46,7 @@ class RegionEncoderNode(Node):
         # regions per level at 640x480, coarse to fine; the method aggregates the finest level
         # only (unless accumulator.level_weights says otherwise), so only that one is made
         level_counts: tuple[int, ...] = (240,)
-        region_scale: float = 1.0  # superpixels and merging on the image resized by this (RegionConfig.work_scale)
+        region_scale: float = 0.5  # superpixels and merging on the image resized by this (RegionConfig.work_scale)
         threads: int = 1  # onnxruntime and OpenCV threads (0 = one per core)
         latest_wins: bool = True
         recent: int = 8  # results kept to answer re-sent frames
