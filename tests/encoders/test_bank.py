@@ -84,3 +84,18 @@ def test_feature_bank_per_level(encoders):
     assert single.dim == 16 and single.encoder == "enc1"
     with pytest.raises(ValueError, match="uint8 RGB"):
         encode_regions(image.astype(float), levels, encoders[0])
+
+
+@pytest.mark.parametrize("config", [CropConfig(), CropConfig(context=0.5, fade=0.3, min_box_px=40)])
+def test_crops_equal_the_numpy_reference(config):
+    from olsplat_nodes.encoders._reference import region_crops_reference
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    labels = (np.arange(60)[:, None] // 7) * 12 + np.arange(80)[None, :] // 7  # blocks, some at the edges
+    labels[rng.random(labels.shape) < 0.05] = -1  # pixels of no region
+    labels[labels == 5] = 6  # an id with no pixels: a grey crop
+    for size in (16, 40):  # shrinking and enlarging crops
+        np.testing.assert_array_equal(
+            region_crops(image, labels, size, config), region_crops_reference(image, labels, size, config)
+        )
