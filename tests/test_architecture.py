@@ -121,3 +121,17 @@ def test_the_core_never_touches_a_socket():
         seen = _closure(name)
         bad = sorted(m for m in seen if m.split(".")[0] == "zmq")
         assert not bad, f"{name} reaches zmq: {_path(seen, bad[0])}"
+
+
+def test_the_nodes_start_without_torch():
+    """torch takes a second or more to import, and five nodes start at once on two cores:
+    only the 3D branch with a MinkUNet checkpoint (and the offline tools) may import it."""
+    import subprocess
+    import sys
+
+    modules = [f"olsplat_nodes.nodes.{n}" for n in sorted(NODE_MODULES)]
+    modules += ["olsplat_nodes.method", "olsplat_nodes.aggregate", "olsplat_nodes.raster", "olsplat_nodes.regions"]
+    modules += ["olsplat_nodes.encoders.spec", "olsplat_nodes.query.answer", "olsplat_nodes.sources"]
+    code = f"import importlib, sys\nfor m in {modules!r}: importlib.import_module(m)\nprint('torch' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "False", result.stdout + result.stderr

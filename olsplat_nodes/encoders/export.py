@@ -20,11 +20,11 @@ from pathlib import Path
 import torch
 
 from .clip_model import Activation, ClipModel, load_clip
+from .onnx_encoder import MANIFEST
 from .tokenizer import ClipTokenizer
 
 OPENAI_MEAN = (0.48145466, 0.4578275, 0.40821073)  # the pixel statistics CLIP models are trained with
 OPENAI_STD = (0.26862954, 0.26130258, 0.27577711)
-MANIFEST = "encoder.json"
 
 
 class _ImageTower(torch.nn.Module):

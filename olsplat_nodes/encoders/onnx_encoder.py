@@ -14,8 +14,9 @@ import numpy as np
 from ..errors import OlsplatInputError
 from .base import normalize
 from .crops import CropConfig
-from .export import MANIFEST
 from .tokenizer import ClipTokenizer, WordTokenizer
+
+MANIFEST = "encoder.json"  # an encoder folder's description (written by export.py)
 
 
 class OnnxEncoder:

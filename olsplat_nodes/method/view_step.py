@@ -4,14 +4,17 @@ regions and features in, its Gaussian observations appended to the store."""
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..aggregate import ObservationStore, observe_view, stack_levels
 from ..raster import rasterize
 from ..scene import Camera, Gaussians
-from ..structure.branch import StructuralBranch
 from .table import Method
+
+if TYPE_CHECKING:
+    from ..structure.branch import StructuralBranch
 
 
 def add_view(

@@ -18,7 +18,6 @@ import numpy as np
 from ..scene import Camera, Gaussians
 from .descriptors import geometric_descriptors
 from .distill import DistillConfig, OnlineDistiller, fuse_regions
-from .minkunet import load_minkunet, minkunet_point_features
 from .points import StructuralPoints, structural_points
 from .pooling import Visibility, pool_regions, visible_pixels
 
@@ -47,6 +46,8 @@ class StructuralBranch:
         """Point set and point features of a map (once per map); camera centres [V, 3] give "up"."""
         points = structural_points(gaussians, config.tau_o, config.voxel)
         if config.minkunet is not None:
+            from .minkunet import load_minkunet, minkunet_point_features  # torch: ~1 s to import, only for this
+
             features = minkunet_point_features(
                 load_minkunet(config.minkunet), points.positions, points.opacity, points.voxel
             )
