@@ -43,7 +43,9 @@ class AccumulatorNode(Node):
         topic_regions: str = "regions"
         topic_observations: str = "observations"
         hwm: int = 4
-        threads: int = 1  # numba threads of the rasterizer and observations (0 = one per core)
+        # numba threads of the rasterizer and observations (0 = one per core); 2: the region encoder
+        # now leaves most of the second core idle, and the accumulator is the graph's slowest stage
+        threads: int = 2
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..scene import Camera, Gaussians
-from .heatmap import CANONICAL_NEGATIVES, heatmaps, relevancy_mask, render_feature_map, threshold_mask
+from .heatmap import CANONICAL_NEGATIVES, relevancy_mask, render_heatmaps, threshold_mask
 from .localize import Instance3D, Region2D, instances_in_3d, regions_in_view
 
 
@@ -68,8 +68,7 @@ def answer_query(
     chosen = (relevance.argmax(1) == 0) & language_map.observed
     answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen))
     if camera is not None:
-        feature_map, alpha = render_feature_map(gaussians, features, camera)
-        maps = heatmaps(feature_map, embeddings)
+        maps, alpha = render_heatmaps(gaussians, features, embeddings, camera)
         answer.heatmap, answer.negative_heatmaps, answer.alpha = maps[0], maps[1:], alpha
         if threshold is None:
             answer.mask = relevancy_mask(maps[0], maps[1:], alpha)

@@ -21,8 +21,19 @@ CANONICAL_NEGATIVES = ("object", "things", "stuff", "texture")
 
 def render_feature_map(gaussians: Gaussians, features: np.ndarray, camera: Camera, config: RasterConfig | None = None):
     """([H, W, D] float32 rendered features F(v), [H, W] alpha)."""
-    result = rasterize(gaussians, camera, config, features=features.astype(np.float32), want_topk=False)
+    result = rasterize(gaussians, camera, config, features=features, want_topk=False)
     return result.features, result.alpha
+
+
+def render_heatmaps(gaussians: Gaussians, features: np.ndarray, texts: np.ndarray, camera: Camera, config=None):
+    """([Q, H, W] cosine heatmaps H_q(v) of the unit text embeddings texts [Q, D], [H, W] alpha):
+    ``heatmaps(render_feature_map(...))`` computed per pixel inside the rasterizer, without the
+    [H, W, D] feature image (157 MB at 640x480 and D = 128)."""
+    result = rasterize(
+        gaussians, camera, config, features=features, want_topk=False, feature_queries=np.asarray(texts, np.float32)
+    )
+    assert result.features is not None
+    return np.moveaxis(result.features, -1, 0), result.alpha
 
 
 def heatmaps(feature_map: np.ndarray, text_embeddings: np.ndarray) -> np.ndarray:

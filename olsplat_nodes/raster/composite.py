@@ -91,9 +91,12 @@ def pack_sorted(order, means2d, conics, opacities, sigma_cuts, extents, colors, 
 def composite_tiles(
     offsets, slots, order, tile_order, packed,
     features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
-    topk_min, topk_max, topk_coverage, feature_eps, background,
+    topk_min, topk_max, topk_coverage, feature_eps, background, queries,
     out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals,
 ):  # fmt: skip
+    """Composite every tile. With queries [Q, D] (Q > 0) out_features [H, W, Q] receives the
+    cosine of each pixel's rendered feature with each query row instead of the feature itself
+    (a heatmap without the [H, W, D] feature image); else out_features is [H, W, D]."""
     tiles_x = (width + tile_size - 1) // tile_size
     n_feat = features.shape[1]
     n_pix = tile_size * tile_size
@@ -181,8 +184,19 @@ def composite_tiles(
                 for c in range(3):
                     out_rgb[y, x, c] = acc_rgb[p, c] + trans[p] * background[c]
                 out_depth[y, x] = acc_depth[p] / total if total > 1e-10 else np.float32(0.0)
-                for f in range(n_feat):
-                    out_features[y, x, f] = acc_feat[p, f] / (total + feature_eps)
+                if queries.shape[0] > 0:  # cos(F, q) = acc . q / |acc|: the 1 / (total + eps) cancels
+                    norm = np.float32(0.0)
+                    for f in range(n_feat):
+                        norm += acc_feat[p, f] * acc_feat[p, f]
+                    norm = math.sqrt(norm)
+                    for q in range(queries.shape[0]):
+                        dot = np.float32(0.0)
+                        for f in range(n_feat):
+                            dot += acc_feat[p, f] * queries[q, f]
+                        out_features[y, x, q] = dot / norm if norm > 0 else np.float32(0.0)
+                else:
+                    for f in range(n_feat):
+                        out_features[y, x, f] = acc_feat[p, f] / (total + feature_eps)
                 if k_cap > 0:
                     n = top_n[p]
                     weights, ranked = top_w[p], top_s[p]

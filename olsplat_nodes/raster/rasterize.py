@@ -20,6 +20,7 @@ class RenderResult:
     alpha: np.ndarray  # [H, W] float32 accumulated opacity = sum of weights = 1 - T_final
     depth: np.ndarray  # [H, W] float32 expected camera z = sum(w z) / alpha; 0 where alpha = 0
     features: np.ndarray | None  # [H, W, D] float32 sum(w f) / (alpha + eps), when features were given
+    # (with feature_queries: [H, W, Q] the cosine of that feature with each query)
     topk_ids: np.ndarray | None  # [H, W, topk_max] int32 Gaussian indices by weight, -1 padded
     topk_weights: np.ndarray | None  # [H, W, topk_max] float32 alpha*T weights, 0 padded
     n_evaluations: int  # Gaussian-pixel pairs evaluated (the sigma computed)
@@ -36,20 +37,29 @@ def rasterize(
     features: np.ndarray | None = None,  # [N, D] per-Gaussian features to render
     want_topk: bool = True,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    feature_queries: np.ndarray | None = None,  # [Q, D] unit rows: render cos(F(p), row) instead of F(p)
 ) -> RenderResult:
     """Render ``gaussians`` into ``camera``'s ideal pinhole image (distortion not applied).
 
     See ``project`` for the projection conventions and ``composite`` for the compositing and
     Top-K rules; ``_reference.rasterize_reference`` is the slow oracle with the same contract.
+    With ``feature_queries`` the result's ``features`` are [H, W, Q] cosine heatmaps of the
+    rendered features (0 where nothing was rendered), computed per pixel in the compositing
+    kernel: the [H, W, D] feature image is never made.
     """
     config = config or RasterConfig()
     n = len(gaussians)
     if features is None:
         feats = np.zeros((n, 0), np.float32)
     else:
-        feats = np.ascontiguousarray(features, dtype=np.float32)
+        feats = np.ascontiguousarray(features, dtype=np.float32)  # no copy when it already is
         if feats.ndim != 2 or feats.shape[0] != n:
             raise ValueError(f"features must be [N={n}, D], got shape {feats.shape}")
+    queries = np.zeros((0, feats.shape[1]), np.float32)
+    if feature_queries is not None:
+        queries = np.ascontiguousarray(feature_queries, dtype=np.float32)
+        if features is None or queries.ndim != 2 or queries.shape[1] != feats.shape[1] or not len(queries):
+            raise ValueError(f"feature_queries must be [Q >= 1, D={feats.shape[1]}] with features, got {queries.shape}")
     width, height, tile = camera.width, camera.height, config.tile_size
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     clock = [time.perf_counter()]
@@ -67,7 +77,7 @@ def rasterize(
     rgb = np.empty((height, width, 3), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
-    out_features = np.empty((height, width, feats.shape[1]), np.float32)
+    out_features = np.empty((height, width, len(queries) or feats.shape[1]), np.float32)
     topk_ids = np.empty((height, width, k), np.int32)  # every slot written by the kernel
     topk_weights = np.empty((height, width, k), np.float32)
     evals = np.zeros((tiles_x * tiles_y, 2), np.int64)
@@ -77,7 +87,7 @@ def rasterize(
         offsets, slots, order, tile_order, packed, sorted_features,
         width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
         want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
-        np.asarray(background, np.float32),
+        np.asarray(background, np.float32), queries,
         rgb, alpha, depth, out_features, topk_ids, topk_weights, evals,
     )  # fmt: skip
     clock.append(time.perf_counter())
