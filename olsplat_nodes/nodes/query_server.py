@@ -160,7 +160,7 @@ class QueryServerNode(Node):
 
     def _query(self, request: QueryRequest) -> QueryReply:
         from ..aggregate import load_views
-        from ..query.answer import answer_query, encoder_for_map
+        from ..query.answer import CachedTexts, answer_query, encoder_for_map
         from ..scene import select_view
 
         def refuse(status: str, text: str) -> QueryReply:
@@ -189,7 +189,7 @@ class QueryServerNode(Node):
             image = views[[v.camera for v in views].index(camera)].image() if camera is not None else None
             encoder_name = self.language_map.encoder
             if encoder_name not in self.encoders:
-                self.encoders[encoder_name] = encoder_for_map(self.language_map)
+                self.encoders[encoder_name] = CachedTexts(encoder_for_map(self.language_map))
             negatives = request.negatives or list(self.params.negatives)
             threshold = request.threshold if math.isfinite(request.threshold) else None  # NaN: beat the negatives
             encoder = self.encoders[encoder_name]

@@ -9,6 +9,7 @@ with the query beats its cosine with every negative text; chosen Gaussians are c
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,6 +32,28 @@ class QueryAnswer:
     alpha: np.ndarray | None = None  # [H, W] float32 rendered opacity
     mask: np.ndarray | None = None  # [H, W] bool
     regions: list[Region2D] = field(default_factory=list)  # mask components, largest first
+
+
+class CachedTexts:
+    """A text encoder that remembers its embeddings: a ground station sends the same negatives
+    (and often the same queries) again and again. Bounded: the oldest ``size`` texts go first."""
+
+    def __init__(self, encoder, size: int = 4096):
+        self.encoder, self.size, self.name = encoder, size, encoder.name
+        self.cache: OrderedDict[str, np.ndarray] = OrderedDict()
+
+    def encode_text(self, texts: list[str]) -> np.ndarray:
+        """[len(texts), D] unit rows, as the encoder's."""
+        missing = list(dict.fromkeys(t for t in texts if t not in self.cache))
+        if missing:
+            self.cache.update(zip(missing, self.encoder.encode_text(missing), strict=True))
+        rows = []
+        for text in texts:
+            self.cache.move_to_end(text)
+            rows.append(self.cache[text])
+        while len(self.cache) > self.size:
+            self.cache.popitem(last=False)
+        return np.stack(rows)
 
 
 def encoder_for_map(language_map: LanguageMap):
