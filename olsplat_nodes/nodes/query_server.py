@@ -69,9 +69,16 @@ class QueryServerNode(Node):
             DiagnosticsCollector(self.context, p.diagnostics_bind, p.stale_after_s, topic=p.topic_diagnostics)
         )
         self.maps = self.own(Subscriber(self.context, [p.map_in], [p.topic_map], hwm=100))
-        threading.Thread(target=self._warm_up, name=f"{self.name}-warm-up", daemon=True).start()
+        self.warm_up = threading.Thread(target=self._warm_up, name=f"{self.name}-warm-up", daemon=True)
+        self.warm_up.start()
         self._load_latest()
         self.last_check = time.monotonic()
+
+    def teardown(self) -> None:
+        # the warm-up runs numba kernels in the background (seconds, minutes on a cold cache):
+        # a stopped node does not leave it running in a process that goes on (composed launches, tests)
+        if getattr(self, "warm_up", None) is not None:
+            self.warm_up.join(120)
 
     def spin(self) -> int | None:
         request = self.server.poll(100)
