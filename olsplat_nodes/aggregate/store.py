@@ -71,7 +71,12 @@ class ObservationStore:
             raise ValueError(
                 f"view {name!r}: observation slot {observations.slots.max()} is outside its bank of {len(bank)} rows"
             )
-        index = len(self.segments())
+        segments = self.segments()
+        if segments:  # every view's bank has the width of the first one: the refinement mixes them
+            width = np.load(segments[0] / "bank.npy", mmap_mode="r").shape[1]
+            if bank.shape[1] != width:
+                raise ValueError(f"view {name!r}: features of width {bank.shape[1]}, the store holds width {width}")
+        index = len(segments)
         final = self.folder / "views" / f"{index:06d}"
         tmp = final.with_name(final.name + ".tmp")
         tmp.mkdir()

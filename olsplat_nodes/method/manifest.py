@@ -1,5 +1,5 @@
 """The observation store's manifest, ``STORE/manifest.json``: the method (with every resolved
-parameter) and the encoder the store's observations were made with.
+parameter), the encoder and the feature width the store's observations were made with.
 
 The accumulator writes it, the refiner reads it: the two can never refine with settings other
 than those the observations were made with. A store made with other settings is refused rather
@@ -23,6 +23,7 @@ MANIFEST = "manifest.json"
 class StoreManifest:
     method: Method
     encoder: str | None  # the encoder spec of the features; None until the first view
+    feature_dim: int | None = None  # D, the width of the features; None until the first view
 
 
 def read_manifest(store: str | Path) -> StoreManifest | None:
@@ -36,7 +37,8 @@ def read_manifest(store: str | Path) -> StoreManifest | None:
         raise OlsplatInputError(f"{path}: unreadable store manifest ({exc})") from exc
     if not isinstance(record, dict) or "method" not in record:
         raise OlsplatInputError(f"{path}: not a store manifest (no 'method')")
-    return StoreManifest(Method.from_record(record["method"], str(path)), record.get("encoder"))
+    dim = record.get("feature_dim")
+    return StoreManifest(Method.from_record(record["method"], str(path)), record.get("encoder"), dim)
 
 
 def write_manifest(store: str | Path, manifest: StoreManifest) -> None:
@@ -44,7 +46,8 @@ def write_manifest(store: str | Path, manifest: StoreManifest) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     tmp = folder / (MANIFEST + ".tmp")
     with open(tmp, "w") as f:
-        json.dump({"method": manifest.method.record(), "encoder": manifest.encoder}, f, indent=1)
+        record = {"method": manifest.method.record(), "encoder": manifest.encoder, "feature_dim": manifest.feature_dim}
+        json.dump(record, f, indent=1)
         f.flush()
         os.fsync(f.fileno())
     tmp.replace(folder / MANIFEST)

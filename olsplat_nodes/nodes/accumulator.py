@@ -105,6 +105,9 @@ class AccumulatorNode(Node):
                     raise ValueError(f"encoder {message.encoder!r}, but this run's store holds {encoder!r} features")
                 camera = camera_of(message)
                 label_maps, bank = split_bank(message)
+                dim, stored_dim = bank[0].shape[1], self.manifest.feature_dim
+                if stored_dim is not None and dim != stored_dim:  # one such view would stop every later refinement
+                    raise ValueError(f"features of width {dim}, but this run's store holds width {stored_dim}")
                 image = split_image(message)
                 weights = self.method.aggregation.level_weights
                 if weights is not None and len(weights) != len(label_maps):
@@ -116,8 +119,8 @@ class AccumulatorNode(Node):
                 self.stats.count("bad_messages")
                 log.warning("view %s (seq %d) dropped: %s", message.name, message.seq, exc)
                 return
-            if encoder is None:
-                self.manifest = replace(self.manifest, encoder=message.encoder)
+            if encoder is None or self.manifest.feature_dim is None:
+                self.manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
                 write_manifest(self.params.store, self.manifest)
             save_view(self.params.views, len(self.store), camera, image)
             kept = int(add_view(self.gaussians, camera, label_maps, bank, self.method, self.store)["kept"])

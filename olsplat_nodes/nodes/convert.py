@@ -84,7 +84,7 @@ def split_bank(message: RegionFeatures) -> tuple[np.ndarray, list[np.ndarray]]:
     """(label maps [L, H, W] int32, bank per level [R_l, D] float32) of a RegionFeatures;
     ValueError naming the inconsistency when the message does not describe itself correctly."""
     labels, sizes, features = (_array(message, name) for name in ("label_maps", "level_sizes", "features"))
-    if labels.ndim != 3 or labels.shape[1:] != (message.height, message.width):
+    if labels.ndim != 3 or not len(labels) or labels.shape[1:] != (message.height, message.width):
         raise ValueError(f"label maps are {labels.shape}, the image is {message.height}x{message.width}")
     if len(sizes) != len(labels) or (sizes < 0).any() or int(sizes.sum()) != len(features):
         raise ValueError(

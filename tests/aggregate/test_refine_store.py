@@ -197,3 +197,15 @@ def test_mixed_features_equal_their_dense_form(tmp_path):
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(count, expected_count)
     assert len(mixed.slots) > len(mixed)  # some observations do mix several regions
+
+
+def test_the_store_refuses_a_view_of_another_feature_width(tmp_path):
+    n = 150
+    store = ObservationStore(tmp_path, n)
+    views = list(_views(2, n))
+    store.append(*views[0])
+    name, obs, bank = views[1]
+    with pytest.raises(ValueError, match="width 3, the store holds width 6"):
+        store.append(name, obs, bank[:, :3])
+    assert len(store) == 1
+    store.refine(None, AggregationConfig())  # still refinable

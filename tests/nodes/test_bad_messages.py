@@ -33,6 +33,8 @@ from olsplat_msgs import (
     decode,
     encode,
 )
+from olsplat_nodes.method import read_manifest
+from olsplat_nodes.scene import read_ply
 from olsplat_nodes.transport import QueryClient
 from tests.helpers import every, wait_for
 
@@ -131,7 +133,20 @@ def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(
             values = beats.wait("accumulator", lambda v: v.get("reconnects", 0) >= 1, 10, "reconnects >= 1")
             assert values["bad_messages"] == bad
             running.assert_running()
-        assert ObservationStore(tmp_path / "store", 1).names() == [region_features.name]
+
+            # well formed, but its features are narrower than the store's: stored, it would make
+            # every later refinement fail; it is refused and counted
+            narrow = dataclasses.replace(region_features, name="narrow", features=region_features.features[:, :8])
+            send(regions, encode(narrow, "regions"))
+            values = beats.wait("accumulator", lambda v: v.get("bad_messages", 0) > bad, 10, "the narrow view counted")
+            assert values["bad_messages"] == bad + 1
+            running.assert_running()
+        store = ObservationStore(tmp_path / "store", len(read_ply(scene / "map" / "point_cloud.ply")))
+        assert store.names() == [region_features.name]
+        manifest = read_manifest(tmp_path / "store")
+        assert manifest is not None and manifest.feature_dim == region_features.features.shape[1]
+        features, observed = store.refine(None, manifest.method.aggregation)
+        assert observed.any() and features.shape[1] == manifest.feature_dim
         assert observations.undecodable == []
     finally:
         for sock in (regions, beats, observations):
