@@ -34,6 +34,15 @@ if TYPE_CHECKING:  # imported at run time inside methods: the launcher imports n
 log = logging.getLogger(__name__)
 
 
+def is_public(endpoint: str) -> bool:
+    """Whether a ZeroMQ bind endpoint can be reached from other computers: tcp on anything but a
+    loopback address (``ipc://`` and ``inproc://`` are local)."""
+    if not endpoint.startswith("tcp://"):
+        return False
+    host = endpoint[len("tcp://") :].rsplit(":", 1)[0].strip("[]")
+    return not (host == "localhost" or host == "::1" or host.startswith("127."))
+
+
 class QueryServerNode(Node):
     @dataclass(frozen=True)
     class Params:
@@ -52,12 +61,36 @@ class QueryServerNode(Node):
         allow_dir: str = ""  # CURVE: folder of allowed client public keys
         max_text_chars: int = 200
         threads: int = 2  # numba threads of heatmap rendering and clustering (0 = one per core)
+        # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
+        # true: serve it in clear anyway (a lab network), said in every status the server gives
+        insecure: bool = False
+
+    @classmethod
+    def validate(cls, params: Params, where: str) -> None:
+        from ..params import ParameterError
+        from ..transport import curve
+
+        if params.server_secret:
+            try:
+                curve.check_secret(params.server_secret)
+            except (OSError, ValueError) as exc:
+                raise ParameterError(f"{where}: server_secret: {exc}") from exc
+
+        if not params.server_secret and is_public(params.query_endpoint) and not params.insecure:
+            raise ParameterError(
+                f"{where}: query_endpoint {params.query_endpoint} can be reached from other computers, and "
+                "without server_secret the link is neither encrypted nor authenticated: set server_secret and "
+                "allow_dir (CURVE keys, `olsplat keys`), bind to 127.0.0.1, or set insecure: true"
+            )
 
     def setup(self) -> None:
         from ..scene import read_ply  # heavy imports here and below: the launcher imports node classes
 
         p = self.params
         self.limit_threads(p.threads)
+        self.insecure = not p.server_secret and is_public(p.query_endpoint)  # allowed by `insecure: true` only
+        if self.insecure:
+            log.warning("INSECURE: %s is served without CURVE (insecure: true)", p.query_endpoint)
         self.gaussians = read_ply(p.map)
         self.language_map: LanguageMap | None = None
         self.version = 0
@@ -230,8 +263,9 @@ class QueryServerNode(Node):
         """This node's own status first, then every other node's latest (STALE when silent)."""
         own = {
             "node": self.name,
-            "level": 0,
-            "message": f"map version {self.version}",
+            "level": 1 if self.insecure else 0,
+            "message": (f"INSECURE: {self.params.query_endpoint} is served without CURVE; " if self.insecure else "")
+            + f"map version {self.version}",
             "values": self._values(),
             "age_s": 0.0,
         }

@@ -42,6 +42,12 @@ def generate(out_dir: str | os.PathLike, name: str, overwrite: bool = False) -> 
     return Path(public_file), Path(secret_file)
 
 
+def check_secret(secret_file: str | os.PathLike) -> None:
+    """FileNotFoundError, PermissionError (readable by others) or ValueError (no secret key in
+    it) for a secret key file that cannot serve; nothing for a good one."""
+    _load_secret(secret_file)
+
+
 def _load_secret(secret_file: str | os.PathLike) -> tuple[bytes, bytes]:
     path = Path(secret_file)
     if not path.is_file():
@@ -49,6 +55,11 @@ def _load_secret(secret_file: str | os.PathLike) -> tuple[bytes, bytes]:
     public, secret = zmq.auth.load_certificate(path)
     if not secret:
         raise ValueError(f"{path}: holds no secret key (give the NAME.key_secret file, not NAME.key)")
+    mode = path.stat().st_mode & 0o777
+    if mode & 0o077:  # as ssh does: a secret others can read is no longer a secret
+        raise PermissionError(
+            f"{path}: secret key file is readable by others (mode {mode:o}); make it private: chmod 600 {path}"
+        )
     return public, secret
 
 
