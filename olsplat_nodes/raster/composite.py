@@ -185,15 +185,15 @@ def composite_tiles(
                     out_rgb[y, x, c] = acc_rgb[p, c] + trans[p] * background[c]
                 out_depth[y, x] = acc_depth[p] / total if total > 1e-10 else np.float32(0.0)
                 if queries.shape[0] > 0:  # cos(F, q) = acc . q / |acc|: the 1 / (total + eps) cancels
-                    norm = np.float32(0.0)
+                    square = np.float32(0.0)
                     for f in range(n_feat):
-                        norm += acc_feat[p, f] * acc_feat[p, f]
-                    norm = math.sqrt(norm)
+                        square += acc_feat[p, f] * acc_feat[p, f]
+                    length = np.float32(math.sqrt(square))
                     for q in range(queries.shape[0]):
                         dot = np.float32(0.0)
                         for f in range(n_feat):
                             dot += acc_feat[p, f] * queries[q, f]
-                        out_features[y, x, q] = dot / norm if norm > 0 else np.float32(0.0)
+                        out_features[y, x, q] = dot / length if length > 0 else np.float32(0.0)
                 else:
                     for f in range(n_feat):
                         out_features[y, x, f] = acc_feat[p, f] / (total + feature_eps)
