@@ -150,3 +150,38 @@ def test_reply_instances_on_the_wire_are_the_documented_records(ctx, sockdir, ti
     biggest = found2d[0]
     x0, y0, x1, y1 = biggest["box2d"]
     assert mask[y0:y1, x0:x1].any(axis=0)[[0, -1]].all() and mask[y0:y1, x0:x1].any(axis=1)[[0, -1]].all()  # tight box
+
+
+def test_reply_arrays_mean_what_the_schema_says(ctx, sockdir, tiny, tiny_run, tmp_path):
+    """heatmap: the cosine of the view's rendered features with the query, in [-1, 1]; mask:
+    where that beats every negative's heatmap on covered pixels; image: the view's photo."""
+    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.query.heatmap import render_heatmaps
+    from olsplat_nodes.scene import read_ply
+
+    scene, _ = tiny
+    shutil.copytree(tiny_run / "views", tmp_path / "views")
+    shutil.copytree(tiny_run / "map", tmp_path / "map")
+    negatives = ["road", "trees", "lawn"]
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views")
+    with NodeThread(node) as running, QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=60.0) as client:
+        reply = client.request(
+            QueryRequest(request_id="m", text="red roof buildings", view=ENCODE_VIEW, negatives=negatives)
+        )
+        running.assert_running()
+    assert reply.status == "ok", reply.message
+    fields = {f.name: f for f in load_schema().messages["QueryReply"].fields}
+    assert "cosine" in fields["heatmap"].description and "[-1, 1]" in fields["heatmap"].description
+    assert "photo" in fields["image"].description
+
+    language_map = LanguageMap.load(latest_map(tmp_path / "map")["path"])
+    view = next(v for v in load_views(tmp_path / "views") if v.camera.name == ENCODE_VIEW)
+    texts = encoder_from_spec().encode_text(["red roof buildings", *negatives])
+    gaussians = read_ply(scene / "map" / "point_cloud.ply")
+    maps, alpha = render_heatmaps(gaussians, language_map.features.astype(np.float32), texts, view.camera)
+    assert reply.heatmap.dtype == np.float32 and np.abs(reply.heatmap).max() <= 1.0 + 1e-6
+    np.testing.assert_array_equal(reply.heatmap, maps[0])  # the same kernel: to the bit
+    expected_mask = (maps[0] > maps[1:].max(0)) & (alpha > 0.5)
+    np.testing.assert_array_equal(reply.mask.astype(bool), expected_mask)
+    np.testing.assert_array_equal(reply.image, view.image())
