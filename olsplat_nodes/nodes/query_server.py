@@ -59,7 +59,8 @@ class QueryServerNode(Node):
         stale_after_s: float = 5.0
         server_secret: str = ""  # CURVE: this server's secret key file ("" = no encryption)
         allow_dir: str = ""  # CURVE: folder of allowed client public keys
-        max_text_chars: int = 200
+        max_text_chars: int = 200  # per text, the query's and each negative's
+        max_negatives: int = 32  # each costs a text embedding and a cosine per Gaussian and pixel
         threads: int = 2  # numba threads of heatmap rendering and clustering (0 = one per core)
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
         # true: serve it in clear anyway (a lab network), said in every status the server gives
@@ -219,6 +220,12 @@ class QueryServerNode(Node):
             return refuse("bad_request", "the query text is empty")
         if len(text) > self.params.max_text_chars:
             return refuse("bad_request", f"the query text is longer than {self.params.max_text_chars} characters")
+        if len(request.negatives) > self.params.max_negatives:
+            return refuse(
+                "bad_request", f"{len(request.negatives)} negatives; at most {self.params.max_negatives} per query"
+            )
+        if any(len(n) > self.params.max_text_chars for n in request.negatives):
+            return refuse("bad_request", f"a negative is longer than {self.params.max_text_chars} characters")
         if self.language_map is None:
             return refuse("no_map", "no map yet: no view has been aggregated and refined")
         try:

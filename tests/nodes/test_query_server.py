@@ -185,3 +185,18 @@ def test_reply_arrays_mean_what_the_schema_says(ctx, sockdir, tiny, tiny_run, tm
     expected_mask = (maps[0] > maps[1:].max(0)) & (alpha > 0.5)
     np.testing.assert_array_equal(reply.mask.astype(bool), expected_mask)
     np.testing.assert_array_equal(reply.image, view.image())
+
+
+def test_too_many_or_too_long_negatives_get_a_clear_refusal(ctx, sockdir, tiny, tiny_run, tmp_path):
+    scene, _ = tiny
+    shutil.copytree(tiny_run / "views", tmp_path / "views")
+    shutil.copytree(tiny_run / "map", tmp_path / "map")
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views", max_negatives=4)
+    with NodeThread(node) as running, QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=60.0) as client:
+        many = client.request(QueryRequest(request_id="n", text="road", negatives=[f"thing {i}" for i in range(1000)]))
+        long = client.request(QueryRequest(request_id="l", text="road", negatives=["x" * 201]))
+        fine = client.request(QueryRequest(request_id="f", text="road", negatives=["trees", "lawn", "cars", "roof"]))
+        running.assert_running()
+    assert many.status == "bad_request" and many.message == "1000 negatives; at most 4 per query"
+    assert long.status == "bad_request" and "longer than 200 characters" in long.message
+    assert fine.status == "ok", fine.message
