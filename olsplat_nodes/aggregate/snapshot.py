@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..durable import write_atomic
 from ..errors import SceneFormatError
 from .codebook import compress, decompress, fit_codebook
 
@@ -42,9 +43,9 @@ class LanguageMap:
         return LanguageMap(unit.astype(np.float16), observed.astype(bool), encoder)
 
     def save(self, path: str | Path, codebook: int | None = None) -> None:
-        """Write atomically; with ``codebook`` = K, in the codebook form with K centres."""
+        """Write atomically and durably (``durable.write_atomic``); with ``codebook`` = K, in the
+        codebook form with K centres."""
         path = Path(path)
-        tmp = path.with_name(path.stem + ".tmp.npz")
         common: dict[str, Any] = {
             "observed": self.observed,
             "encoder": np.array(self.encoder),
@@ -53,10 +54,10 @@ class LanguageMap:
         if codebook:
             unit = self.features.astype(np.float32)
             centres = fit_codebook(unit, codebook)
-            np.savez(tmp, form="codebook", codes=compress(unit, centres), centres=centres.astype(np.float16), **common)
+            arrays = {"form": "codebook", "codes": compress(unit, centres), "centres": centres.astype(np.float16)}
         else:
-            np.savez(tmp, form="float16", features=self.features.astype(np.float16), **common)
-        tmp.replace(path)
+            arrays = {"form": "float16", "features": self.features.astype(np.float16)}
+        write_atomic(path, lambda f: np.savez(f, **arrays, **common))
 
     @staticmethod
     def load(path: str | Path) -> LanguageMap:
@@ -102,9 +103,7 @@ def write_snapshot(map_dir: Path, version: int, language_map: LanguageMap, recor
     path = map_dir / f"language_map_{version:06d}.npz"
     language_map.save(path, codebook)
     record = {**record, "version": version, "path": str(path.resolve())}
-    tmp = map_dir / "latest.json.tmp"
-    tmp.write_text(json.dumps(record))
-    tmp.replace(map_dir / "latest.json")
+    write_atomic(map_dir / "latest.json", json.dumps(record).encode())  # after the snapshot it names
     for old in sorted(map_dir.glob("language_map_*.npz"))[:-KEEP_VERSIONS]:
         old.unlink(missing_ok=True)
     return record

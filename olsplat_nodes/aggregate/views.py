@@ -4,7 +4,8 @@ gave us is lost and so that the query server can render a heatmap over any view 
 Layout: ``VIEWS/NNNNNN.jpg`` (the photo, JPEG quality 95) and ``VIEWS/NNNNNN.json``
 (name, width, height, K [3x3 row-major], dist, world_from_camera [4x4 row-major, OpenCV camera
 axes: x right, y down, z forward]), where NNNNNN is the view's index in the observation store.
-The JSON is written last and atomically (temp + rename): a view without its JSON does not exist.
+Both are written atomically and fsynced (``durable.py``), the JSON last: a view without its
+JSON does not exist, and one with it has its photo, also after a power cut.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..durable import write_atomic
 from ..errors import OlsplatInputError
 from ..scene import Camera
 
@@ -25,8 +27,10 @@ def save_view(folder: str | Path, index: int, camera: Camera, image_rgb: np.ndar
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     stem = folder / f"{index:06d}"
-    if not cv2.imwrite(str(stem) + ".jpg", np.ascontiguousarray(image_rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95]):
-        raise OSError(f"{stem}.jpg: cannot write the view's photo")
+    ok, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(image_rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    if not ok:
+        raise OSError(f"{stem}.jpg: cannot encode the view's photo")
+    write_atomic(str(stem) + ".jpg", jpeg.tobytes())
     record = {
         "name": camera.name,
         "width": camera.width,
@@ -35,9 +39,7 @@ def save_view(folder: str | Path, index: int, camera: Camera, image_rgb: np.ndar
         "dist": camera.dist.tolist(),
         "world_from_camera": camera.world_from_camera.reshape(-1).tolist(),
     }
-    tmp = Path(str(stem) + ".json.tmp")
-    tmp.write_text(json.dumps(record))
-    tmp.replace(str(stem) + ".json")
+    write_atomic(str(stem) + ".json", json.dumps(record).encode())  # last: the view exists once it does
 
 
 @dataclass

@@ -33,6 +33,7 @@ from typing import Any
 
 from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
+from ..durable import append_line
 from ..sources import SourceParams, open_source
 from ..transport import Diagnostics, Publisher, Subscriber
 from .base import Node
@@ -153,9 +154,8 @@ class IngestNode(Node):
             if isinstance(message, ObservationsAdded) and message.name not in self.acked:
                 self.acked.add(message.name)
                 self.pending.pop(message.name, None)
-                if p.state_file:
-                    with open(p.state_file, "a") as f:
-                        f.write(message.name + "\n")
+                if p.state_file:  # fsynced: a frame once acknowledged is never sent again, power cut or not
+                    append_line(p.state_file, message.name)
             elif isinstance(message, MapUpdated) and message.final:
                 self.final_map = True
             elif not isinstance(message, (ObservationsAdded, MapUpdated, EndOfStream)):

@@ -1,0 +1,51 @@
+"""Writes that survive a power cut, the normal end of a drone's flight.
+
+A rename is atomic, but after a power cut a renamed file may still be empty (its data were in
+the page cache) and the rename itself may be lost (the directory entry was too). So: write a
+temporary file in the same folder, fsync it, rename it into place, fsync the folder. A file is
+then either absent or whole, and once the function returns it is on the disk.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+
+def fsync_dir(folder: str | Path) -> None:
+    """Make the folder's entries (created, renamed, removed files) durable."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: str | Path, write: Callable[[BinaryIO], object] | bytes) -> None:
+    """Write ``path`` whole or not at all, durably: ``write`` is the bytes or a function that
+    writes them to the open file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        if isinstance(write, bytes):
+            f.write(write)
+        else:
+            write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    tmp.replace(path)
+    fsync_dir(path.parent)
+
+
+def append_line(path: str | Path, line: str) -> None:
+    """Append ``line`` and a newline to ``path`` durably (the folder too when the file is new)."""
+    path = Path(path)
+    new = not path.exists()
+    with open(path, "a") as f:
+        f.write(line + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+    if new:
+        fsync_dir(path.parent)

@@ -1,0 +1,88 @@
+"""What a power cut can take: nothing acknowledged. Every writer of a run's folder fsyncs each
+file before renaming it into place and fsyncs the folder after the rename (``durable.py``).
+The real fsync and rename run; the test only records their order."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.aggregate import LanguageMap, ObservationStore, save_view, write_snapshot
+from olsplat_nodes.durable import append_line
+
+from ..conftest import camera_for
+from .test_refine_store import _views
+
+
+@pytest.fixture
+def events(monkeypatch):
+    """[("fsync", path) | ("rename", destination)] in the order the process made them."""
+    log: list[tuple[str, str]] = []
+    real_fsync, real_rename, real_replace = os.fsync, os.rename, os.replace
+
+    def fsync(fd):
+        log.append(("fsync", os.path.realpath(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def rename(src, dst, *args, **kwargs):
+        real_rename(src, dst, *args, **kwargs)
+        log.append(("rename", os.path.realpath(dst)))
+
+    def replace(src, dst, *args, **kwargs):
+        real_replace(src, dst, *args, **kwargs)
+        log.append(("rename", os.path.realpath(dst)))
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "rename", rename)
+    monkeypatch.setattr(os, "replace", replace)
+    return log
+
+
+def _durable(log, final: Path, written_as: Path) -> None:
+    """``final`` came from ``written_as`` fsynced, then renamed, then its folder fsynced."""
+    order = [(kind, Path(path)) for kind, path in log]
+    synced = order.index(("fsync", written_as.resolve()))
+    renamed = order.index(("rename", final.resolve()))
+    folder = [i for i, e in enumerate(order) if e == ("fsync", final.parent.resolve()) and i > renamed]
+    assert synced < renamed and folder, (final, order)
+
+
+def test_a_store_segment_is_durable_before_append_returns(tmp_path, events):
+    store = ObservationStore(tmp_path / "store", 150)
+    name, obs, bank = next(_views(1, 150))
+    store.append(name, obs, bank)
+    segment = tmp_path / "store" / "views" / "000000"
+    tmp = segment.with_name("000000.tmp")
+    order = [(kind, Path(path)) for kind, path in events]
+    renamed = order.index(("rename", segment.resolve()))
+    for file in sorted(segment.iterdir()):  # every file fsynced (under the temp name) before the rename
+        assert order.index(("fsync", (tmp / file.name).resolve())) < renamed, file.name
+    assert order.index(("fsync", tmp.resolve())) < renamed  # the segment's entries
+    assert ("fsync", segment.parent.resolve()) in order[renamed:]  # the rename
+
+
+def test_views_snapshots_and_acknowledgements_are_durable(tmp_path, events):
+    camera = camera_for("PINHOLE_CENTRED", 40, 30)
+    save_view(tmp_path / "views", 0, camera, np.zeros((30, 40, 3), np.uint8))
+    _durable(events, tmp_path / "views" / "000000.jpg", tmp_path / "views" / "000000.jpg.tmp")
+    _durable(events, tmp_path / "views" / "000000.json", tmp_path / "views" / "000000.json.tmp")
+    photo = [e for e in events if e[0] == "rename"]
+    assert photo[0][1].endswith(".jpg") and photo[1][1].endswith(".json")  # the record last
+
+    language_map = LanguageMap.from_features(np.ones((5, 4), np.float32), np.ones(5, bool), "enc")
+    write_snapshot(tmp_path / "map", 1, language_map, {"views": 1}, None)
+    snapshot = tmp_path / "map" / "language_map_000001.npz"
+    _durable(events, snapshot, snapshot.with_name(snapshot.name + ".tmp"))
+    _durable(events, tmp_path / "map" / "latest.json", tmp_path / "map" / "latest.json.tmp")
+    renames = [Path(p).name for kind, p in events if kind == "rename"]
+    assert renames.index("latest.json") > renames.index(snapshot.name)  # never pointing at a missing file
+    assert LanguageMap.load(snapshot).features.shape == (5, 4)
+
+    (tmp_path / "acks").mkdir()
+    events.clear()
+    append_line(tmp_path / "acks" / "acknowledged.txt", "frame_0000.jpg")
+    assert ("fsync", str((tmp_path / "acks" / "acknowledged.txt").resolve())) in events
+    assert ("fsync", str((tmp_path / "acks").resolve())) in events  # a new file: its folder entry too
