@@ -51,13 +51,15 @@ class LanguageMap:
             "encoder": np.array(self.encoder),
             "version": FORMAT_VERSION,
         }
+        arrays: dict[str, Any]
         if codebook:
             unit = self.features.astype(np.float32)
             centres = fit_codebook(unit, codebook)
             arrays = {"form": "codebook", "codes": compress(unit, centres), "centres": centres.astype(np.float16)}
         else:
             arrays = {"form": "float16", "features": self.features.astype(np.float16)}
-        write_atomic(path, lambda f: np.savez(f, **arrays, **common))
+        content: dict[str, Any] = {**arrays, **common}
+        write_atomic(path, lambda f: np.savez(f, **content))
 
     @staticmethod
     def load(path: str | Path) -> LanguageMap:
