@@ -43,6 +43,8 @@ class AccumulatorNode(Node):
         topic_regions: str = "regions"
         topic_observations: str = "observations"
         hwm: int = 4
+        # regions_in limit: the photo plus an int32 label map per level (4K, one level: ~60 MB)
+        max_message_mb: float = 160.0
         # numba threads of the rasterizer and observations (0 = one per core); 2: the region encoder
         # now leaves most of the second core idle, and the accumulator is the graph's slowest stage
         threads: int = 2
@@ -71,7 +73,8 @@ class AccumulatorNode(Node):
         self.names = set(self.store.names())
         if self.names:
             log.info("resuming: %d views already in %s", len(self.names), p.store)
-        self.sub = self.own(Subscriber(self.context, [p.regions_in], [p.topic_regions], hwm=p.hwm))
+        limit = int(p.max_message_mb * 2**20)
+        self.sub = self.own(Subscriber(self.context, [p.regions_in], [p.topic_regions], hwm=p.hwm, max_bytes=limit))
         self.pub = self.own(Publisher(self.context, p.observations_out, bind=True, hwm=100))
         self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
 

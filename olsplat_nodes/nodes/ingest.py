@@ -35,7 +35,7 @@ from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
 from ..durable import append_line
 from ..sources import SourceParams, open_source
-from ..transport import Diagnostics, Publisher, Subscriber
+from ..transport import CONTROL_MAX_BYTES, Diagnostics, Publisher, Subscriber
 from .base import Node
 from .convert import frame_message
 
@@ -67,7 +67,13 @@ class IngestNode(Node):
         p = self.params
         self.pub = self.own(Publisher(self.context, p.frames_out, bind=True, hwm=p.hwm))
         self.acks = self.own(
-            Subscriber(self.context, [p.acks_in, p.map_in], [p.topic_observations, p.topic_map], hwm=100)
+            Subscriber(
+                self.context,
+                [p.acks_in, p.map_in],
+                [p.topic_observations, p.topic_map],
+                hwm=100,
+                max_bytes=CONTROL_MAX_BYTES,
+            )
         )
         self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
         self.acked = self._load_acknowledged()

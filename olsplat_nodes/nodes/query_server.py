@@ -24,7 +24,7 @@ import numpy as np
 from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest
 
 from ..errors import OlsplatInputError
-from ..transport import DiagnosticsCollector, QueryServer, Subscriber, curve
+from ..transport import CONTROL_MAX_BYTES, REQUEST_MAX_BYTES, DiagnosticsCollector, QueryServer, Subscriber, curve
 from .base import Node
 from .convert import reply_for
 
@@ -98,11 +98,11 @@ class QueryServerNode(Node):
         self.encoders: dict[str, Any] = {}  # encoder spec -> loaded encoder
         self.views: list = []  # aggregate.SavedView, re-read when the run's views folder grows
         keys = curve.ServerKeys(p.server_secret, p.allow_dir) if p.server_secret else None
-        self.server = self.own(QueryServer(self.context, p.query_endpoint, keys=keys))
+        self.server = self.own(QueryServer(self.context, p.query_endpoint, keys=keys, max_bytes=REQUEST_MAX_BYTES))
         self.collector = self.own(
             DiagnosticsCollector(self.context, p.diagnostics_bind, p.stale_after_s, topic=p.topic_diagnostics)
         )
-        self.maps = self.own(Subscriber(self.context, [p.map_in], [p.topic_map], hwm=100))
+        self.maps = self.own(Subscriber(self.context, [p.map_in], [p.topic_map], hwm=100, max_bytes=CONTROL_MAX_BYTES))
         self.warm_up = threading.Thread(target=self._warm_up, name=f"{self.name}-warm-up", daemon=True)
         self.warm_up.start()
         self._load_latest()

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
-from ..transport import Diagnostics, Publisher, Subscriber
+from ..transport import CONTROL_MAX_BYTES, Diagnostics, Publisher, Subscriber
 from .base import Node
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,9 @@ class RefinerNode(Node):
         self.features = None  # a restarted refiner recomputes everything once
         self.observed = None
         self.views_done = 0
-        self.sub = self.own(Subscriber(self.context, [p.observations_in], [p.topic_observations], hwm=1000))
+        self.sub = self.own(
+            Subscriber(self.context, [p.observations_in], [p.topic_observations], hwm=1000, max_bytes=CONTROL_MAX_BYTES)
+        )
         self.pub = self.own(Publisher(self.context, p.map_out, bind=True, hwm=100))
         self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
         self.last_pass = time.monotonic()

@@ -56,6 +56,7 @@ class RegionEncoderNode(Node):
         topic_frames: str = "frames"
         topic_regions: str = "regions"
         hwm: int = 4
+        max_message_mb: float = 64.0  # frames_in limit; a 4K RGB frame is 25 MB
 
     def setup(self) -> None:
         from ..encoders.spec import encoder_from_spec
@@ -72,7 +73,8 @@ class RegionEncoderNode(Node):
             self.region_config = RegionConfig(level_counts=p.level_counts, work_scale=p.region_scale)
         except ValueError as exc:
             raise OlsplatInputError(f"node {self.name!r}: {exc}") from exc
-        self.sub = self.own(Subscriber(self.context, [p.frames_in], [p.topic_frames], hwm=p.hwm))
+        limit = int(p.max_message_mb * 2**20)
+        self.sub = self.own(Subscriber(self.context, [p.frames_in], [p.topic_frames], hwm=p.hwm, max_bytes=limit))
         self.pub = self.own(Publisher(self.context, p.regions_out, bind=True, hwm=p.hwm))
         self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
         self.recent: OrderedDict[str, RegionFeatures] = OrderedDict()

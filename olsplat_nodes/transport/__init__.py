@@ -6,12 +6,15 @@ belong to one thread each (a composed launch gives every node its own)."""
 
 from . import curve
 from .diagnostics import DIAGNOSTICS_TOPIC, Diagnostics, DiagnosticsCollector
+from .limits import CONTROL_MAX_BYTES, REQUEST_MAX_BYTES
 from .pubsub import Publisher, Subscriber
 from .query import QUERY_TOPIC, NoReply, QueryClient, QueryServer
 
 __all__ = [
+    "CONTROL_MAX_BYTES",
     "DIAGNOSTICS_TOPIC",
     "QUERY_TOPIC",
+    "REQUEST_MAX_BYTES",
     "Diagnostics",
     "DiagnosticsCollector",
     "NoReply",

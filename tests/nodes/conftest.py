@@ -324,10 +324,10 @@ def bad_variants(good: list[bytes]) -> dict[str, list[bytes]]:
     return variants
 
 
-def oversized(topic: str) -> list:
-    """One frame of DEFAULT_MAX_BYTES + 1 bytes (the nodes' receive limit): libzmq refuses it
+def oversized(topic: str, limit: int = DEFAULT_MAX_BYTES) -> list:
+    """One frame of ``limit`` + 1 bytes (give the receiving socket's limit): libzmq refuses it
     from its size header (ZMQ_MAXMSGSIZE) and drops that connection; only a little of it is read."""
-    return [topic.encode(), b"\x80", zmq.Frame(bytes(DEFAULT_MAX_BYTES + 1))]
+    return [topic.encode(), b"\x80", zmq.Frame(bytes(limit + 1))]
 
 
 def send(sock: zmq.Socket, frames: list) -> None:

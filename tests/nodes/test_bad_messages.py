@@ -35,7 +35,7 @@ from olsplat_msgs import (
 )
 from olsplat_nodes.method import read_manifest
 from olsplat_nodes.scene import read_ply
-from olsplat_nodes.transport import QueryClient
+from olsplat_nodes.transport import CONTROL_MAX_BYTES, QueryClient
 from tests.helpers import every, wait_for
 
 from .conftest import (
@@ -122,7 +122,7 @@ def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(
 
             # one frame over the size limit: the connection is dropped and made again; the view
             # sent again afterwards is acknowledged (as a duplicate: never added twice)
-            send(regions, oversized("regions"))
+            send(regions, oversized("regions", 160 * 2**20))  # the accumulator's default max_message_mb
             wait_for(
                 lambda: len(observations.got(ObservationsAdded)) >= 2,
                 20,
@@ -199,7 +199,7 @@ def test_region_encoder_counts_bad_frames_and_still_encodes_the_valid_one(ctx, s
             assert values["bad_messages"] == bad, values
             running.assert_running()
 
-            send(frames, oversized("frames"))
+            send(frames, oversized("frames", 64 * 2**20))  # the region encoder's default max_message_mb
             wait_for(
                 lambda: len(regions.got(RegionFeatures)) >= 2,
                 20,
@@ -263,7 +263,7 @@ def test_refiner_counts_bad_observations_and_still_writes_the_final_map(ctx, soc
             values = beats.wait("refiner", lambda v: v.get("bad_messages", 0) >= bad, 10, f"bad_messages >= {bad}")
             assert values["bad_messages"] == bad, values
 
-            send(observations, oversized("observations"))
+            send(observations, oversized("observations", CONTROL_MAX_BYTES))
             beats.wait(
                 "refiner",
                 lambda v: v.get("reconnects", 0) >= 1 and v.get("received", 0) > values["received"],
@@ -362,8 +362,8 @@ def test_ingest_counts_bad_acks_and_map_announcements_and_still_delivers_every_f
             running.assert_running()
 
             # one oversized frame on each link: both connections are made again
-            send(acks, oversized("observations"))
-            send(maps, oversized("map"))
+            send(acks, oversized("observations", CONTROL_MAX_BYTES))
+            send(maps, oversized("map", CONTROL_MAX_BYTES))
             beats.wait("ingest", lambda v: v.get("reconnects", 0) >= 2, 20, "reconnects >= 2", step=every(0.2, ack_all))
 
             # valid acknowledgements: every frame is delivered; then the final map ends the node with 0
@@ -512,7 +512,7 @@ def test_query_server_answers_bad_requests_counts_bad_input_on_every_socket_and_
             )
             before = _own(_status(query, ctx))
             map_bad = send_all_bad(maps, encode(MapUpdated(seq=9000, version=5), "map"), encode(StatusRequest(), "map"))
-            send(maps, oversized("map"))
+            send(maps, oversized("map", CONTROL_MAX_BYTES))
             shutil.copytree(tiny_run / "map", tmp_path / "staging")
             (tmp_path / "staging").rename(tmp_path / "map")  # appears at once, as the refiner's atomic writes do
             wait_for(
