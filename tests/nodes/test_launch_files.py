@@ -9,13 +9,19 @@ import pytest
 from olsplat_nodes.launcher import load_launch, resolve_launch
 from olsplat_nodes.nodes.ground_monitor import GroundMonitorNode
 from olsplat_nodes.nodes.query_server import QueryServerNode
+from olsplat_nodes.transport import curve
 from tests.helpers import free_port, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("name", ["replay", "drone", "ground", "field_drone", "field_ground"])
-def test_shipped_launch_files_validate(name, tmp_path):
+def test_shipped_launch_files_validate(name, tmp_path, monkeypatch):
+    # the drone files serve the ground link with CURVE from keys/ (relative to where they are
+    # launched): made as their headers say, `olsplat keys generate --out keys --name drone`
+    curve.generate(tmp_path / "keys", "drone")
+    (tmp_path / "keys" / "allowed").mkdir()
+    monkeypatch.chdir(tmp_path)
     config = load_launch(REPO / "launch" / f"{name}.yaml", run_dir=str(tmp_path))
     params = resolve_launch(config, tmp_path)
     assert set(params) == {n.name for n in config.nodes}
