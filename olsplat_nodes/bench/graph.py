@@ -97,6 +97,21 @@ def run(args: argparse.Namespace) -> int:
                 samples.setdefault(node["node"], []).append(node["values"])
             record = latest_map(run_dir / "map")
         seconds = time.monotonic() - start
+        # the ingest's counts are final in the heartbeat it sends after it saw the final map
+        # (then it exits); the 2 s sampling above may have missed it
+        final_at = (run_dir / "map" / "latest.json").stat().st_mtime
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            try:
+                status = client.request(StatusRequest(request_id=uuid.uuid4().hex[:8]))
+            except NoReply:
+                continue
+            for node in status.nodes:
+                samples.setdefault(node["node"], []).append(node["values"])
+            ingest = next((n for n in status.nodes if n["node"] == "ingest"), None)
+            if ingest is not None and time.time() - ingest["age_s"] >= final_at:
+                break
+            time.sleep(0.5)
         last = {name: values[-1] for name, values in samples.items()}
         sent = int(last.get("ingest", {}).get("handled", 0))  # frames (published also counts EndOfStream)
         aggregated = int(record["views"])
