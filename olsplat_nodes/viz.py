@@ -85,6 +85,17 @@ def query_pictures(
     return (0.45 * photo + 0.55 * heat).astype(np.uint8), overlay
 
 
+def safe_name(text: str, limit: int = 80) -> str:
+    """``text`` as a plain file-name part: letters, digits, '.', '_' and '-' only (anything else,
+    path separators and '..' included, becomes '_'), no leading or trailing '.' or '_', at most
+    ``limit`` characters; "query" when nothing is left."""
+    import re
+
+    name = re.sub(r"[^A-Za-z0-9._-]+|\.{2,}", "_", text)
+    name = re.sub(r"_+", "_", name).strip("._")[:limit]
+    return name or "query"
+
+
 def write_query_pictures(folder, view: str, text: str, image_rgb, heatmap, alpha, mask, regions) -> list:
     """Write VIEW_TEXT_heatmap.png and VIEW_TEXT_mask.png into ``folder``; returns their paths.
     ``regions``: objects with a ``box`` or plain (x0, y0, x1, y1) tuples."""
@@ -94,7 +105,7 @@ def write_query_pictures(folder, view: str, text: str, image_rgb, heatmap, alpha
     folder.mkdir(parents=True, exist_ok=True)
     boxes = [getattr(r, "box", r) for r in regions]
     heat, masked = query_pictures(image_rgb, heatmap, alpha > 0.5, mask.astype(bool), boxes)
-    stem = f"{Path(view).stem}_{'_'.join(text.split())}"
+    stem = f"{safe_name(Path(view).stem)}_{safe_name(text)}"  # both come from the server's reply
     paths = [folder / f"{stem}_heatmap.png", folder / f"{stem}_mask.png"]
     write_png(paths[0], heat)
     write_png(paths[1], masked)
