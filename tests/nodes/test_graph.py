@@ -183,3 +183,56 @@ def test_the_streamed_map_equals_the_offline_map(tiny, tmp_path):
     assert streamed.encoder == offline.encoder
     assert np.array_equal(streamed.observed, offline.observed) and streamed.observed.sum() > 1000
     np.testing.assert_array_equal(streamed.features, offline.features)
+
+
+@pytest.fixture(scope="module")
+def offline_map(tiny, tmp_path_factory):
+    """The tiny flight aggregated offline (``olsplat aggregate``): what an uninterrupted run gives."""
+    import shutil
+
+    from olsplat_nodes.aggregate import LanguageMap
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.method import named_method
+    from olsplat_nodes.pipeline import Scene, aggregate_scene
+
+    scene, _ = tiny
+    work = tmp_path_factory.mktemp("offline")
+    shutil.copytree(scene, work / "scene")
+    aggregate_scene(Scene.open(work / "scene"), named_method("outlangsplat"), encoder_from_spec(), work / "out")
+    return LanguageMap.load(work / "out" / "language_map.npz")
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("victim", ["ingest", "region_encoder", "refiner", "query_server"])
+def test_any_node_killed_mid_flight_loses_nothing(victim, tiny, tmp_path, offline_map):
+    """kill -9 of each of the other four nodes (the accumulator: the test above) once two views
+    are stored: the supervisor restarts it, every frame is in the store once, and the final map
+    is that of an uninterrupted run (to float16 rounding: after a kill, views may be stored in
+    another order, which changes the order of each Gaussian's sums)."""
+    import numpy as np
+
+    from olsplat_nodes.aggregate import LanguageMap
+
+    scene, summary = tiny
+    run_dir = tmp_path / "run"
+    supervisor = Supervisor(launch_tiny(scene, run_dir, free_port()))
+    running = Background(supervisor)
+    try:
+        store = run_dir / "store" / "views"
+        wait_for(lambda: store.is_dir() and len(list(store.iterdir())) >= 2, 240, "two stored views")
+        pid = pid_of(supervisor, victim)
+        assert pid, f"the supervisor reports the {victim}'s pid"
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: pid_of(supervisor, victim) not in (None, pid), 60, f"the {victim} restarted")
+        wait_for(lambda: running.code is not None, 480, "the launch to end after the final map")
+    finally:
+        supervisor.request_stop()
+        running.thread.join(30)
+    assert running.code == 0
+    names = ObservationStore(run_dir / "store", 1).names()
+    assert sorted(names) == sorted(set(names)) and len(names) == summary["views"]  # every frame, once
+    record = latest_map(run_dir / "map")
+    assert record["final"] and record["views"] == summary["views"]
+    streamed = LanguageMap.load(record["path"])
+    np.testing.assert_array_equal(streamed.observed, offline_map.observed)
+    np.testing.assert_allclose(streamed.features, offline_map.features, atol=2e-3, rtol=0)
