@@ -76,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
         f"accumulator.map={ply}",
         f"refiner.map={ply}",
         f"query_server.query_endpoint={endpoint}",
+        "query_server.queries_per_s=0",  # the benchmark's own queries come back to back: no rate limit
         "refiner.exit_on_final=false",
         "launch.exit_when=[]",
     ]

@@ -61,6 +61,8 @@ class QueryServerNode(Node):
         allow_dir: str = ""  # CURVE: folder of allowed client public keys
         max_text_chars: int = 200  # per text, the query's and each negative's
         max_negatives: int = 32  # each costs a text embedding and a cosine per Gaussian and pixel
+        queries_per_s: float = 5.0  # per client (CURVE key or address), beyond query_burst: "busy"; 0 = no limit
+        query_burst: int = 10
         threads: int = 2  # numba threads of heatmap rendering and clustering (0 = one per core)
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
         # true: serve it in clear anyway (a lab network), said in every status the server gives
@@ -98,7 +100,16 @@ class QueryServerNode(Node):
         self.encoders: dict[str, Any] = {}  # encoder spec -> loaded encoder
         self.views: list = []  # aggregate.SavedView, re-read when the run's views folder grows
         keys = curve.ServerKeys(p.server_secret, p.allow_dir) if p.server_secret else None
-        self.server = self.own(QueryServer(self.context, p.query_endpoint, keys=keys, max_bytes=REQUEST_MAX_BYTES))
+        self.server = self.own(
+            QueryServer(
+                self.context,
+                p.query_endpoint,
+                keys=keys,
+                max_bytes=REQUEST_MAX_BYTES,
+                queries_per_s=p.queries_per_s or None,
+                burst=p.query_burst,
+            )
+        )
         self.collector = self.own(
             DiagnosticsCollector(self.context, p.diagnostics_bind, p.stale_after_s, topic=p.topic_diagnostics)
         )

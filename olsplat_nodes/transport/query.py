@@ -44,14 +44,52 @@ def _salvage_request_id(body: list) -> str:
     return request_id[:200] if isinstance(request_id, str) else ""
 
 
+def _client_of(frames: list) -> str:
+    """Who sent a request, as stable as ZeroMQ tells: the CURVE public key, else the peer's
+    address (a client that reconnects keeps it), else the connection."""
+    first = frames[0]
+    for prop in ("User-Id", "Peer-Address"):
+        try:
+            value = first.get(prop)
+        except (zmq.ZMQError, AttributeError, KeyError):
+            continue
+        if value:
+            return f"{prop}:{value}"
+    return f"identity:{bytes(first).hex()}"
+
+
+class RateLimiter:
+    """Token buckets per client: ``rate`` requests per second on average, ``burst`` at once.
+    Memory stays bounded: at most ``max_clients`` buckets (the longest-idle ones go first)."""
+
+    def __init__(self, rate: float, burst: int, max_clients: int = 10_000):
+        self.rate, self.burst, self.max_clients = float(rate), float(burst), max_clients
+        self.buckets: dict[str, tuple[float, float]] = {}  # client -> (tokens, last refill time)
+
+    def allow(self, client: str, now: float | None = None) -> bool:
+        now = time.monotonic() if now is None else now
+        tokens, last = self.buckets.pop(client, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - last) * self.rate)
+        allowed = tokens >= 1.0
+        self.buckets[client] = (tokens - 1.0 if allowed else tokens, now)  # re-inserted: newest last
+        while len(self.buckets) > self.max_clients:
+            del self.buckets[next(iter(self.buckets))]
+        return allowed
+
+
 class QueryServer(Closable):
     """ROUTER socket bound to ``endpoint``. ``poll`` returns the next well-formed request; a
     malformed one (or a message that is not one of ``accept``) is counted, logged and answered
     with ``QueryReply(status="bad_request")`` right there. With ``keys`` the link is CURVE
     encrypted and only clients on the allow-list get through.
 
-    ``stats``: requests (returned by poll), bad_requests, replies, dropped_replies (peer gone or
-    its queue full), auth_failures (handshakes refused by CURVE, seen by a socket monitor)."""
+    With ``queries_per_s`` a client (its CURVE key, else its address) sending QueryRequests
+    faster than that (beyond ``burst`` at once) is answered ``status="busy"`` at once, without
+    the query being run; StatusRequests are never limited.
+
+    ``stats``: requests (returned by poll), bad_requests, busy (refused by the rate limit),
+    replies, dropped_replies (peer gone or its queue full), auth_failures (handshakes refused by
+    CURVE, seen by a socket monitor)."""
 
     def __init__(
         self,
@@ -62,8 +100,11 @@ class QueryServer(Closable):
         max_bytes: int = DEFAULT_MAX_BYTES,
         accept: tuple[type, ...] = (QueryRequest, StatusRequest),
         hwm: int = 100,
+        queries_per_s: float | None = None,
+        burst: int = 10,
     ):
         self.context, self.keys, self.max_bytes, self.accept = context, keys, int(max_bytes), tuple(accept)
+        self.limiter = RateLimiter(queries_per_s, burst) if queries_per_s else None
         self.socket = make_socket(context, zmq.ROUTER, max_bytes=self.max_bytes, sndhwm=hwm, rcvhwm=hwm)
         self._monitor = self.socket.get_monitor_socket(
             zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
@@ -77,7 +118,14 @@ class QueryServer(Closable):
         except BaseException:
             self.close()
             raise
-        self.stats = {"requests": 0, "bad_requests": 0, "replies": 0, "dropped_replies": 0, "auth_failures": 0}
+        self.stats = {
+            "requests": 0,
+            "bad_requests": 0,
+            "busy": 0,
+            "replies": 0,
+            "dropped_replies": 0,
+            "auth_failures": 0,
+        }
         self._drop_log = DropLog(f"query server on {self.endpoint}")
 
     def _count_monitor_events(self) -> None:
@@ -108,6 +156,12 @@ class QueryServer(Closable):
         if not isinstance(msg, self.accept):
             names = " or ".join(cls.__name__ for cls in self.accept)
             self._bad(identity, f"expected {names}, got {type(msg).__name__}", getattr(msg, "request_id", ""))
+            return None
+        if self.limiter is not None and isinstance(msg, QueryRequest) and not self.limiter.allow(_client_of(frames)):
+            self.stats["busy"] += 1
+            self._drop_log("a client over the query rate limit")
+            message = f"over the rate limit of {self.limiter.rate:g} queries per second per client: retry later"
+            self.reply(identity, QueryReply(request_id=msg.request_id, status="busy", message=message))
             return None
         self.stats["requests"] += 1
         return identity, msg
