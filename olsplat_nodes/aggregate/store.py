@@ -14,6 +14,7 @@ level); the bank is regions x D float16.
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 from dataclasses import replace
@@ -22,11 +23,12 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from ..durable import fsync_dir
+from ..durable import fsync_dir, write_atomic
 from .config import AggregationConfig
 from .observe import ViewObservations
 from .refine import MixedObservations, refine_mixed
 
+log = logging.getLogger(__name__)
 _ARRAYS = ("gaussians", "strength", "offsets", "slots", "weights", "bank")
 
 
@@ -56,6 +58,8 @@ class ObservationStore:
         for leftover in (self.folder / "views").glob("*.tmp"):  # a crash during an earlier append
             shutil.rmtree(leftover)
         self.touched = np.zeros(n_gaussians, bool)  # observed since the last refinement
+        self.checked: set[str] = set()  # segments found whole (they never change once written)
+        self.quarantined: dict[str, str] = {}  # segment folder name -> why it is skipped
 
     def __len__(self) -> int:
         return len(self.segments())
@@ -74,8 +78,9 @@ class ObservationStore:
                 f"view {name!r}: observation slot {observations.slots.max()} is outside its bank of {len(bank)} rows"
             )
         segments = self.segments()
-        if segments:  # every view's bank has the width of the first one: the refinement mixes them
-            width = np.load(segments[0] / "bank.npy", mmap_mode="r").shape[1]
+        good = next((i for i in range(len(segments)) if self.usable(i, segments)), None)
+        if good is not None:  # every view's bank has the width of the first one: the refinement mixes them
+            width = self.load(good, segments)[1].shape[1]
             if bank.shape[1] != width:
                 raise ValueError(f"view {name!r}: features of width {bank.shape[1]}, the store holds width {width}")
         index = len(segments)
@@ -105,6 +110,51 @@ class ObservationStore:
         self.touched[observations.gaussians] = True
         return index
 
+    def usable(self, index: int, segments: list[Path]) -> bool:
+        """Whether segment ``index`` is whole and consistent; one that is not (damaged on disk,
+        or written by other code) is quarantined: ``QUARANTINED.txt`` in its folder says why, it
+        keeps its index (the views folder is numbered by it) and every pass skips it, so one bad
+        segment never stops the refinement. Checked once per segment and process."""
+        folder = segments[index]
+        if folder.name in self.checked:
+            return True
+        if folder.name in self.quarantined:
+            return False
+        marker = folder / "QUARANTINED.txt"
+        reason = marker.read_text() if marker.exists() else self._problem(index, segments)
+        if reason is None:
+            self.checked.add(folder.name)
+            return True
+        if not marker.exists():
+            write_atomic(marker, reason.encode())
+            log.error("view segment %s quarantined (skipped from now on): %s", folder, reason)
+        self.quarantined[folder.name] = reason
+        return False
+
+    def _problem(self, index: int, segments: list[Path]) -> str | None:
+        try:
+            obs, bank = self.load(index, segments)
+            n = len(obs.gaussians)
+            if len(obs.strength) != n or len(obs.offsets) != n + 1 or bank.ndim != 2:
+                return f"inconsistent lengths: {n} Gaussians, {len(obs.strength)} strengths, {len(obs.offsets)} offsets"
+            offsets = np.asarray(obs.offsets)
+            entries = len(obs.slots)
+            if offsets[0] != 0 or (np.diff(offsets) < 0).any() or offsets[-1] != entries or len(obs.weights) != entries:
+                return "mixture offsets do not index its entries"
+            if n and (np.asarray(obs.gaussians).min() < 0 or np.asarray(obs.gaussians).max() >= self.n_gaussians):
+                return f"Gaussian ids outside the map of {self.n_gaussians}"
+            if len(obs.slots) and (np.asarray(obs.slots).min() < 0 or np.asarray(obs.slots).max() >= len(bank)):
+                return f"slots outside its bank of {len(bank)} rows"
+            width = next((self.load(i, segments)[1].shape[1] for i in range(index) if self.usable(i, segments)), None)
+            if width is not None and bank.shape[1] != width:
+                return f"features of width {bank.shape[1]}, the store holds width {width}"
+            if not np.isfinite(np.asarray(obs.strength)).all() or not np.isfinite(np.asarray(bank)).all():
+                return "NaN or infinite values"
+            (segments[index] / "name.txt").read_text()
+        except (OSError, ValueError, EOFError) as exc:
+            return f"unreadable: {exc}"
+        return None
+
     def load(self, index: int, segments: list[Path] | None = None) -> tuple[ViewObservations, np.ndarray]:
         """View ``index``'s observations and bank, memory-mapped; ``segments`` is a listing of
         ``segments()`` to reuse (a pass over all views lists the folder once)."""
@@ -121,6 +171,8 @@ class ObservationStore:
         banks: list[np.ndarray] = []
         slot_base = 0
         for index in range(len(segments)):
+            if not self.usable(index, segments):
+                continue
             obs, bank = self.load(index, segments)
             rows = np.flatnonzero(selected[np.asarray(obs.gaussians)])
             if not len(rows):
@@ -146,15 +198,23 @@ class ObservationStore:
         )
 
     def names(self) -> list[str]:
-        """The view names in store order (a node uses them to accept each view once)."""
-        return [(segment / "name.txt").read_text() for segment in self.segments()]
+        """The view names in store order (a node uses them to accept each view once); "" for a
+        quarantined or unreadable segment, so that its view is stored anew if it comes again."""
+        names = []
+        for segment in self.segments():
+            try:
+                names.append("" if (segment / "QUARANTINED.txt").exists() else (segment / "name.txt").read_text())
+            except OSError:
+                names.append("")
+        return names
 
     def touch_views(self, first: int) -> int:
         """Mark the Gaussians of views ``first``.. as touched (a refiner in another process
         than the writer learns of new views from the disk); returns the number of views."""
         segments = self.segments()
         for index in range(first, len(segments)):
-            self.touched[np.asarray(self.load(index, segments)[0].gaussians)] = True
+            if self.usable(index, segments):
+                self.touched[np.asarray(self.load(index, segments)[0].gaussians)] = True
         return len(segments)
 
     def observation_counts(self, segments: list[Path] | None = None) -> np.ndarray:
@@ -162,7 +222,8 @@ class ObservationStore:
         segments = self.segments() if segments is None else segments
         counts = np.zeros(self.n_gaussians, np.int64)
         for index in range(len(segments)):
-            counts[np.asarray(self.load(index, segments)[0].gaussians)] += 1  # a Gaussian appears once per view
+            if self.usable(index, segments):
+                counts[np.asarray(self.load(index, segments)[0].gaussians)] += 1  # once per view
         return counts
 
     def refine(

@@ -119,9 +119,17 @@ class RefinerNode(Node):
     def _beat(self, force: bool = False, text: str | None = None) -> None:
         if self.diag is None:
             return
-        values = self.stats.with_sockets(self.sub.stats, map_version=self.version, views=self.views_done)
+        quarantined = self.store.quarantined
+        values = self.stats.with_sockets(
+            self.sub.stats, map_version=self.version, views=self.views_done, quarantined=len(quarantined)
+        )
         text = text or f"map version {self.version}, {self.views_done} views"
-        (self.diag.beat_now if force else self.diag.beat)(0, text, values)
+        level = 0
+        if quarantined:  # the map goes on without them, but a user must hear of it
+            level = 2
+            folder, why = next(iter(quarantined.items()))
+            text += f"; {len(quarantined)} damaged view segment(s) skipped, e.g. {folder}: {why}"
+        (self.diag.beat_now if force else self.diag.beat)(level, text, values)
 
     def _refine(self, final: bool) -> None:
         """One pass over the views that arrived since the last one; writes a new snapshot."""

@@ -209,3 +209,28 @@ def test_the_store_refuses_a_view_of_another_feature_width(tmp_path):
         store.append(name, obs, bank[:, :3])
     assert len(store) == 1
     store.refine(None, AggregationConfig())  # still refinable
+
+
+def test_a_damaged_segment_is_quarantined_not_fatal(tmp_path):
+    """A segment damaged on disk (here its bank overwritten with garbage) is skipped with a
+    reason, for good (a marker in its folder), and the map is that of the other views."""
+    n = 150
+    views = list(_views(3, n))
+    store = ObservationStore(tmp_path / "store", n)
+    for view in views:
+        store.append(*view)
+    (tmp_path / "store" / "views" / "000001" / "bank.npy").write_bytes(b"not an array")
+    F, observed = store.refine(None, AggregationConfig())
+    assert list(store.quarantined) == ["000001"] and "unreadable" in store.quarantined["000001"]
+    assert (tmp_path / "store" / "views" / "000001" / "QUARANTINED.txt").exists()
+    clean = ObservationStore(tmp_path / "clean", n)
+    for view in (views[0], views[2]):
+        clean.append(*view)
+    F_clean, observed_clean = clean.refine(None, AggregationConfig())
+    np.testing.assert_array_equal(observed, observed_clean)
+    np.testing.assert_array_equal(F, F_clean)
+    reopened = ObservationStore(tmp_path / "store", n)  # a restarted refiner skips it at once
+    reopened.refine(None, AggregationConfig())
+    assert list(reopened.quarantined) == ["000001"] and len(reopened) == 3
+    assert reopened.names() == ["v0", "", "v2"]  # so the accumulator stores the view anew if it comes again
+    assert reopened.append(*views[1]) == 3
