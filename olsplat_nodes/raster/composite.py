@@ -65,6 +65,46 @@ def _sort_ranked(weights, slots, n):
         weights[k], slots[k] = w, s
 
 
+def _batcher_pairs(n: int) -> np.ndarray:
+    """[C, 2] the compare-exchange pairs (i < j) of Batcher's odd-even merge sort for n inputs (a
+    power of two): applied in order, each putting the larger value first, they sort any input."""
+    pairs = []
+    p = 1
+    while p < n:
+        k = p
+        while k >= 1:
+            for j in range(k % p, n - k, 2 * k):
+                for i in range(min(k, n - j - k)):
+                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
+                        pairs.append((i + j, i + j + k))
+            k //= 2
+        p *= 2
+    return np.array(pairs, np.int64)
+
+
+_PAIRS = _batcher_pairs(32)  # 191 compare-exchanges
+
+
+@njit(cache=True)
+def _network_sort(weights, slots, n, keys):
+    """Rank-order the first n (<= 32) entries (as ``_sort_ranked``) with a 32-input sorting
+    network on one uint64 key per entry: the weight's bits (a float >= 0 orders like its bits)
+    above the inverted slot, so a larger key ranks first; padding keys are 0 (every real weight
+    is > 0). Branch-free, unlike the insertion sort on lists that arrive far from sorted."""
+    bits = weights.view(np.uint32)
+    for i in range(n):
+        keys[i] = (np.uint64(bits[i]) << np.uint64(32)) | np.uint64(0xFFFFFFFF - slots[i])
+    for i in range(n, 32):
+        keys[i] = np.uint64(0)
+    for c in range(_PAIRS.shape[0]):
+        a, b = keys[_PAIRS[c, 0]], keys[_PAIRS[c, 1]]
+        keys[_PAIRS[c, 0]] = max(a, b)
+        keys[_PAIRS[c, 1]] = min(a, b)
+    for i in range(n):
+        bits[i] = np.uint32(keys[i] >> np.uint64(32))
+        slots[i] = np.int32(0xFFFFFFFF - (keys[i] & np.uint64(0xFFFFFFFF)))
+
+
 # Columns of the packed per-Gaussian record: one 64-byte cache line per Gaussian, so the hot
 # loop touches one line per Gaussian instead of one per array.
 MX, MY, CA, CB, CC, OPACITY, CUT, EX, EY, RED, GREEN, BLUE, DEPTH = range(13)
@@ -124,6 +164,7 @@ def composite_tiles(
         top_s = np.empty((n_pix, k_cap), np.int32)
         top_n = np.zeros(n_pix, np.int32)
         top_last = np.zeros(n_pix, np.int32)
+        keys = np.empty(32, np.uint64)
         evals = 0
         # gsplat-style work for the same image: each pixel tests every Gaussian of the tile's
         # list until it saturates. Reported next to our own count, never used for the output.
@@ -200,7 +241,10 @@ def composite_tiles(
                 if k_cap > 0:
                     n = top_n[p]
                     weights, ranked = top_w[p], top_s[p]
-                    _sort_ranked(weights, ranked, n)
+                    if k_cap == 32:
+                        _network_sort(weights, ranked, n, keys)
+                    else:
+                        _sort_ranked(weights, ranked, n)
                     keep = n
                     cumulative = np.float32(0.0)
                     for k in range(n):

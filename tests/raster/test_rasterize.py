@@ -172,3 +172,20 @@ def test_topk_list_keeps_the_stable_ranking_on_ties():
         expected = np.argsort(-weights_in, kind="stable")[:k_cap]
         np.testing.assert_array_equal(slots[:n], expected, err_msg=f"trial {trial}")
         np.testing.assert_array_equal(weights[:n], weights_in[expected])
+
+
+def test_the_sorting_network_ranks_as_the_insertion_sort():
+    from olsplat_nodes.raster.composite import _network_sort, _sort_ranked
+
+    rng = np.random.default_rng(7)
+    for trial in range(300):
+        n = int(rng.integers(1, 33))
+        weights = rng.choice(np.float32([0.1, 0.2, 0.3, 0.4, 1e-3, 0.999]), size=n)  # many ties
+        slots = rng.permutation(1000)[:n].astype(np.int32)
+        w1, s1 = np.zeros(32, np.float32), np.zeros(32, np.int32)
+        w1[:n], s1[:n] = weights, slots
+        w2, s2 = w1.copy(), s1.copy()
+        _network_sort(w1, s1, n, np.empty(32, np.uint64))
+        _sort_ranked(w2, s2, n)
+        np.testing.assert_array_equal(s1[:n], s2[:n], err_msg=f"trial {trial}")
+        np.testing.assert_array_equal(w1[:n], w2[:n])
