@@ -48,18 +48,34 @@ def _percentiles(seconds: list[float]) -> str:
     return f"p50 {np.percentile(ms, 50):7.1f} ms  p95 {np.percentile(ms, 95):7.1f} ms  ({len(ms)} queries)"
 
 
+def _sample(client, samples: dict[str, list[dict]]):
+    """Ask the query server for the graph's status and keep every node's values in ``samples``;
+    the StatusReply, or None when it did not answer in time."""
+    from olsplat_msgs import StatusRequest
+
+    from ..transport import NoReply
+
+    try:
+        status = client.request(StatusRequest(request_id=uuid.uuid4().hex[:8]))
+    except NoReply:
+        return None
+    for node in status.nodes:
+        samples.setdefault(node["node"], []).append(node["values"])
+    return status
+
+
 def run(args: argparse.Namespace) -> int:
     import threading
 
     import zmq
 
-    from olsplat_msgs import QueryRequest, StatusRequest
+    from olsplat_msgs import QueryRequest
 
     from ..aggregate.snapshot import latest_map
     from ..aggregate.views import load_views
     from ..evaluate.scene_eval import label_texts, load_queries
     from ..launcher import Supervisor, load_launch
-    from ..transport import NoReply, QueryClient
+    from ..transport import QueryClient
 
     scene = args.scene.resolve()
     run_dir = args.work or Path(tempfile.mkdtemp(prefix="olsplat_bench_graph_"))
@@ -90,25 +106,17 @@ def run(args: argparse.Namespace) -> int:
         record = None
         while record is None or not record["final"]:
             time.sleep(2.0)
-            try:
-                status = client.request(StatusRequest(request_id=uuid.uuid4().hex[:8]))
-            except NoReply:
-                continue
-            for node in status.nodes:
-                samples.setdefault(node["node"], []).append(node["values"])
-            record = latest_map(run_dir / "map")
+            if _sample(client, samples) is not None:
+                record = latest_map(run_dir / "map")
         seconds = time.monotonic() - start
         # the ingest's counts are final in the heartbeat it sends after it saw the final map
         # (then it exits); the 2 s sampling above may have missed it
         final_at = (run_dir / "map" / "latest.json").stat().st_mtime
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
-            try:
-                status = client.request(StatusRequest(request_id=uuid.uuid4().hex[:8]))
-            except NoReply:
+            status = _sample(client, samples)
+            if status is None:
                 continue
-            for node in status.nodes:
-                samples.setdefault(node["node"], []).append(node["values"])
             ingest = next((n for n in status.nodes if n["node"] == "ingest"), None)
             if ingest is not None and time.time() - ingest["age_s"] >= final_at:
                 break

@@ -241,7 +241,7 @@ def composite_tiles(
                 if k_cap > 0:
                     n = top_n[p]
                     weights, ranked = top_w[p], top_s[p]
-                    if k_cap == 32:
+                    if k_cap <= 32:  # the network sorts up to 32 keys (the rest padded)
                         _network_sort(weights, ranked, n, keys)
                     else:
                         _sort_ranked(weights, ranked, n)

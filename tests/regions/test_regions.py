@@ -22,6 +22,16 @@ def blocks_image(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(image, 0, 255).astype(np.uint8), truth
 
 
+def _best_iou(levels: RegionLevels, mask: np.ndarray) -> float:
+    """The best IoU of any region of any level with ``mask``."""
+    best = 0.0
+    for level in levels.label_maps:
+        ids, overlap = np.unique(level[mask], return_counts=True)
+        sizes = np.bincount(level.ravel())[ids]
+        best = max(best, float((overlap / (sizes + mask.sum() - overlap)).max()))
+    return best
+
+
 def test_levels_are_nested_cover_the_image_and_hit_their_counts():
     image, _ = blocks_image()
     config = RegionConfig(level_counts=(8, 30, 100))
@@ -43,12 +53,7 @@ def test_work_scale_gives_the_full_size_targets_and_follows_objects():
     assert levels.label_maps.shape == (3, 240, 320)
     assert levels.counts == config.scaled_counts(240, 320)
     for obj in (1, 2, 3):
-        mask = truth == obj
-        best = 0.0
-        for level in levels.label_maps:
-            ids, overlap = np.unique(level[mask], return_counts=True)
-            sizes = np.bincount(level.ravel())[ids]
-            best = max(best, float((overlap / (sizes + mask.sum() - overlap)).max()))
+        best = _best_iou(levels, truth == obj)
         assert best > 0.9, f"object {obj}: best region IoU {best:.2f}"
     with pytest.raises(ValueError, match="work_scale"):
         RegionConfig(work_scale=0.0)
@@ -58,12 +63,7 @@ def test_objects_come_out_as_regions():
     image, truth = blocks_image(1)
     levels = propose_regions(image, RegionConfig(level_counts=(8, 30, 100)))
     for obj in (1, 2, 3):
-        mask = truth == obj
-        best = 0.0
-        for level in levels.label_maps:
-            ids, overlap = np.unique(level[mask], return_counts=True)
-            sizes = np.bincount(level.ravel())[ids]
-            best = max(best, float((overlap / (sizes + mask.sum() - overlap)).max()))
+        best = _best_iou(levels, truth == obj)
         assert best > 0.9, f"object {obj}: best region IoU {best:.2f}"
 
 
