@@ -81,6 +81,27 @@ def bin_tiles(
     slots index ``order``, so data gathered in that order is read nearly sequentially.
     """
     visible = np.flatnonzero(radii > 0).astype(np.int32)
-    order = visible[radix_argsort(np.ascontiguousarray(depths[visible]))]
-    offsets, slots = _bin_sorted(tile_rects[order], n_chunks, tiles_x, tiles_x * tiles_y)
+    order = _take(visible, radix_argsort(np.ascontiguousarray(depths[visible])))
+    offsets, slots = _bin_sorted(_take_rows(tile_rects, order), n_chunks, tiles_x, tiles_x * tiles_y)
     return order, offsets, slots
+
+
+# Random gathers in parallel: numpy's fancy indexing runs them on one thread (0.04 s for the
+# tile rectangles of 870k Gaussians; 0.005 s here).
+@njit(parallel=True, cache=True)
+def _take(values, index):
+    """values[index] for 1-D arrays."""
+    out = np.empty(index.shape[0], values.dtype)
+    for i in prange(index.shape[0]):
+        out[i] = values[index[i]]
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _take_rows(values, index):
+    """values[index] for a 2-D array: the rows index lists."""
+    out = np.empty((index.shape[0], values.shape[1]), values.dtype)
+    for i in prange(index.shape[0]):
+        for k in range(values.shape[1]):
+            out[i, k] = values[index[i], k]
+    return out

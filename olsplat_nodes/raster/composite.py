@@ -12,8 +12,8 @@ first, the nearer Gaussian first on ties). At the end the list is sorted once, a
 adaptive K is the smallest k whose cumulative weight reaches ``topk_coverage`` of the pixel's
 total weight (1 - T_final), clamped to [topk_min, topk_max] and to the number of contributors.
 
-Gaussians arrive as packed records in depth order (``pack_sorted``), so a tile's list walks
-memory forwards and each Gaussian costs one cache line.
+Each Gaussian is one 64-byte record (``project.RECORD``), so it costs one cache line; a tile
+copies its records in chunks into a small buffer before compositing them (see ``CHUNK``).
 """
 
 from __future__ import annotations
@@ -23,113 +23,76 @@ import math
 import numpy as np
 from numba import njit, prange
 
-
-@njit(cache=True, inline="always")
-def _ranks_before(w_a, s_a, w_b, s_b) -> bool:
-    """Entry a ranks before b: larger weight first, nearer (smaller depth position s) on ties."""
-    return w_a > w_b or (w_a == w_b and s_a < s_b)
+from ._network32 import sort_descending
+from .project import BLUE, CA, CB, CC, CUT, DEPTH, EX, EY, GREEN, MX, MY, OPACITY, RECORD, RED
 
 
 @njit(cache=True, inline="always")
-def _offer(weights, slots, top_n, top_last, p, w, s, k_cap):
-    """Offer contribution (w, s) to pixel p's unsorted Top-k_cap list."""
+def rank_key(w, s, bits):
+    """uint64 key of contribution (w >= 0, depth-order position s): the weight's bits (a float
+    >= 0 orders like its bits) above the inverted position, so a larger key ranks first (larger
+    weight first, the nearer Gaussian first on ties). ``bits`` is a 1-element scratch array,
+    float32 with a uint32 view (numba has no scalar bit cast); padding keys are 0."""
+    bits[0] = w
+    return (np.uint64(bits.view(np.uint32)[0]) << np.uint64(32)) | np.uint64(0xFFFFFFFF - s)
+
+
+@njit(cache=True, inline="always")
+def _smallest(keys, n):
+    """Index of the smallest of keys[:n] (keys are distinct: positions are)."""
+    low = keys[0]
+    for k in range(1, n):  # a min reduction, which vectorizes, then one compare per entry
+        low = min(low, keys[k])
+    for k in range(n):
+        if keys[k] == low:
+            return k
+    return 0
+
+
+@njit(cache=True, inline="always")
+def offer(keys, top_n, top_last, p, key, k_cap):
+    """Offer ``key`` to pixel p's unsorted list keys [k_cap]: appended while there is room, else
+    it replaces the smallest key when larger (ties cannot happen: positions differ)."""
     n = top_n[p]
     if n < k_cap:
-        weights[n], slots[n] = w, s
+        keys[n] = key
         top_n[p] = n + 1
         if n + 1 == k_cap:
-            _find_last(weights, slots, top_last, p, k_cap)
-    elif w > weights[top_last[p]]:  # ties lose: the earlier contribution ranks first
-        weights[top_last[p]], slots[top_last[p]] = w, s
-        _find_last(weights, slots, top_last, p, k_cap)
-
-
-@njit(cache=True, inline="always")
-def _find_last(weights, slots, top_last, p, k_cap):
-    last = 0
-    for k in range(1, k_cap):
-        if _ranks_before(weights[last], slots[last], weights[k], slots[k]):
-            last = k
-    top_last[p] = last
+            top_last[p] = _smallest(keys, k_cap)
+    elif key > keys[top_last[p]]:
+        keys[top_last[p]] = key
+        top_last[p] = _smallest(keys, k_cap)
 
 
 @njit(cache=True)
-def _sort_ranked(weights, slots, n):
-    """Insertion sort of the first n entries into rank order (input is nearly sorted)."""
-    for i in range(1, n):
-        w, s = weights[i], slots[i]
-        k = i
-        while k > 0 and _ranks_before(w, s, weights[k - 1], slots[k - 1]):
-            weights[k], slots[k] = weights[k - 1], slots[k - 1]
-            k -= 1
-        weights[k], slots[k] = w, s
+def rank(keys, n, scratch):
+    """Sort keys[:n] largest first, in place. Up to 32 keys: the unrolled 32-input network
+    (``sorting_network``) on ``scratch`` [32], padded with 0; more: numba's sort."""
+    if n <= 32:
+        for i in range(n):
+            scratch[i] = keys[i]
+        for i in range(n, 32):
+            scratch[i] = np.uint64(0)
+        sort_descending(scratch)
+        for i in range(n):
+            keys[i] = scratch[i]
+    else:
+        ordered = np.sort(keys[:n])
+        for i in range(n):
+            keys[i] = ordered[n - 1 - i]
 
 
-def _batcher_pairs(n: int) -> np.ndarray:
-    """[C, 2] the compare-exchange pairs (i < j) of Batcher's odd-even merge sort for n inputs (a
-    power of two): applied in order, each putting the larger value first, they sort any input."""
-    pairs = []
-    p = 1
-    while p < n:
-        k = p
-        while k >= 1:
-            for j in range(k % p, n - k, 2 * k):
-                for i in range(min(k, n - j - k)):
-                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
-                        pairs.append((i + j, i + j + k))
-            k //= 2
-        p *= 2
-    return np.array(pairs, np.int64)
-
-
-_PAIRS = _batcher_pairs(32)  # 191 compare-exchanges
-
-
-@njit(cache=True)
-def _network_sort(weights, slots, n, keys):
-    """Rank-order the first n (<= 32) entries (as ``_sort_ranked``) with a 32-input sorting
-    network on one uint64 key per entry: the weight's bits (a float >= 0 orders like its bits)
-    above the inverted slot, so a larger key ranks first; padding keys are 0 (every real weight
-    is > 0). Branch-free, unlike the insertion sort on lists that arrive far from sorted."""
-    bits = weights.view(np.uint32)
-    for i in range(n):
-        keys[i] = (np.uint64(bits[i]) << np.uint64(32)) | np.uint64(0xFFFFFFFF - slots[i])
-    for i in range(n, 32):
-        keys[i] = np.uint64(0)
-    for c in range(_PAIRS.shape[0]):
-        a, b = keys[_PAIRS[c, 0]], keys[_PAIRS[c, 1]]
-        keys[_PAIRS[c, 0]] = max(a, b)
-        keys[_PAIRS[c, 1]] = min(a, b)
-    for i in range(n):
-        bits[i] = np.uint32(keys[i] >> np.uint64(32))
-        slots[i] = np.int32(0xFFFFFFFF - (keys[i] & np.uint64(0xFFFFFFFF)))
-
-
-# Columns of the packed per-Gaussian record: one 64-byte cache line per Gaussian, so the hot
-# loop touches one line per Gaussian instead of one per array.
-MX, MY, CA, CB, CC, OPACITY, CUT, EX, EY, RED, GREEN, BLUE, DEPTH = range(13)
-RECORD = 16
-
-
-@njit(parallel=True, cache=True)
-def pack_sorted(order, means2d, conics, opacities, sigma_cuts, extents, colors, depths):
-    """[M, RECORD] float32 records of the Gaussians ``order`` lists, in that (depth) order."""
-    packed = np.zeros((order.shape[0], RECORD), np.float32)
-    for s in prange(order.shape[0]):
-        g = order[s]
-        packed[s, MX], packed[s, MY] = means2d[g, 0], means2d[g, 1]
-        packed[s, CA], packed[s, CB], packed[s, CC] = conics[g, 0], conics[g, 1], conics[g, 2]
-        packed[s, OPACITY] = opacities[g]
-        packed[s, CUT] = sigma_cuts[g] + np.float32(1e-3)  # margin: the exact alpha test decides
-        packed[s, EX], packed[s, EY] = extents[g, 0], extents[g, 1]
-        packed[s, RED], packed[s, GREEN], packed[s, BLUE] = colors[g, 0], colors[g, 1], colors[g, 2]
-        packed[s, DEPTH] = depths[g]
-    return packed
+# A tile's records are scattered over the map's record array (its Gaussians are a sparse subset
+# of the map). Copying them CHUNK at a time in a tight loop of independent loads lets the core
+# overlap the cache misses, which the compositing loop, one long dependent chain per record,
+# cannot: 1M Gaussians at 960x720, compositing 0.53 -> 0.44 s. Records past the tile's
+# saturation are copied for nothing, at most CHUNK - 1 of them.
+CHUNK = 64
 
 
 @njit(parallel=True, cache=True, fastmath=True)
 def composite_tiles(
-    offsets, slots, order, tile_order, packed,
+    offsets, slots, order, tile_order, records,
     features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
     topk_min, topk_max, topk_coverage, feature_eps, background, queries,
     out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals,
@@ -157,32 +120,44 @@ def composite_tiles(
         acc_rgb = np.zeros((n_pix, 3), np.float32)
         acc_depth = np.zeros(n_pix, np.float32)
         acc_feat = np.zeros((n_pix, n_feat), np.float32)
-        # Per pixel, an unsorted list of up to k_cap (weight, depth-order position s); top_last
-        # is the slot of the entry that ranks last. Tile-local so that it stays in cache (the
-        # allocator hands the same block back tile after tile); entries >= top_n are never read.
-        top_w = np.empty((n_pix, k_cap), np.float32)
-        top_s = np.empty((n_pix, k_cap), np.int32)
+        # Per pixel, an unsorted list of up to k_cap rank keys (``rank_key``); top_last is the
+        # slot of the smallest. Tile-local so that it stays in cache (the allocator hands the
+        # same block back tile after tile); entries >= top_n are never read.
+        top_keys = np.empty((n_pix, k_cap), np.uint64)
         top_n = np.zeros(n_pix, np.int32)
         top_last = np.zeros(n_pix, np.int32)
-        keys = np.empty(32, np.uint64)
+        scratch = np.empty(32, np.uint64)
+        bits = np.empty(1, np.float32)
+        ranked_w = np.empty(max(k_cap, 1), np.float32)
+        chunk = np.empty((CHUNK, RECORD), np.float32)
         evals = 0
         # gsplat-style work for the same image: each pixel tests every Gaussian of the tile's
         # list until it saturates. Reported next to our own count, never used for the output.
         list_length = offsets[tile + 1] - offsets[tile]
         tile_pairs = n_live * list_length
-        for j in range(offsets[tile + 1] - offsets[tile]):  # j: position in the tile's list
+        for j in range(list_length):  # j: position in the tile's list
             if n_live == 0:
                 break
+            if j % CHUNK == 0:  # copy the next CHUNK records into the tile's buffer
+                for c in range(min(CHUNK, list_length - j)):
+                    source = records[order[slots[offsets[tile] + j + c]]]
+                    for f in range(RECORD):
+                        chunk[c, f] = source[f]
             s = slots[offsets[tile] + j]  # position in depth order
-            rec = packed[s]
+            rec = chunk[j % CHUNK]
             mx, my = rec[MX], rec[MY]
             ca, cb, cc = rec[CA], rec[CB], rec[CC]
-            opac, cut = rec[OPACITY], rec[CUT]
-            # pixel box (tile-local) where alpha >= alpha_min is possible; +1 px for rounding
-            px0 = max(int(math.floor(mx - rec[EX] - 1.5)), x_start) - x_start
-            px1 = min(int(math.ceil(mx + rec[EX] + 0.5)), x_end) - x_start
-            py0 = max(int(math.floor(my - rec[EY] - 1.5)), y_start) - y_start
-            py1 = min(int(math.ceil(my + rec[EY] + 0.5)), y_end) - y_start
+            opac = rec[OPACITY]
+            cut = rec[CUT] + np.float32(1e-3)  # margin: the exact alpha test decides
+            # Pixel box (tile-local) where alpha >= alpha_min is possible: pixel x (centre x + 0.5)
+            # is in when |x + 0.5 - mx| <= extent. The extent is widened by 0.1 % + 0.01 px, more
+            # than the 1e-3 margin on cut moves the ellipse; the exact sigma test below decides.
+            ex = rec[EX] * np.float32(1.001) + np.float32(0.01)
+            ey = rec[EY] * np.float32(1.001) + np.float32(0.01)
+            px0 = max(int(math.ceil(mx - ex - half)), x_start) - x_start
+            px1 = min(int(math.floor(mx + ex - half)) + 1, x_end) - x_start
+            py0 = max(int(math.ceil(my - ey - half)), y_start) - y_start
+            py1 = min(int(math.floor(my + ey - half)) + 1, y_end) - y_start
             for ly in range(py0, py1):
                 dy = my - (np.float32(y_start + ly) + half)
                 for lx in range(px0, px1):
@@ -212,7 +187,7 @@ def composite_tiles(
                     for f in range(n_feat):
                         acc_feat[p, f] += w * features[s, f]
                     if k_cap > 0:
-                        _offer(top_w[p], top_s[p], top_n, top_last, p, w, s, k_cap)
+                        offer(top_keys[p], top_n, top_last, p, rank_key(w, s, bits), k_cap)
                     trans[p] = next_t
         out_evals[tile, 0] = evals
         out_evals[tile, 1] = tile_pairs
@@ -240,22 +215,22 @@ def composite_tiles(
                         out_features[y, x, f] = acc_feat[p, f] / (total + feature_eps)
                 if k_cap > 0:
                     n = top_n[p]
-                    weights, ranked = top_w[p], top_s[p]
-                    if k_cap <= 32:  # the network sorts up to 32 keys (the rest padded)
-                        _network_sort(weights, ranked, n, keys)
-                    else:
-                        _sort_ranked(weights, ranked, n)
+                    keys = top_keys[p]
+                    rank(keys, n, scratch)
+                    weight_bits = ranked_w.view(np.uint32)
+                    for k in range(n):
+                        weight_bits[k] = np.uint32(keys[k] >> np.uint64(32))
                     keep = n
                     cumulative = np.float32(0.0)
                     for k in range(n):
-                        cumulative += weights[k]
+                        cumulative += ranked_w[k]
                         if cumulative >= topk_coverage * total:
                             keep = k + 1
                             break
                     keep = min(max(keep, topk_min), n)
                     for k in range(keep):
-                        out_topk_ids[y, x, k] = order[ranked[k]]
-                        out_topk_weights[y, x, k] = weights[k]
+                        out_topk_ids[y, x, k] = order[0xFFFFFFFF - np.int64(keys[k] & np.uint64(0xFFFFFFFF))]
+                        out_topk_weights[y, x, k] = ranked_w[k]
                     for k in range(keep, k_cap):  # pad; the outputs arrive uninitialised
                         out_topk_ids[y, x, k] = -1
                         out_topk_weights[y, x, k] = np.float32(0.0)

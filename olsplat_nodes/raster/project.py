@@ -21,27 +21,54 @@ from ..scene import Camera, Gaussians
 from .config import RasterConfig
 from .sh import eval_sh
 
+# Columns of the per-Gaussian record: one 64-byte cache line per Gaussian, so the compositing
+# loop touches one line per Gaussian instead of one per array.
+MX, MY, CA, CB, CC, OPACITY, CUT, EX, EY, RED, GREEN, BLUE, DEPTH = range(13)
+RECORD = 16
+
 
 @dataclass
 class Projected:
-    """Screen-space Gaussians; arrays are [N, ...] aligned with the input map."""
+    """Screen-space Gaussians, aligned with the input map. The float fields are column views of
+    ``records`` [N, RECORD] float32 (columns named above), what the compositing kernel reads."""
 
-    means2d: np.ndarray  # [N, 2] float32 pixel coordinates (u, v), pixel centres at +0.5
-    conics: np.ndarray  # [N, 3] float32 inverse 2D covariance (a, b, c): sigma = a dx^2/2 + b dx dy + c dy^2/2
-    depths: np.ndarray  # [N] float32 camera z
+    records: np.ndarray  # [N, RECORD] float32; all zero for a culled Gaussian
     radii: np.ndarray  # [N] int32 screen radius in pixels; 0 = culled
-    opacities: np.ndarray  # [N] float32
-    colors: np.ndarray  # [N, 3] float32 RGB
-    extents: np.ndarray  # [N, 2] float32 half-size of the box where alpha >= alpha_min is possible
-    sigma_cuts: np.ndarray  # [N] float32 log(opacity / alpha_min): sigma beyond it gives alpha < alpha_min
     tile_rects: np.ndarray  # [N, 4] int32 (tx0, ty0, tx1, ty1), tiles tx0 <= tx < tx1, ty0 <= ty < ty1
+
+    @property
+    def means2d(self) -> np.ndarray:  # [N, 2] pixel coordinates (u, v), pixel centres at +0.5
+        return self.records[:, MX : MY + 1]
+
+    @property
+    def conics(self) -> np.ndarray:  # [N, 3] inverse 2D covariance (a, b, c): sigma = a dx^2/2 + b dx dy + c dy^2/2
+        return self.records[:, CA : CC + 1]
+
+    @property
+    def depths(self) -> np.ndarray:  # [N] camera z
+        return self.records[:, DEPTH]
+
+    @property
+    def opacities(self) -> np.ndarray:  # [N]
+        return self.records[:, OPACITY]
+
+    @property
+    def colors(self) -> np.ndarray:  # [N, 3] RGB
+        return self.records[:, RED : BLUE + 1]
+
+    @property
+    def extents(self) -> np.ndarray:  # [N, 2] half-size of the box where alpha >= alpha_min is possible
+        return self.records[:, EX : EY + 1]
+
+    @property
+    def sigma_cuts(self) -> np.ndarray:  # [N] log(opacity / alpha_min): sigma beyond it gives alpha < alpha_min
+        return self.records[:, CUT]
 
 
 @njit(parallel=True, cache=True)
 def _project_kernel(
     means, quats, log_scales, opacity_logits, sh, viewmat, fx, fy, cx, cy, campos,
-    width, height, tile_size, eps2d, near, far, radius_sigmas, alpha_min,
-    means2d, conics, depths, radii, opacities, colors, extents, sigma_cuts, tile_rects,
+    width, height, tile_size, eps2d, near, far, radius_sigmas, alpha_min, records, radii, tile_rects,
 ):  # fmt: skip
     n = means.shape[0]
     tiles_x = (width + tile_size - 1) // tile_size
@@ -124,22 +151,24 @@ def _project_kernel(
         dx, dy, dz = means[i, 0] - campos[0], means[i, 1] - campos[1], means[i, 2] - campos[2]
         dn = math.sqrt(dx * dx + dy * dy + dz * dz)
         dn = dn if dn > 0.0 else 1.0
+        rec = records[i]
         color_ok = True
         for ch in range(3):
             acc = eval_sh(sh[i, :, ch], dx / dn, dy / dn, dz / dn)
-            colors[i, ch] = max(acc + 0.5, 0.0)
+            rec[RED + ch] = max(acc + 0.5, 0.0)
             color_ok &= np.isfinite(acc)
         if not color_ok:
+            rec[RED], rec[GREEN], rec[BLUE] = 0.0, 0.0, 0.0
             continue
         sigma_cut = math.log(opacity / alpha_min)
-        means2d[i, 0], means2d[i, 1] = u, v
-        conics[i, 0], conics[i, 1], conics[i, 2] = cov_c / det, -cov_b / det, cov_a / det
-        depths[i] = pz
-        opacities[i] = opacity
+        rec[MX], rec[MY] = u, v
+        rec[CA], rec[CB], rec[CC] = cov_c / det, -cov_b / det, cov_a / det
+        rec[DEPTH] = pz
+        rec[OPACITY] = opacity
         # alpha >= alpha_min  <=>  d^T cov^-1 d <= 2 sigma_cut: an ellipse with this bounding box
-        extents[i, 0] = math.sqrt(2.0 * sigma_cut * cov_a)
-        extents[i, 1] = math.sqrt(2.0 * sigma_cut * cov_c)
-        sigma_cuts[i] = sigma_cut
+        rec[EX] = math.sqrt(2.0 * sigma_cut * cov_a)
+        rec[EY] = math.sqrt(2.0 * sigma_cut * cov_c)
+        rec[CUT] = sigma_cut
         tile_rects[i, 0], tile_rects[i, 1], tile_rects[i, 2], tile_rects[i, 3] = tx0, ty0, tx1, ty1
         radii[i] = radius
 
@@ -148,22 +177,14 @@ def project(gaussians: Gaussians, camera: Camera, config: RasterConfig) -> Proje
     """Project every Gaussian of the map into ``camera`` (see the module docstring)."""
     n = len(gaussians)
     out = Projected(
-        means2d=np.zeros((n, 2), np.float32),
-        conics=np.zeros((n, 3), np.float32),
-        depths=np.zeros(n, np.float32),
+        records=np.zeros((n, RECORD), np.float32),
         radii=np.zeros(n, np.int32),
-        opacities=np.zeros(n, np.float32),
-        colors=np.zeros((n, 3), np.float32),
-        extents=np.zeros((n, 2), np.float32),
-        sigma_cuts=np.zeros(n, np.float32),
         tile_rects=np.zeros((n, 4), np.int32),
     )
     _project_kernel(
         gaussians.means, gaussians.quats, gaussians.log_scales, gaussians.opacity_logits, gaussians.sh,
         camera.camera_from_world, camera.fx, camera.fy, camera.cx, camera.cy, camera.center,
         camera.width, camera.height, config.tile_size, config.eps2d, config.near_plane, config.far_plane,
-        config.radius_sigmas, config.alpha_min,
-        out.means2d, out.conics, out.depths, out.radii, out.opacities, out.colors, out.extents,
-        out.sigma_cuts, out.tile_rects,
+        config.radius_sigmas, config.alpha_min, out.records, out.radii, out.tile_rects,
     )  # fmt: skip
     return out

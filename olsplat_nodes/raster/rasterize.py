@@ -9,7 +9,7 @@ import numpy as np
 
 from ..scene import Camera, Gaussians
 from .binning import bin_tiles
-from .composite import composite_tiles, pack_sorted
+from .composite import composite_tiles
 from .config import RasterConfig
 from .project import Projected, project
 
@@ -66,10 +66,6 @@ def rasterize(
     projected: Projected = project(gaussians, camera, config)
     clock.append(time.perf_counter())
     order, offsets, slots = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
-    packed = pack_sorted(
-        order, projected.means2d, projected.conics, projected.opacities, projected.sigma_cuts,
-        projected.extents, projected.colors, projected.depths,
-    )  # fmt: skip
     sorted_features = feats[order] if feats.shape[1] else np.zeros((len(order), 0), np.float32)
     clock.append(time.perf_counter())
 
@@ -84,7 +80,7 @@ def rasterize(
     # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
     tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
     composite_tiles(
-        offsets, slots, order, tile_order, packed, sorted_features,
+        offsets, slots, order, tile_order, projected.records, sorted_features,
         width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
         want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
         np.asarray(background, np.float32), queries,

@@ -155,37 +155,53 @@ def test_config_rejects_bad_values():
         RasterConfig(topk_coverage=1.5)
 
 
-def test_topk_list_keeps_the_stable_ranking_on_ties():
-    """The per-pixel list helpers against a stable sort, with many exactly tied weights."""
-    from olsplat_nodes.raster.composite import _offer, _sort_ranked
+def _list_and_rank(weights_in, k_cap):
+    """Offer weights_in (positions 0, 1, ...) to one pixel's list, rank it: (positions, weights)."""
+    from olsplat_nodes.raster.composite import offer, rank, rank_key
 
+    keys, top_n, top_last = np.zeros(k_cap, np.uint64), np.zeros(1, np.int32), np.zeros(1, np.int32)
+    bits = np.empty(1, np.float32)
+    for j, w in enumerate(weights_in):
+        offer(keys, top_n, top_last, 0, rank_key(np.float32(w), j, bits), k_cap)
+    n = int(top_n[0])
+    rank(keys, n, np.empty(32, np.uint64))
+    positions = 0xFFFFFFFF - (keys[:n] & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    return positions, (keys[:n] >> np.uint64(32)).astype(np.uint32).view(np.float32)
+
+
+@pytest.mark.parametrize("k_cap", [8, 32, 40])  # 40: past the network, numba's sort
+def test_topk_list_keeps_the_stable_ranking_on_ties(k_cap):
+    """The per-pixel list (offer, then rank) against a stable sort, with many exact ties."""
     rng = np.random.default_rng(4)
-    for trial in range(50):
-        k_cap = 8
-        weights_in = rng.choice(np.float32([0.1, 0.2, 0.3, 0.4]), size=rng.integers(1, 30))
-        weights, slots = np.zeros(k_cap, np.float32), np.zeros(k_cap, np.int32)
-        top_n, top_last = np.zeros(1, np.int32), np.zeros(1, np.int32)
-        for j, w in enumerate(weights_in):
-            _offer(weights, slots, top_n, top_last, 0, w, j, k_cap)
-        n = int(top_n[0])
-        _sort_ranked(weights, slots, n)
+    for trial in range(100):
+        weights_in = rng.choice(np.float32([0.1, 0.2, 0.3, 0.4, 1e-3, 0.999]), size=rng.integers(1, 80))
+        positions, weights = _list_and_rank(weights_in, k_cap)
         expected = np.argsort(-weights_in, kind="stable")[:k_cap]
-        np.testing.assert_array_equal(slots[:n], expected, err_msg=f"trial {trial}")
-        np.testing.assert_array_equal(weights[:n], weights_in[expected])
+        np.testing.assert_array_equal(positions, expected, err_msg=f"trial {trial}")
+        np.testing.assert_array_equal(weights, weights_in[expected])
 
 
-def test_the_sorting_network_ranks_as_the_insertion_sort():
-    from olsplat_nodes.raster.composite import _network_sort, _sort_ranked
+def test_the_unrolled_network_is_the_generated_one_and_sorts():
+    from itertools import product
 
-    rng = np.random.default_rng(7)
-    for trial in range(300):
-        n = int(rng.integers(1, 33))
-        weights = rng.choice(np.float32([0.1, 0.2, 0.3, 0.4, 1e-3, 0.999]), size=n)  # many ties
-        slots = rng.permutation(1000)[:n].astype(np.int32)
-        w1, s1 = np.zeros(32, np.float32), np.zeros(32, np.int32)
-        w1[:n], s1[:n] = weights, slots
-        w2, s2 = w1.copy(), s1.copy()
-        _network_sort(w1, s1, n, np.empty(32, np.uint64))
-        _sort_ranked(w2, s2, n)
-        np.testing.assert_array_equal(s1[:n], s2[:n], err_msg=f"trial {trial}")
-        np.testing.assert_array_equal(w1[:n], w2[:n])
+    from olsplat_nodes.raster import sorting_network
+    from olsplat_nodes.raster._network32 import sort_descending
+
+    assert sorting_network.GENERATED.read_text() == sorting_network.generated_source(), (
+        "run python -m olsplat_nodes.raster.sorting_network"
+    )
+    assert len(sorting_network.batcher_pairs(32)) == 191
+    # 0-1 principle: a network that sorts every 0/1 input sorts every input; all 2^16 inputs of
+    # the 16-input network, and random inputs of the 32-input one
+    values = np.array(list(product((0, 1), repeat=16)), np.int8)  # [65536, 16]
+    expected = np.sort(values, axis=1)[:, ::-1]
+    for a, b in sorting_network.batcher_pairs(16):
+        values[:, a], values[:, b] = np.maximum(values[:, a], values[:, b]), np.minimum(values[:, a], values[:, b])
+    np.testing.assert_array_equal(values, expected)
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        keys = rng.integers(0, 2**63, size=32, dtype=np.uint64)
+        keys[rng.random(32) < 0.3] = 0
+        got = keys.copy()
+        sort_descending(got)
+        np.testing.assert_array_equal(got, np.sort(keys)[::-1])
