@@ -28,13 +28,14 @@ from .project import BLUE, CA, CB, CC, CUT, DEPTH, EX, EY, GREEN, MX, MY, OPACIT
 
 
 @njit(cache=True, inline="always")
-def rank_key(w, s, bits):
+def rank_key(w, s, scratch, scratch_bits):
     """uint64 key of contribution (w >= 0, depth-order position s): the weight's bits (a float
     >= 0 orders like its bits) above the inverted position, so a larger key ranks first (larger
-    weight first, the nearer Gaussian first on ties). ``bits`` is a 1-element scratch array,
-    float32 with a uint32 view (numba has no scalar bit cast); padding keys are 0."""
-    bits[0] = w
-    return (np.uint64(bits.view(np.uint32)[0]) << np.uint64(32)) | np.uint64(0xFFFFFFFF - s)
+    weight first, the nearer Gaussian first on ties). Numba has no scalar bit cast: w goes
+    through ``scratch``, a 1-element float32 array, and ``scratch_bits``, its uint32 view (made
+    once by the caller: a view per call costs reference counting). Padding keys are 0."""
+    scratch[0] = w
+    return (np.uint64(scratch_bits[0]) << np.uint64(32)) | np.uint64(0xFFFFFFFF - s)
 
 
 @njit(cache=True, inline="always")
@@ -97,7 +98,8 @@ def composite_tiles(
     topk_min, topk_max, topk_coverage, feature_eps, background, queries,
     out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals,
 ):  # fmt: skip
-    """Composite every tile. With queries [Q, D] (Q > 0) out_features [H, W, Q] receives the
+    """Composite every tile; features [N, D] are the map's, indexed like records. With queries
+    [Q, D] (Q > 0) out_features [H, W, Q] receives the
     cosine of each pixel's rendered feature with each query row instead of the feature itself
     (a heatmap without the [H, W, D] feature image); else out_features is [H, W, D]."""
     tiles_x = (width + tile_size - 1) // tile_size
@@ -128,8 +130,11 @@ def composite_tiles(
         top_last = np.zeros(n_pix, np.int32)
         scratch = np.empty(32, np.uint64)
         bits = np.empty(1, np.float32)
+        bits_u32 = bits.view(np.uint32)
         ranked_w = np.empty(max(k_cap, 1), np.float32)
+        ranked_bits = ranked_w.view(np.uint32)
         chunk = np.empty((CHUNK, RECORD), np.float32)
+        chunk_feat = np.empty((CHUNK, n_feat), np.float32)
         evals = 0
         # gsplat-style work for the same image: each pixel tests every Gaussian of the tile's
         # list until it saturates. Reported next to our own count, never used for the output.
@@ -138,13 +143,16 @@ def composite_tiles(
         for j in range(list_length):  # j: position in the tile's list
             if n_live == 0:
                 break
-            if j % CHUNK == 0:  # copy the next CHUNK records into the tile's buffer
+            if j % CHUNK == 0:  # copy the next CHUNK records (and feature rows) into tile buffers
                 for c in range(min(CHUNK, list_length - j)):
-                    source = records[order[slots[offsets[tile] + j + c]]]
+                    g = order[slots[offsets[tile] + j + c]]
                     for f in range(RECORD):
-                        chunk[c, f] = source[f]
+                        chunk[c, f] = records[g, f]
+                    for f in range(n_feat):
+                        chunk_feat[c, f] = features[g, f]
             s = slots[offsets[tile] + j]  # position in depth order
             rec = chunk[j % CHUNK]
+            feat = chunk_feat[j % CHUNK]
             mx, my = rec[MX], rec[MY]
             ca, cb, cc = rec[CA], rec[CB], rec[CC]
             opac = rec[OPACITY]
@@ -185,9 +193,9 @@ def composite_tiles(
                     acc_rgb[p, 2] += w * rec[BLUE]
                     acc_depth[p] += w * rec[DEPTH]
                     for f in range(n_feat):
-                        acc_feat[p, f] += w * features[s, f]
+                        acc_feat[p, f] += w * feat[f]
                     if k_cap > 0:
-                        offer(top_keys[p], top_n, top_last, p, rank_key(w, s, bits), k_cap)
+                        offer(top_keys[p], top_n, top_last, p, rank_key(w, s, bits, bits_u32), k_cap)
                     trans[p] = next_t
         out_evals[tile, 0] = evals
         out_evals[tile, 1] = tile_pairs
@@ -217,9 +225,8 @@ def composite_tiles(
                     n = top_n[p]
                     keys = top_keys[p]
                     rank(keys, n, scratch)
-                    weight_bits = ranked_w.view(np.uint32)
                     for k in range(n):
-                        weight_bits[k] = np.uint32(keys[k] >> np.uint64(32))
+                        ranked_bits[k] = np.uint32(keys[k] >> np.uint64(32))
                     keep = n
                     cumulative = np.float32(0.0)
                     for k in range(n):

@@ -66,7 +66,6 @@ def rasterize(
     projected: Projected = project(gaussians, camera, config)
     clock.append(time.perf_counter())
     order, offsets, slots = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
-    sorted_features = feats[order] if feats.shape[1] else np.zeros((len(order), 0), np.float32)
     clock.append(time.perf_counter())
 
     k = config.topk_max if want_topk else 0
@@ -80,7 +79,7 @@ def rasterize(
     # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
     tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
     composite_tiles(
-        offsets, slots, order, tile_order, projected.records, sorted_features,
+        offsets, slots, order, tile_order, projected.records, feats,
         width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
         want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
         np.asarray(background, np.float32), queries,

@@ -162,7 +162,7 @@ def _list_and_rank(weights_in, k_cap):
     keys, top_n, top_last = np.zeros(k_cap, np.uint64), np.zeros(1, np.int32), np.zeros(1, np.int32)
     bits = np.empty(1, np.float32)
     for j, w in enumerate(weights_in):
-        offer(keys, top_n, top_last, 0, rank_key(np.float32(w), j, bits), k_cap)
+        offer(keys, top_n, top_last, 0, rank_key(np.float32(w), j, bits, bits.view(np.uint32)), k_cap)
     n = int(top_n[0])
     rank(keys, n, np.empty(32, np.uint64))
     positions = 0xFFFFFFFF - (keys[:n] & np.uint64(0xFFFFFFFF)).astype(np.int64)
