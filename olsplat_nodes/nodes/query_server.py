@@ -64,6 +64,9 @@ class QueryServerNode(Node):
         queries_per_s: float = 5.0  # per client (CURVE key or address), beyond query_burst: "busy"; 0 = no limit
         query_burst: int = 10
         threads: int = 2  # numba threads of heatmap rendering and clustering (0 = one per core)
+        # rendered features of recent views, so that the next query on a view is not rendered again
+        # (157 MB per 640x480 view at D = 128; a new map version renders anew); 0 = keep none
+        heatmap_cache_mb: int = 512
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
         # true: serve it in clear anyway (a lab network), said in every status the server gives
         insecure: bool = False
@@ -87,6 +90,7 @@ class QueryServerNode(Node):
             )
 
     def setup(self) -> None:
+        from ..query.heatmap import FeatureImages
         from ..scene import read_ply  # heavy imports here and below: the launcher imports node classes
 
         p = self.params
@@ -99,6 +103,7 @@ class QueryServerNode(Node):
         self.version = 0
         self.encoders: dict[str, Any] = {}  # encoder spec -> loaded encoder
         self.views: list = []  # aggregate.SavedView, re-read when the run's views folder grows
+        self.feature_images = FeatureImages(p.heatmap_cache_mb * 2**20)
         keys = curve.ServerKeys(p.server_secret, p.allow_dir) if p.server_secret else None
         self.server = self.own(
             QueryServer(
@@ -251,7 +256,17 @@ class QueryServerNode(Node):
             negatives = request.negatives or list(self.params.negatives)
             threshold = request.threshold if math.isfinite(request.threshold) else None  # NaN: beat the negatives
             encoder = self.encoders[encoder_name]
-            answer = answer_query(self.language_map, self.gaussians, encoder, text, negatives, camera, threshold)
+            answer = answer_query(
+                self.language_map,
+                self.gaussians,
+                encoder,
+                text,
+                negatives,
+                camera,
+                threshold,
+                images=self.feature_images if self.params.heatmap_cache_mb > 0 else None,
+                image_key=(self.version, camera.name if camera is not None else ""),
+            )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))
         if not request.heatmap:
@@ -267,6 +282,9 @@ class QueryServerNode(Node):
             **server.stats,  # requests, bad_requests, replies, dropped_replies, auth_failures
             **{f"diagnostics_{k}": collector.stats[k] for k in ("received", "bad_messages", "gaps")},
             **{f"map_{k}": maps.stats[k] for k in ("received", "bad_messages", "gaps", "reconnects")},
+            heatmap_cache_hits=self.feature_images.hits,
+            heatmap_cache_misses=self.feature_images.misses,
+            heatmap_cache_mb=round(self.feature_images.bytes / 2**20, 1),
         )
         values["bad_messages"] = (
             self.stats.counts["bad_messages"]

@@ -10,6 +10,7 @@ with the query beats its cosine with every negative text; chosen Gaussians are c
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,7 +18,7 @@ import numpy as np
 from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..scene import Camera, Gaussians
-from .heatmap import CANONICAL_NEGATIVES, relevancy_mask, render_heatmaps, threshold_mask
+from .heatmap import CANONICAL_NEGATIVES, FeatureImages, relevancy_mask, render_heatmaps, threshold_mask
 from .localize import Instance3D, Region2D, instances_in_3d, regions_in_view
 
 
@@ -72,11 +73,14 @@ def answer_query(
     negatives: list[str] | tuple[str, ...] = CANONICAL_NEGATIVES,
     camera: Camera | None = None,
     threshold: float | None = None,
+    images: FeatureImages | None = None,
+    image_key: Hashable = None,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
-    with ``threshold``, where its cosine heatmap exceeds that value. Raises OlsplatInputError on
-    an empty text or a map that does not match the Gaussians."""
+    with ``threshold``, where its cosine heatmap exceeds that value. With ``images`` the view's
+    rendered features are taken from (and kept in) that cache under ``image_key``. Raises
+    OlsplatInputError on an empty text or a map that does not match the Gaussians."""
     text = text.strip()
     if not text:
         raise OlsplatInputError("the query text is empty")
@@ -91,7 +95,10 @@ def answer_query(
     chosen = (relevance.argmax(1) == 0) & language_map.observed
     answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen))
     if camera is not None:
-        maps, alpha = render_heatmaps(gaussians, features, embeddings, camera)
+        if images is not None:
+            maps, alpha = images.heatmaps(image_key, gaussians, features, embeddings, camera)
+        else:
+            maps, alpha = render_heatmaps(gaussians, features, embeddings, camera)
         answer.heatmap, answer.negative_heatmaps, answer.alpha = maps[0], maps[1:], alpha
         if threshold is None:
             answer.mask = relevancy_mask(maps[0], maps[1:], alpha)

@@ -11,6 +11,9 @@ H_q(v) = cos(F(v), e_q) per pixel. Masks:
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from collections.abc import Hashable
+
 import numpy as np
 
 from ..raster import RasterConfig, rasterize
@@ -34,6 +37,49 @@ def render_heatmaps(gaussians: Gaussians, features: np.ndarray, texts: np.ndarra
     )
     assert result.features is not None
     return np.moveaxis(result.features, -1, 0), result.alpha
+
+
+class FeatureImages:
+    """The rendered features of recent views, kept to answer the next query on the same view
+    without rendering again (an operator tries several queries on one view; the alpha-blended
+    features of a view do not depend on the query). An LRU under a byte budget: each entry is
+    a view's unit features [H * W, D] float32 (F / |F|, rows of 0 where nothing was rendered)
+    and its alpha [H, W]; 157 MB at 640x480 and D = 128. ``key`` must change whenever the
+    features or the camera do (the query server uses (map version, view name)). A view larger
+    than the whole budget is rendered and not kept. The answers are those of
+    ``render_heatmaps`` (the same sums, the cosine taken by a matrix product: equal to ~1e-6)."""
+
+    def __init__(self, budget_bytes: int):
+        self.budget = int(budget_bytes)
+        self.entries: OrderedDict[Hashable, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.hits = self.misses = 0
+
+    @property
+    def bytes(self) -> int:
+        return sum(unit.nbytes + alpha.nbytes for unit, alpha in self.entries.values())
+
+    def heatmaps(
+        self, key: Hashable, gaussians: Gaussians, features: np.ndarray, texts: np.ndarray, camera: Camera, config=None
+    ):
+        """([Q, H, W] cosine heatmaps of the unit texts [Q, D], [H, W] alpha), as ``render_heatmaps``."""
+        entry = self.entries.get(key)
+        if entry is None:
+            self.misses += 1
+            feature_map, alpha = render_feature_map(gaussians, features, camera, config)
+            unit = feature_map.reshape(-1, feature_map.shape[-1])
+            norm = np.sqrt(np.einsum("nd,nd->n", unit, unit))
+            unit /= np.maximum(norm, np.float32(1e-30))[:, None]  # in place: 0 rows stay 0
+            entry = (unit, alpha)
+            if unit.nbytes + alpha.nbytes <= self.budget:
+                self.entries[key] = entry
+                while self.bytes > self.budget:
+                    self.entries.popitem(last=False)
+        else:
+            self.hits += 1
+            self.entries.move_to_end(key)
+        unit, alpha = entry
+        maps = unit @ np.asarray(texts, np.float32).T  # [H * W, Q]
+        return np.ascontiguousarray(maps.T).reshape(len(texts), *alpha.shape), alpha
 
 
 def heatmaps(feature_map: np.ndarray, text_embeddings: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ def test_bench_graph_writes_the_documented_figures(tiny, tmp_path, capsys):
     scene, _ = tiny
     out = tmp_path / "graph.json"
     args = ["bench", "graph", "--scene", str(scene), "--rate", "4", "--queries", "3", "--heatmap-queries", "2"]
+    args += ["--heatmap-views", "1"]  # one view: a first query and a repeat
     args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port()), "--json", str(out)]
     assert main(args) == 0
     figures = json.loads(out.read_text())
@@ -29,6 +30,7 @@ def test_bench_graph_writes_the_documented_figures(tiny, tmp_path, capsys):
     assert figures["frames_dropped"] == 12 - figures["frames_aggregated"]
     assert figures["views_per_s"] == pytest.approx(4 * figures["frames_aggregated"] / 12, abs=1e-3)
     assert figures["query_relevance_p95_ms"] > 0 and figures["query_heatmap_p95_ms"] > 0
+    assert figures["query_heatmap_first_p95_ms"] > 0 and figures["query_heatmap_repeat_p95_ms"] > 0
     for node in ("region_encoder", "accumulator"):
         assert set(figures["nodes"][node]) == {"busy_ms", "latency_ms", "drops", "handled"}
         assert figures["nodes"][node]["busy_ms"] > 0

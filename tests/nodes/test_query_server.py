@@ -157,7 +157,7 @@ def test_reply_arrays_mean_what_the_schema_says(ctx, sockdir, tiny, tiny_run, tm
     where that beats every negative's heatmap on covered pixels; image: the view's photo."""
     from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
     from olsplat_nodes.encoders.spec import encoder_from_spec
-    from olsplat_nodes.query.heatmap import render_heatmaps
+    from olsplat_nodes.query.heatmap import FeatureImages, render_heatmaps
     from olsplat_nodes.scene import read_ply
 
     scene, _ = tiny
@@ -179,9 +179,14 @@ def test_reply_arrays_mean_what_the_schema_says(ctx, sockdir, tiny, tiny_run, tm
     view = next(v for v in load_views(tmp_path / "views") if v.camera.name == ENCODE_VIEW)
     texts = encoder_from_spec().encode_text(["red roof buildings", *negatives])
     gaussians = read_ply(scene / "map" / "point_cloud.ply")
-    maps, alpha = render_heatmaps(gaussians, language_map.features.astype(np.float32), texts, view.camera)
-    assert reply.heatmap.dtype == np.float32 and np.abs(reply.heatmap).max() <= 1.0 + 1e-6
-    np.testing.assert_array_equal(reply.heatmap, maps[0])  # the same kernel: to the bit
+    features = language_map.features.astype(np.float32)
+    rendered, _ = render_heatmaps(gaussians, features, texts, view.camera)  # eq. semantic_heatmap in the kernel
+    # the server keeps the view's rendered features for the next query: the same sums, the
+    # cosine by a matrix product (to the bit as a fresh cache's, to 2e-5 as the kernel's)
+    maps, alpha = FeatureImages(2**30).heatmaps("k", gaussians, features, texts, view.camera)
+    assert reply.heatmap.dtype == np.float32 and np.abs(reply.heatmap).max() <= 1.0 + 1e-5
+    np.testing.assert_array_equal(reply.heatmap, maps[0])
+    np.testing.assert_allclose(maps, rendered, atol=2e-5)
     expected_mask = (maps[0] > maps[1:].max(0)) & (alpha > 0.5)
     np.testing.assert_array_equal(reply.mask.astype(bool), expected_mask)
     np.testing.assert_array_equal(reply.image, view.image())

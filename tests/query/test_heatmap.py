@@ -36,3 +36,37 @@ def test_feature_queries_need_features_of_their_width():
         rasterize(gaussians, camera, feature_queries=np.ones((2, 4), np.float32))
     with pytest.raises(ValueError, match="feature_queries"):
         rasterize(gaussians, camera, features=np.ones((50, 3)), feature_queries=np.ones((2, 4), np.float32))
+
+
+def test_the_feature_image_cache_answers_as_rendering_and_keeps_to_its_budget():
+    from olsplat_nodes.query.heatmap import FeatureImages
+
+    rng = np.random.default_rng(2)
+    gaussians = random_gaussians(400, 0, seed=3)
+    features = rng.normal(size=(400, 24)).astype(np.float32)
+    features[::5] = 0.0
+    texts = rng.normal(size=(4, 24)).astype(np.float32)
+    texts /= np.linalg.norm(texts, axis=1, keepdims=True)
+    cameras = [camera_for(kind, 48, 36) for kind in ("PINHOLE_CENTRED", "PINHOLE_SKEWED", "SIMPLE_RADIAL")]
+    per_view = 48 * 36 * (24 + 1) * 4  # unit features + alpha, float32
+    cache = FeatureImages(budget_bytes=2 * per_view)
+    for _ in range(2):
+        for i, camera in enumerate(cameras):
+            expected, alpha = render_heatmaps(gaussians, features, texts[i:], camera)
+            got, got_alpha = cache.heatmaps(("v1", i), gaussians, features, texts[i:], camera)
+            np.testing.assert_allclose(got, expected, atol=2e-5)
+            np.testing.assert_array_equal(got_alpha, alpha)
+            assert cache.bytes <= 2 * per_view
+    # three views through a two-view budget, twice in the same order: every look was a miss
+    assert (cache.hits, cache.misses) == (0, 6)
+    cache.heatmaps(("v1", 2), gaussians, features, texts, cameras[2])  # the newest is kept
+    assert cache.hits == 1
+    # new features under a new key are rendered again, not taken from the old entry
+    other = features[::-1].copy()
+    got, _ = cache.heatmaps(("v2", 2), gaussians, other, texts, cameras[2])
+    np.testing.assert_allclose(got, render_heatmaps(gaussians, other, texts, cameras[2])[0], atol=2e-5)
+    assert cache.misses == 7
+    # a view over the whole budget is answered, not kept
+    small = FeatureImages(budget_bytes=per_view - 1)
+    small.heatmaps("x", gaussians, features, texts, cameras[0])
+    assert small.entries == {} and small.bytes == 0
