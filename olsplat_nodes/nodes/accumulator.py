@@ -26,7 +26,7 @@ from ..method import MethodParams
 from ..params import ParameterError
 from ..transport import Diagnostics, Publisher, Subscriber
 from .base import Node
-from .convert import camera_of, split_bank, split_image
+from .convert import view_of
 
 log = logging.getLogger(__name__)
 
@@ -102,27 +102,15 @@ class AccumulatorNode(Node):
         duplicate = message.name in self.names
         kept = 0
         if not duplicate:
-            encoder = self.manifest.encoder
             try:
-                if encoder is not None and message.encoder != encoder:
-                    raise ValueError(f"encoder {message.encoder!r}, but this run's store holds {encoder!r} features")
-                camera = camera_of(message)
-                label_maps, bank = split_bank(message)
-                dim, stored_dim = bank[0].shape[1], self.manifest.feature_dim
-                if stored_dim is not None and dim != stored_dim:  # one such view would stop every later refinement
-                    raise ValueError(f"features of width {dim}, but this run's store holds width {stored_dim}")
-                image = split_image(message)
-                weights = self.method.aggregation.level_weights
-                if weights is not None and len(weights) != len(label_maps):
-                    raise ValueError(
-                        f"{len(label_maps)} region levels, but level_weights has {len(weights)} weights "
-                        "(set region_encoder.level_counts to as many levels)"
-                    )
+                camera, label_maps, bank, image = view_of(
+                    message, self.manifest.encoder, self.manifest.feature_dim, self.method.aggregation.level_weights
+                )
             except ValueError as exc:
                 self.stats.count("bad_messages")
                 log.warning("view %s (seq %d) dropped: %s", message.name, message.seq, exc)
                 return
-            if encoder is None or self.manifest.feature_dim is None:
+            if self.manifest.encoder is None or self.manifest.feature_dim is None:
                 self.manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
                 write_manifest(self.params.store, self.manifest)
             save_view(self.params.views, len(self.store), camera, image)

@@ -75,6 +75,29 @@ def regions_message(frame: ImageFrame, label_maps: np.ndarray, bank: list[np.nda
     )
 
 
+def view_of(
+    message: RegionFeatures, encoder: str | None, feature_dim: int | None, level_weights
+) -> tuple[Camera, np.ndarray, list[np.ndarray], np.ndarray]:
+    """(camera, label maps [L, H, W], feature bank per level, photo [H, W, 3]) of a view to store,
+    checked against itself and against the run: the run's ``encoder`` and ``feature_dim`` (None:
+    the first view sets them) and one level weight per level when ``level_weights`` is given.
+    ValueError naming the problem otherwise: the accumulator drops such a view and counts it."""
+    if encoder is not None and message.encoder != encoder:
+        raise ValueError(f"encoder {message.encoder!r}, but this run's store holds {encoder!r} features")
+    camera = camera_of(message)
+    label_maps, bank = split_bank(message)
+    dim = bank[0].shape[1]
+    if feature_dim is not None and dim != feature_dim:  # one such view would stop every later refinement
+        raise ValueError(f"features of width {dim}, but this run's store holds width {feature_dim}")
+    image = split_image(message)
+    if level_weights is not None and len(level_weights) != len(label_maps):
+        raise ValueError(
+            f"{len(label_maps)} region levels, but level_weights has {len(level_weights)} weights "
+            "(set region_encoder.level_counts to as many levels)"
+        )
+    return camera, label_maps, bank, image
+
+
 def split_image(message: RegionFeatures) -> np.ndarray:
     """The view's photo [H, W, 3] uint8 RGB that travels with its regions (checked by ``camera_of``)."""
     return _array(message, "image")

@@ -65,8 +65,8 @@ class QueryServerNode(Node):
         query_burst: int = 10
         threads: int = 2  # numba threads of heatmap rendering and clustering (0 = one per core)
         # rendered features of recent views, so that the next query on a view is not rendered again
-        # (157 MB per 640x480 view at D = 128; a new map version renders anew); 0 = keep none
-        heatmap_cache_mb: int = 512
+        # (158 MB per 640x480 view at D = 128; a new map version renders anew); 0 = keep none
+        heatmap_cache_mb: int = 320
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
         # true: serve it in clear anyway (a lab network), said in every status the server gives
         insecure: bool = False

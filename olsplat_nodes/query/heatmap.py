@@ -65,15 +65,19 @@ class FeatureImages:
         entry = self.entries.get(key)
         if entry is None:
             self.misses += 1
+            size = camera.width * camera.height * (features.shape[1] + 1) * 4
+            keep = size <= self.budget
+            # Room first, then render: the evicted views' memory is reused for the new one. Growing
+            # the process instead costs ~0.3 s per 157 MB of first-touched pages on a small VM.
+            while keep and self.entries and self.bytes + size > self.budget:
+                self.entries.popitem(last=False)
             feature_map, alpha = render_feature_map(gaussians, features, camera, config)
             unit = feature_map.reshape(-1, feature_map.shape[-1])
             norm = np.sqrt(np.einsum("nd,nd->n", unit, unit))
             unit /= np.maximum(norm, np.float32(1e-30))[:, None]  # in place: 0 rows stay 0
             entry = (unit, alpha)
-            if unit.nbytes + alpha.nbytes <= self.budget:
+            if keep:
                 self.entries[key] = entry
-                while self.bytes > self.budget:
-                    self.entries.popitem(last=False)
         else:
             self.hits += 1
             self.entries.move_to_end(key)
