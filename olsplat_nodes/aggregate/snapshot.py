@@ -90,12 +90,17 @@ KEEP_VERSIONS = 3  # older snapshots are deleted; a reader that still holds one 
 
 
 def latest_map(map_dir: str | Path) -> dict | None:
-    """The record of the newest snapshot in ``map_dir`` ({version, path, views,
-    observed_gaussians, encoder, final}) or None when there is none yet."""
+    """The record of the newest snapshot in ``map_dir`` ({version, path, file, views,
+    observed_gaussians, encoder, final}) or None when there is none yet. ``path`` is the
+    snapshot in *this* folder (from ``file``, its name), so a run folder that was copied or
+    moved reads its own snapshots."""
     try:
-        return json.loads((Path(map_dir) / "latest.json").read_text())
+        record = json.loads((Path(map_dir) / "latest.json").read_text())
     except FileNotFoundError:
         return None
+    if isinstance(record, dict) and isinstance(record.get("file"), str):
+        record["path"] = str(Path(map_dir).resolve() / Path(record["file"]).name)
+    return record
 
 
 def write_snapshot(map_dir: Path, version: int, language_map: LanguageMap, record: dict, codebook: int | None) -> dict:
@@ -104,7 +109,7 @@ def write_snapshot(map_dir: Path, version: int, language_map: LanguageMap, recor
     map_dir.mkdir(parents=True, exist_ok=True)
     path = map_dir / f"language_map_{version:06d}.npz"
     language_map.save(path, codebook)
-    record = {**record, "version": version, "path": str(path.resolve())}
+    record = {**record, "version": version, "file": path.name, "path": str(path.resolve())}
     write_atomic(map_dir / "latest.json", json.dumps(record).encode())  # after the snapshot it names
     for old in sorted(map_dir.glob("language_map_*.npz"))[:-KEEP_VERSIONS]:
         old.unlink(missing_ok=True)

@@ -18,6 +18,7 @@ Three parts:
 
 from __future__ import annotations
 
+import copy
 import math
 import queue
 import threading
@@ -73,9 +74,15 @@ class Mutator:
             if not isinstance(doc, dict):
                 break
             operator = self.operators[int(rng.integers(len(self.operators)))]
-            with np.errstate(all="ignore"):  # NaN times a number is the point, not a warning
-                doc, arrays = operator(topic, doc, list(arrays))
-        packed = doc if isinstance(doc, bytes) else msgpack.packb(doc, use_bin_type=True)
+            try:
+                with np.errstate(all="ignore"):  # NaN times a number is the point, not a warning
+                    doc, arrays = operator(topic, doc, list(arrays))
+            except (TypeError, ValueError, OverflowError):  # an earlier operator made it inapplicable
+                continue
+        try:
+            packed = doc if isinstance(doc, bytes) else msgpack.packb(doc, use_bin_type=True)
+        except (ValueError, OverflowError, TypeError):  # not representable in msgpack: garbage instead
+            packed = rng.bytes(int(rng.integers(1, 200)))
         if rng.random() < 0.05:  # a byte or two of the header flipped
             flipped = bytearray(packed)
             for _ in range(int(rng.integers(1, 3))):
@@ -85,6 +92,9 @@ class Mutator:
         return [topic, packed, *arrays]
 
     # --- the header --------------------------------------------------------------------------
+    def _hostile(self):
+        return copy.deepcopy(self._pick(HOSTILE_VALUES))  # a fresh [] or {}: never shared between mutants
+
     def _pick(self, items):
         return items[int(self.rng.integers(len(items)))] if items else None
 
@@ -94,7 +104,7 @@ class Mutator:
         return doc, arrays
 
     def _hostile_key(self, topic, doc, arrays):
-        doc[self._pick(list(doc) or ["seq"])] = self._pick(HOSTILE_VALUES)
+        doc[self._pick(list(doc) or ["seq"])] = self._hostile()
         return doc, arrays
 
     def _version(self, topic, doc, arrays):
@@ -114,12 +124,12 @@ class Mutator:
     def _hostile_field(self, topic, doc, arrays):
         fields = doc.get("fields")
         if isinstance(fields, dict) and fields:
-            fields[self._pick(list(fields))] = self._pick(HOSTILE_VALUES)
+            fields[self._pick(list(fields))] = self._hostile()
         return doc, arrays
 
     def _extra_field(self, topic, doc, arrays):
         if isinstance(doc.get("fields"), dict):
-            doc["fields"][self._pick(["surplus", "name2", "x" * 300])] = self._pick(HOSTILE_VALUES)
+            doc["fields"][self._pick(["surplus", "name2", "x" * 300])] = self._hostile()
         return doc, arrays
 
     def _array_doc(self, doc):
