@@ -117,3 +117,46 @@ def test_a_run_folder_copied_mid_write_is_consistent_and_a_restart_from_it_finis
         np.testing.assert_array_equal(restarted.observed, offline_map.observed)
         np.testing.assert_allclose(restarted.features, offline_map.features, atol=2e-3, rtol=0)
     print("\ncopies (stored views, photos, map version, acknowledged):", json.dumps(seen))
+
+
+@pytest.mark.timeout(900)
+def test_the_refiner_killed_while_it_writes_a_snapshot_leaves_a_readable_map(
+    tiny, tmp_path, offline_map  # noqa: F811
+):
+    """kill -9 of the refiner while a snapshot's temporary file exists (caught by watching the
+    map folder; the file still being there after the kill shows the rename had not happened):
+    ``latest.json`` still names a whole snapshot, the supervisor restarts the refiner, and the
+    flight ends with the map of an uninterrupted run."""
+    scene, summary = tiny
+    run_dir = tmp_path / "run"
+    supervisor = Supervisor(launch_tiny(scene, run_dir, free_port()))
+    running = Background(supervisor)
+    caught = 0
+    try:
+        map_dir = run_dir / "map"
+        wait_for(lambda: pid_of(supervisor, "refiner"), 60, "the refiner started")
+        deadline = time.monotonic() + 300
+        while running.code is None and not caught and time.monotonic() < deadline:
+            partial = [p for p in os.scandir(map_dir) if p.name.endswith(".npz.tmp")] if map_dir.is_dir() else []
+            pid = pid_of(supervisor, "refiner")
+            if not partial or not pid:
+                time.sleep(0.0005)
+                continue
+            os.kill(pid, signal.SIGKILL)
+            if os.path.exists(partial[0].path):  # killed before the rename: mid-write
+                caught += 1
+                record = latest_map(map_dir)  # what a query server would read now
+                if record is not None:
+                    assert LanguageMap.load(record["path"]).features.shape[0] > 0
+                wait_for(lambda old=pid: pid_of(supervisor, "refiner") not in (None, old), 60, "the refiner back")
+        assert caught, "no snapshot write was caught in the flight"
+        wait_for(lambda: running.code is not None, 480, "the launch to end after the final map")
+    finally:
+        supervisor.request_stop()
+        running.thread.join(30)
+    assert running.code == 0
+    record = latest_map(run_dir / "map")
+    assert record["final"] and record["views"] == summary["views"]
+    final = LanguageMap.load(record["path"])
+    np.testing.assert_array_equal(final.observed, offline_map.observed)
+    np.testing.assert_allclose(final.features, offline_map.features, atol=2e-3, rtol=0)
