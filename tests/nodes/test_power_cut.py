@@ -121,7 +121,9 @@ def test_a_run_folder_copied_mid_write_is_consistent_and_a_restart_from_it_finis
 
 @pytest.mark.timeout(900)
 def test_the_refiner_killed_while_it_writes_a_snapshot_leaves_a_readable_map(
-    tiny, tmp_path, offline_map  # noqa: F811
+    tiny,
+    tmp_path,
+    offline_map,  # noqa: F811
 ):
     """kill -9 of the refiner while a snapshot's temporary file exists (caught by watching the
     map folder; the file still being there after the kill shows the rename had not happened):
