@@ -67,6 +67,9 @@ class QueryServerNode(Node):
         # rendered features of recent views, so that the next query on a view is not rendered again
         # (158 MB per 640x480 view at D = 128; a new map version renders anew); 0 = keep none
         heatmap_cache_mb: int = 320
+        # a heatmap reply carries the view's heatmap (float32), mask (uint8) and photo (RGB): 8 bytes
+        # per pixel, 8.8 MB at 1280x960; a view that would make a larger reply is refused
+        max_reply_mb: float = 128.0
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
         # true: serve it in clear anyway (a lab network), said in every status the server gives
         insecure: bool = False
@@ -249,6 +252,14 @@ class QueryServerNode(Node):
                 self.views = load_views(self.params.views)  # views are only ever added
             views = self.views
             camera = select_view([v.camera for v in views], request.view) if request.view else None
+            if camera is not None and request.heatmap:
+                reply_mb = camera.width * camera.height * 8 / 2**20
+                if reply_mb > self.params.max_reply_mb:
+                    return refuse(
+                        "bad_request",
+                        f"view {camera.name} is {camera.width}x{camera.height}: its heatmap reply would be "
+                        f"{reply_mb:.1f} MB, over max_reply_mb {self.params.max_reply_mb:g}",
+                    )
             image = views[[v.camera for v in views].index(camera)].image() if camera is not None else None
             encoder_name = self.language_map.encoder
             if encoder_name not in self.encoders:

@@ -205,3 +205,19 @@ def test_too_many_or_too_long_negatives_get_a_clear_refusal(ctx, sockdir, tiny, 
     assert many.status == "bad_request" and many.message == "1000 negatives; at most 4 per query"
     assert long.status == "bad_request" and "longer than 200 characters" in long.message
     assert fine.status == "ok", fine.message
+
+
+def test_a_heatmap_reply_over_the_size_limit_is_refused_with_its_size(ctx, sockdir, tiny, tiny_run, tmp_path):
+    """One view per query (the request has one ``view`` field); its reply (heatmap, mask, photo:
+    8 bytes per pixel) must fit ``max_reply_mb``, or the request is refused saying why."""
+    scene, _ = tiny
+    shutil.copytree(tiny_run / "views", tmp_path / "views")
+    shutil.copytree(tiny_run / "map", tmp_path / "map")
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views", max_reply_mb=0.5)
+    with NodeThread(node) as running, QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=60.0) as client:
+        big = client.request(QueryRequest(request_id="b", text="road", view=ENCODE_VIEW, heatmap=True))
+        small = client.request(QueryRequest(request_id="s", text="road", view=ENCODE_VIEW, heatmap=False))
+        running.assert_running()
+    assert big.status == "bad_request" and big.heatmap is None
+    assert big.message == f"view {ENCODE_VIEW} is 320x240: its heatmap reply would be 0.6 MB, over max_reply_mb 0.5"
+    assert small.status == "ok" and small.heatmap is None  # without the heatmap the view costs nothing
