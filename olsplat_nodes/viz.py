@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 
@@ -61,9 +63,14 @@ def topk_panel(topk_ids: np.ndarray, topk_weights: np.ndarray) -> np.ndarray:
 
 
 def write_png(path, image: np.ndarray) -> None:
-    """Write an 8-bit image; raises OSError naming the path when it cannot."""
-    if not _cv2().imwrite(str(path), image):
-        raise OSError(f"{path}: cannot write the image (bad folder or extension?)")
+    """Write an 8-bit image, whole or not at all (a temporary file renamed into place); the
+    format follows the extension (.png, .jpg). OSError naming the path when it cannot."""
+    from .durable import write_atomic
+
+    ok, encoded = _cv2().imencode(Path(path).suffix or ".png", image)
+    if not ok:
+        raise OSError(f"{path}: cannot encode the image for this extension")
+    write_atomic(path, encoded.tobytes())
 
 
 def query_pictures(

@@ -15,10 +15,26 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("sim", help="synthetic UAV scenes: make a dataset, replay a log")
     commands = parser.add_subparsers(dest="sim_command", required=True, metavar="COMMAND")
 
-    make = commands.add_parser("make", help="generate a scene, fly over it, write a dataset")
-    make.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
-    make.add_argument("--seed", type=int, default=0)
-    make.add_argument("--out", type=Path, required=True)
+    make = commands.add_parser(
+        "make",
+        help="generate a scene, fly over it, write a dataset",
+        epilog="examples:\n  olsplat sim make --preset tiny --seed 0 --out scene\n"
+        "  olsplat sim make --preset small --seed 1 --out small1 --views 30",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    make.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default="tiny",
+        help="scene size: "
+        + "; ".join(f"{k}: {p.n_gaussians:,} Gaussians, {p.n_views} views" for k, p in PRESETS.items())
+        + " (default tiny)",
+    )
+    make.add_argument(
+        "--seed", type=int, default=0, help="the town and flight (default 0; seeds >= 1000 train the shipped encoders)"
+    )
+    make.add_argument("--out", type=Path, required=True, help="a new or empty folder for the dataset")
+    make.add_argument("--force", action="store_true", help="empty --out first if it holds files")
     make.add_argument("--views", type=int, help="override the preset's number of views")
     make.add_argument("--gaussians", type=int, help="override the preset's number of Gaussians")
     make.add_argument("--rate", type=float, default=1.0, metavar="HZ", help="frame rate of the flight (default 1)")
@@ -43,7 +59,9 @@ def add_parser(subparsers) -> None:
     zero.set_defaults(run=run_zeroshot)
 
     replay = commands.add_parser("replay", help="play a replay log (.mcap) or an image folder + COLMAP model")
-    replay.add_argument("--log", type=Path, required=True)
+    replay.add_argument(
+        "--log", type=Path, required=True, help="a replay log (.mcap) or an image folder + COLMAP model"
+    )
     pace = replay.add_mutually_exclusive_group()
     pace.add_argument("--rate", type=float, metavar="HZ", help="frames per second (default: as recorded)")
     pace.add_argument("--fast", action="store_true", help="as fast as possible")
@@ -53,6 +71,7 @@ def add_parser(subparsers) -> None:
 
 def run_make(args: argparse.Namespace) -> int:
     from olsplat_nodes.errors import OlsplatInputError
+    from olsplat_nodes.tools.outputs import empty_output_folder
 
     from .make import MakeOptions, make_dataset
     from .reconstruct import ReconstructionSpec
@@ -67,6 +86,7 @@ def run_make(args: argparse.Namespace) -> int:
             f"need --rate > 0, 5 <= --fov <= 150, --motion-blur >= 0; got {args.rate}, {args.fov}, {args.motion_blur}"
         )
     preset = dataclasses.replace(preset, **changes)
+    empty_output_folder(args.out, args.force)
     recon = (
         ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
     )

@@ -57,3 +57,19 @@ def tiny(tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny") / "scene"
     summary = make_dataset(PRESETS["tiny"], 0, out, log=lambda *_: None)
     return out, summary
+
+
+@pytest.fixture(scope="session")
+def tiny_map(tiny, tmp_path_factory) -> Path:
+    """The tiny flight aggregated offline (``olsplat aggregate``, the default method and the shipped
+    encoders): the path of its language_map.npz, made once per test session."""
+    import shutil
+
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.method import named_method
+    from olsplat_nodes.pipeline import Scene, aggregate_scene
+
+    work = tmp_path_factory.mktemp("tiny_map")
+    shutil.copytree(tiny[0], work / "scene")
+    aggregate_scene(Scene.open(work / "scene"), named_method("outlangsplat"), encoder_from_spec(), work / "out")
+    return work / "out" / "language_map.npz"

@@ -103,3 +103,24 @@ def test_console_script_runs_as_a_process(scene):
     help_text = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60).stdout
     for command in ("render", "demo", "bench"):
         assert command in help_text
+
+
+def test_the_parsers_method_names_are_the_method_table():
+    from olsplat_nodes.method import METHODS
+    from olsplat_nodes.tools.method_names import METHOD_NAMES
+
+    assert list(METHOD_NAMES) == list(METHODS)
+
+
+def test_help_does_not_import_the_heavy_packages():
+    """`olsplat --help` stays fast: building the parser imports neither numba nor OpenCV nor torch."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from olsplat_nodes.cli import build_parser; build_parser(); "
+        "print(sorted(m for m in ('numba', 'cv2', 'torch', 'onnxruntime') if m in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"

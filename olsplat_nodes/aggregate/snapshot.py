@@ -15,6 +15,7 @@ Version 1 files (float16 only, no ``form``) still load.
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,25 +65,41 @@ class LanguageMap:
     @staticmethod
     def load(path: str | Path) -> LanguageMap:
         path = Path(path)
+        if path.is_dir():
+            raise SceneFormatError(path, "is a folder; expected a language map (language_map.npz)")
         try:
-            data = np.load(path)
-            version = int(data["version"])
-            if version not in READABLE_VERSIONS:
-                raise SceneFormatError(path, f"language map version {version}, this olsplat reads {READABLE_VERSIONS}")
-            form = str(data["form"]) if "form" in data else "float16"
-            if form == "codebook":
-                features = decompress(data["codes"], data["centres"]).astype(np.float16)
-            elif form == "float16":
-                features = data["features"]
-            else:
-                raise SceneFormatError(path, f"unknown language map form {form!r}")
-            if len(features) != len(data["observed"]):
-                raise SceneFormatError(path, f"{len(features)} features but {len(data['observed'])} observed flags")
-            return LanguageMap(features, data["observed"], str(data["encoder"]), form)
+            with open(path, "rb") as file:  # closed also when numpy fails half way through the archive
+                data = np.load(file, allow_pickle=False)
+                if not isinstance(data, np.lib.npyio.NpzFile):
+                    raise SceneFormatError(path, "not a language map (a single array, not an .npz archive)")
+                with data:
+                    return LanguageMap._from_archive(path, data)
+        except SceneFormatError:
+            raise
         except FileNotFoundError:
             raise SceneFormatError(path, "does not exist") from None
-        except (KeyError, ValueError, OSError) as exc:
-            raise SceneFormatError(path, f"not a language map ({type(exc).__name__}: {exc})") from None
+        except KeyError as exc:
+            raise SceneFormatError(path, f"not a language map: no {exc} array in it") from None
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            # numpy's own text (e.g. its advice to allow pickles) would mislead: say what it is
+            raise SceneFormatError(path, "not a language map: truncated, damaged or not an .npz archive") from exc
+
+    @staticmethod
+    def _from_archive(path: Path, data) -> LanguageMap:
+        version = int(data["version"])
+        if version not in READABLE_VERSIONS:
+            raise SceneFormatError(path, f"language map version {version}, this olsplat reads {READABLE_VERSIONS}")
+        form = str(data["form"]) if "form" in data else "float16"
+        if form == "codebook":
+            features = decompress(data["codes"], data["centres"]).astype(np.float16)
+        elif form == "float16":
+            features = data["features"]
+        else:
+            raise SceneFormatError(path, f"unknown language map form {form!r}")
+        observed = data["observed"]
+        if len(features) != len(observed):
+            raise SceneFormatError(path, f"{len(features)} features but {len(observed)} observed flags")
+        return LanguageMap(features, observed, str(data["encoder"]), form)
 
 
 # The run's map folder: versioned snapshots and latest.json, the late joiner's way in.

@@ -14,15 +14,17 @@ import platform
 import statistics
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..raster import rasterize
-from ..raster._reference import rasterize_reference
-from ..scene import Camera, Gaussians, intrinsics, look_at
+if TYPE_CHECKING:
+    from ..scene import Camera, Gaussians
 
 
 def bench_camera(width: int, height: int) -> Camera:
+    from ..scene import Camera, intrinsics, look_at
+
     focal = 0.5 * width / np.tan(np.radians(35.0))
     pose = look_at([0.0, -90.0, 90.0], [0.0, 0.0, 0.0], (0.0, 0.0, 1.0))
     return Camera(f"bench_{width}x{height}", width, height, intrinsics(focal, focal, width / 2, height / 2), pose)
@@ -32,6 +34,8 @@ def _median_render(gaussians: Gaussians, camera: Camera, want_topk: bool, repeat
     """(median seconds, the last result). Like a streaming node, each render's outputs are
     released before the next one, so the allocator recycles the pages (a first render in a
     process also pays ~0.4 s of page faults for the 177 MB of Top-K outputs at 960x720)."""
+    from ..raster import rasterize
+
     result = rasterize(gaussians, camera, want_topk=want_topk)
     runs = []
     for _ in range(repeat):
@@ -45,6 +49,8 @@ def _median_render(gaussians: Gaussians, camera: Camera, want_topk: bool, repeat
 def reference_speedup(threads: int) -> tuple[float, float]:
     """(reference seconds, fast seconds) on a scene small enough for the reference."""
     from olsplat_sim import generate_scene
+
+    from ..raster._reference import rasterize_reference
 
     gaussians = generate_scene(3_000, size_m=150.0, seed=1).gaussians
     camera = bench_camera(64, 48)

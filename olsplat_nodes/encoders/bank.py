@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,6 +55,14 @@ def encode_regions(
             )
         features.append(np.concatenate(chunks).astype(np.float32))
     return FeatureBank(features, encoder.name)
+
+
+def view_key(image_path: Path, regions: str) -> str:
+    """What a view's cache entry depends on: the region settings and the image's bytes (SHA-256),
+    so that a new photo under an old name, or other settings, never reuses old regions. The
+    encoder is checked apart (``load_bank``)."""
+    digest = hashlib.sha256(Path(image_path).read_bytes()).hexdigest()
+    return f"{regions}|image sha256 {digest}"
 
 
 def save_bank(path: Path, label_maps: np.ndarray, bank: FeatureBank | None, regions: str) -> None:

@@ -179,7 +179,13 @@ def load_clip(path: str, activation: Activation = "gelu") -> ClipModel:
     try:
         raw = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise ValueError(f"{path}: not a readable PyTorch checkpoint ({type(exc).__name__}: {exc})") from None
+        # torch's own text may advise loading with weights_only=False: never do that with a file of
+        # unknown origin (it runs code); say what is wrong instead
+        reason = "truncated or damaged" if isinstance(exc, (EOFError, RuntimeError)) else type(exc).__name__
+        raise ValueError(
+            f"{path}: not a readable PyTorch checkpoint of tensors ({reason}); olsplat loads tensors only, "
+            "never pickled code"
+        ) from None
     state = clean_state_dict(raw)
     try:
         config = ClipConfig.from_state_dict(state, activation)

@@ -52,3 +52,9 @@ class FusedEncoder:
 
     def encode_text(self, texts: list[str]) -> np.ndarray:
         return self._fuse([e.encode_text(texts) for e in self.encoders])
+
+    def unknown_words(self, text: str) -> list[str]:
+        """Words of ``text`` that no member encoder knows (one that knows a word carries it)."""
+        per_member = [list(getattr(e, "unknown_words", lambda _t: [])(text)) for e in self.encoders]
+        common = set.intersection(*(set(words) for words in per_member))
+        return [w for w in dict.fromkeys(per_member[0]) if w in common]

@@ -93,6 +93,12 @@ class OnnxEncoder:
         session = self.sessions["image"]
         return normalize(session.run(None, {session.get_inputs()[0].name: np.ascontiguousarray(pixels)})[0])
 
+    def unknown_words(self, text: str) -> list[str]:
+        """Words of ``text`` the text tower cannot tell apart (a word-level vocabulary; a BPE
+        tokenizer, as CLIP's, spells any word and reports none)."""
+        unknown = getattr(self.tokenizer, "unknown_words", None)
+        return unknown(text) if unknown is not None else []
+
     def encode_text(self, texts: list[str]) -> np.ndarray:
         session = self.sessions["text"]
         return normalize(session.run(None, {session.get_inputs()[0].name: self.tokenizer(texts)})[0])

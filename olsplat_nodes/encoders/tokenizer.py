@@ -148,6 +148,10 @@ class WordTokenizer:
     def words(self, text: str) -> list[str]:
         return regex.findall(r"[\p{L}\p{N}]+", clean(text))
 
+    def unknown_words(self, text: str) -> list[str]:
+        """The words of ``text`` this vocabulary does not hold (they all map to one 'unknown' token)."""
+        return [w for w in self.words(text) if self._id(w) == self.UNKNOWN]
+
     def __call__(self, texts: list[str]) -> np.ndarray:
         """[T, context_length] int64 word ids, zero padded, cut at context_length."""
         out = np.zeros((len(texts), self.context_length), np.int64)

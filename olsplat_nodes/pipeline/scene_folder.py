@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from ..encoders import encode_regions
-from ..encoders.bank import load_bank, save_bank
+from ..encoders.bank import load_bank, save_bank, view_key
 from ..errors import OlsplatInputError
 from ..regions import RegionConfig, propose_regions
 from ..scene import Camera, read_colmap
@@ -56,12 +56,14 @@ def view_features(
     cached."""
     cache = scene.folder / "cache" / "encode" / f"{Path(camera.name).stem}.npz"
     region_config = region_config or RegionConfig()
-    cached = load_bank(cache, encoder.name, repr(region_config))
+    photo = scene.folder / "images" / camera.name
+    key = view_key(photo, repr(region_config)) if photo.is_file() else repr(region_config)
+    cached = load_bank(cache, encoder.name, key)
     if cached is not None:
         return cached
     image = scene.image(camera)
     levels = propose_regions(image, region_config)
     bank = encode_regions(image, levels, encoder)
-    save_bank(cache, levels.label_maps, bank, repr(region_config))
+    save_bank(cache, levels.label_maps, bank, key)
     # through float16 as the cache stores them: computed and cached runs give the same numbers
     return levels.label_maps, [f.astype(np.float16).astype(np.float32) for f in bank.features]

@@ -33,6 +33,7 @@ class QueryAnswer:
     alpha: np.ndarray | None = None  # [H, W] float32 rendered opacity
     mask: np.ndarray | None = None  # [H, W] bool
     regions: list[Region2D] = field(default_factory=list)  # mask components, largest first
+    unknown_words: list[str] = field(default_factory=list)  # words of the text the encoder does not know
 
 
 class CachedTexts:
@@ -42,6 +43,9 @@ class CachedTexts:
     def __init__(self, encoder, size: int = 4096):
         self.encoder, self.size, self.name = encoder, size, encoder.name
         self.cache: OrderedDict[str, np.ndarray] = OrderedDict()
+
+    def unknown_words(self, text: str) -> list[str]:
+        return list(getattr(self.encoder, "unknown_words", lambda _t: [])(text))
 
     def encode_text(self, texts: list[str]) -> np.ndarray:
         """[len(texts), D] unit rows, as the encoder's."""
@@ -89,11 +93,17 @@ def answer_query(
             f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}"
         )
     negatives = [n for n in (t.strip() for t in negatives) if n and n != text]
+    if not negatives:  # with nothing to beat, every observed Gaussian would be chosen
+        raise OlsplatInputError(
+            "no negatives left once empty ones and the query itself are removed: give other texts to "
+            'compare with (e.g. the other things you look for, or "object, things, stuff, texture")'
+        )
     embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
     features = np.asarray(language_map.features, dtype=np.float32)  # no copy when the caller keeps float32
     relevance = features @ embeddings.T
     chosen = (relevance.argmax(1) == 0) & language_map.observed
     answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen))
+    answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:
         if images is not None:
             maps, alpha = images.heatmaps(image_key, gaussians, features, embeddings, camera)

@@ -39,6 +39,8 @@ def read_ply(path: str | Path, on_nonfinite: NonFinitePolicy = "error") -> Gauss
     rasterizer skips them).
     """
     path = Path(path)
+    if path.is_dir():
+        raise SceneFormatError(path, "is a folder; expected a Gaussian PLY file (e.g. point_cloud.ply)")
     if not path.is_file():
         raise SceneFormatError(path, "file does not exist")
     try:
@@ -92,7 +94,8 @@ def read_ply(path: str | Path, on_nonfinite: NonFinitePolicy = "error") -> Gauss
         raise SceneFormatError(
             path,
             f"{int(bad.sum())} of {n} Gaussians have NaN/inf parameters (first at index {first}); "
-            "pass on_nonfinite='keep' (CLI: --allow-nonfinite) to render without them",
+            "repair or drop them (olsplat render --allow-nonfinite renders the others; aggregation needs "
+            "every Gaussian finite)",
         )
     if bad.any() and on_nonfinite == "drop":
         gaussians = gaussians.subset(~bad)

@@ -42,6 +42,8 @@ def read_transforms_json(path: str | Path) -> list[Camera]:
         meta = json.loads(path.read_text())
     except FileNotFoundError:
         raise SceneFormatError(path, "file does not exist") from None
+    except IsADirectoryError:
+        raise SceneFormatError(path, "is a folder; expected a transforms.json file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise SceneFormatError(path, f"not valid JSON ({exc})") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
@@ -77,6 +79,8 @@ def read_transforms_json(path: str | Path) -> list[Camera]:
             pose_gl = np.asarray(frame["transform_matrix"], dtype=np.float64)
             if pose_gl.shape == (3, 4):
                 pose_gl = np.vstack([pose_gl, [0.0, 0.0, 0.0, 1.0]])
+            if pose_gl.shape != (4, 4):
+                raise ValueError(f"transform_matrix is {list(pose_gl.shape)}, expected 4x4 (or 3x4)")
             camera = Camera(
                 name=str(frame["file_path"]),
                 width=width,

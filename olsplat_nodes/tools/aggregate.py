@@ -7,11 +7,11 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    from ..method import METHODS
+    from .method_names import METHOD_NAMES
 
     agg = subparsers.add_parser("aggregate", help="aggregate a scene's views into a language map")
     agg.add_argument("--scene", required=True, type=Path)
-    agg.add_argument("--method", default="outlangsplat", choices=sorted(METHODS))
+    agg.add_argument("--method", default="outlangsplat", choices=sorted(METHOD_NAMES))
     agg.add_argument("--encoders", default="shipped", help="'shipped' (default), shipped names or exported folders")
     agg.add_argument("--weights", help="fusion weights, e.g. 0.6,0.4")
     agg.add_argument(
@@ -40,7 +40,9 @@ def run_aggregate(args: argparse.Namespace) -> int:
     from ..method import MethodParams
     from ..params import parse_assignments, parse_params
     from ..pipeline import Scene, aggregate_scene
+    from .outputs import output_folder
 
+    output_folder(args.out)  # before the work: a bad --out is one line at the start
     settings = parse_assignments(args.set, "--set")
     if "method" in settings:
         raise OlsplatInputError("--set method=...: choose the method with --method")

@@ -76,10 +76,17 @@ def _overlay(image_rgb: np.ndarray, label_maps: np.ndarray) -> np.ndarray:
     return np.concatenate(panels, axis=1)
 
 
-def _same_regions(cache_file: Path, regions: str) -> bool:
-    """Whether a cache file was made with these region settings (else it is made again)."""
+def _cached_labels(cache_file: Path, key: str, encoder_name: str | None) -> np.ndarray | None:
+    """The label maps of a cache file made from this image with these settings (and this
+    encoder, when one is used), else None (made again)."""
+    if not cache_file.exists():
+        return None
     with np.load(cache_file) as data:
-        return "regions" in data and str(data["regions"]) == regions
+        if "regions" not in data or str(data["regions"]) != key:
+            return None
+        if encoder_name is not None and ("encoder" not in data or str(data["encoder"]) != encoder_name):
+            return None
+        return data["label_maps"]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,28 +94,34 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..encoders import encode_regions
-    from ..encoders.bank import save_bank
+    from ..encoders.bank import save_bank, view_key
+    from ..encoders.spec import encoder_from_spec
     from ..regions import RegionConfig, propose_regions
+    from ..viz import write_png
 
     config = RegionConfig(level_counts=level_counts(args.levels))
-    from ..encoders.spec import encoder_from_spec
-
+    views = _views(args.scene)[: args.limit]  # checks the scene before anything is written in it
     encoder = None if args.encoders == "none" else encoder_from_spec(args.encoders, args.weights, args.fusion)
     cache = args.scene / "cache" / "encode"
     cache.mkdir(parents=True, exist_ok=True)
-    views = _views(args.scene)[: args.limit]
+    encoded = 0
     for path in tqdm(views, desc="encode", unit="view"):
         target = cache / f"{path.stem}.npz"
-        if target.exists() and not args.force and _same_regions(target, repr(config)):
+        key = view_key(path, repr(config))
+        labels = None if args.force else _cached_labels(target, key, encoder.name if encoder is not None else None)
+        if labels is not None and not args.png:
             continue
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise OlsplatInputError(f"{path}: not a readable image")
         image = np.ascontiguousarray(bgr[..., ::-1])
-        levels = propose_regions(image, config)
-        bank = encode_regions(image, levels, encoder) if encoder is not None else None
-        save_bank(target, levels.label_maps, bank, repr(config))
-        if args.png:
-            cv2.imwrite(str(cache / f"{path.stem}_regions.png"), _overlay(image, levels.label_maps))
-    print(f"{len(views)} views -> {cache}")
+        if labels is None:
+            levels = propose_regions(image, config)
+            bank = encode_regions(image, levels, encoder) if encoder is not None else None
+            save_bank(target, levels.label_maps, bank, key)
+            labels = levels.label_maps
+            encoded += 1
+        if args.png:  # also for views taken from the cache: the pictures are what was asked for
+            write_png(cache / f"{path.stem}_regions.png", _overlay(image, labels))
+    print(f"{len(views)} views ({encoded} encoded, {len(views) - encoded} from the cache) -> {cache}")
     return 0

@@ -10,14 +10,16 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    from ..method import METHODS
+    from .method_names import METHOD_NAMES
 
     ev = subparsers.add_parser("eval", help="aggregate with several methods and score them on the annotations")
     ev.add_argument(
         "--scene", required=True, type=Path, action="append", help="a scene folder; repeat for several scenes"
     )
     ev.add_argument(
-        "--methods", default="outlangsplat,projection,topk,vala", help=f"comma-separated, from: {', '.join(METHODS)}"
+        "--methods",
+        default="outlangsplat,projection,topk,vala",
+        help=f"comma-separated, from: {', '.join(METHOD_NAMES)}",
     )
     ev.add_argument("--encoders", default="shipped")
     ev.add_argument("--weights", help="lambda_2D fusion weights, e.g. 0.6,0.4")

@@ -11,8 +11,6 @@ import sys
 import uuid
 from pathlib import Path
 
-from ..transport.diagnostics import LEVEL_NAMES
-
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("ground", help="ground station: query the drone, show node status")
@@ -32,8 +30,14 @@ def add_parser(subparsers) -> None:
     status = commands.add_parser("status", help="print every node's latest diagnostics")
     status.add_argument("--json", action="store_true", help="print the statuses as JSON")
     for sub in (query, status):
-        sub.add_argument("--connect", default="tcp://127.0.0.1:5600", help="the query server's endpoint")
-        sub.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the answer")
+        sub.add_argument(
+            "--connect",
+            default="tcp://127.0.0.1:5600",
+            help="the query server's endpoint (default tcp://127.0.0.1:5600)",
+        )
+        sub.add_argument(
+            "--timeout", type=_positive_seconds, default=10.0, help="seconds to wait for the answer (default 10)"
+        )
         sub.add_argument("--client-key", type=Path, help="CURVE: this client's secret key file (olsplat keys generate)")
         sub.add_argument("--server-key", type=Path, help="CURVE: the server's public key file")
         sub.set_defaults(run=run)
@@ -44,9 +48,11 @@ def run(args: argparse.Namespace) -> int:
 
     from olsplat_msgs import QueryRequest, StatusRequest
 
-    from ..errors import OlsplatInputError
+    from ..errors import EXIT_FAILED, OlsplatInputError
     from ..transport import NoReply, QueryClient, curve
 
+    if args.ground_command == "query" and not args.text.strip():
+        raise OlsplatInputError("the query text is empty")
     if bool(args.client_key) != bool(args.server_key):
         raise OlsplatInputError("CURVE needs both --client-key and --server-key")
     keys = curve.ClientKeys(args.client_key, args.server_key) if args.client_key else None
@@ -58,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
             f"olsplat ground {args.ground_command}: error: cannot connect to {args.connect}: {reason}",
             file=sys.stderr,
         )
-        return 2
+        return EXIT_FAILED
     request_id = uuid.uuid4().hex[:12]
     try:
         if args.ground_command == "status":
@@ -79,8 +85,12 @@ def run(args: argparse.Namespace) -> int:
         )
         return print_answer(reply, args.json, args.out)
     except NoReply as exc:
-        print(f"olsplat ground {args.ground_command}: error: {exc}", file=sys.stderr)
-        return 2
+        hint = (
+            "is the drone's graph running? (olsplat launch launch/drone.yaml, or olsplat demo); "
+            "with CURVE, are --client-key and --server-key the right pair?"
+        )
+        print(f"olsplat ground {args.ground_command}: error: {exc}: {hint}", file=sys.stderr)
+        return EXIT_FAILED
     finally:
         client.close()
 
@@ -93,7 +103,7 @@ def print_status(reply, as_json: bool) -> int:
     for node in reply.nodes:
         v = node.get("values", {})
         print(
-            f"  {node['node']:16s} {LEVEL_NAMES.get(node['level'], node['level']):5s} age {node['age_s']:5.1f} s  "
+            f"  {node['node']:16s} {_level_names().get(node['level'], node['level']):5s} age {node['age_s']:5.1f} s  "
             f"rate {v.get('rate_hz', 0):5.2f} Hz  latency {v.get('latency_ms', 0):8.1f} ms  "
             f"handled {v.get('handled', 0):5d}  drops {v.get('dropped', 0) + v.get('gaps', 0):4d}  bad "
             f"{v.get('bad_messages', 0):3d}  {node['message']}"
@@ -147,3 +157,16 @@ def print_answer(reply, as_json: bool, out: Path | None) -> int:
         if not as_json:
             print(f"pictures -> {', '.join(str(p) for p in paths)}")
     return 0
+
+
+def _level_names() -> dict:
+    from ..transport.diagnostics import LEVEL_NAMES  # zmq and the codec: not for `--help`
+
+    return LEVEL_NAMES
+
+
+def _positive_seconds(text: str) -> float:
+    value = float(text)
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text}")
+    return value

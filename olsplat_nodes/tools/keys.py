@@ -28,7 +28,9 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
     from ..transport import curve
+    from .outputs import output_folder
 
+    output_folder(args.out)
     try:
         public, secret = curve.generate(args.out, args.name, overwrite=args.force)
     except (FileExistsError, ValueError) as exc:

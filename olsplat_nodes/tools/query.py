@@ -28,10 +28,13 @@ def run(args: argparse.Namespace) -> int:
     from ..query.answer import answer_query, encoder_for_map
     from ..scene import read_ply, select_view
     from ..viz import write_query_pictures
+    from .outputs import output_folder
 
     text = args.text.strip()
     if not text:
         raise OlsplatInputError("the query text is empty")
+    if args.out:
+        output_folder(args.out)
     scene = Scene.open(args.scene)
     language_map = LanguageMap.load(args.map)
     gaussians = read_ply(scene.ply)
@@ -55,11 +58,17 @@ def run(args: argparse.Namespace) -> int:
             f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} "
             f"x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
         )
+    if answer.unknown_words:
+        words = ", ".join(f'"{w}"' for w in answer.unknown_words)
+        print(
+            f"note: the encoder does not know {words}: to it they are all one unknown word, so they "
+            f"cannot steer the answer ({language_map.encoder}; the shipped encoders know the simulator's "
+            "words only: roofs, roads, lawns, trees, cars...)"
+        )
     print(f"view {camera.name}: {int(answer.mask.sum()):,} pixels, {len(answer.regions)} regions")
     for i, region in enumerate(answer.regions[:20]):
         print(f"  2D #{i}: box {region.box}, {region.pixels} px")
     if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
         paths = write_query_pictures(
             args.out, camera.name, text, scene.image(camera), answer.heatmap, answer.alpha, answer.mask, answer.regions
         )

@@ -55,7 +55,11 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
     from ..sources import open_source
     from ..sources.record import record
+    from .outputs import output_file
 
+    if args.source_kind in ("replay", "exif_folder") and not args.source:
+        raise OlsplatInputError(f"--source-kind {args.source_kind} needs --source (a replay log or a folder)")
+    args.out = output_file(args.out, ".mcap")  # its folder exists: the log's temporary file goes next to it
     params = {
         "source_kind": args.source_kind,
         **({"source": args.source} if args.source else {}),

@@ -7,10 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..raster import rasterize
-from ..scene import read_cameras, read_ply, select_view
-from ..viz import rgb_to_bgr8, write_png
-
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -33,23 +29,33 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..durable import write_atomic
+    from ..errors import OlsplatInputError
+    from ..raster import rasterize
+    from ..scene import read_cameras, read_ply, select_view
+    from ..viz import rgb_to_bgr8, write_png
+    from .outputs import output_file
+
+    out = output_file(args.out, ".npz")  # the name numpy would write, and the one printed
+    png = output_file(args.png, ".png", "--png") if args.png else None
     gaussians = read_ply(args.ply, on_nonfinite="keep" if args.allow_nonfinite else "error")
     camera = select_view(read_cameras(args.cameras), args.view)
     result = rasterize(gaussians, camera)
+    if result.n_visible == 0:
+        raise OlsplatInputError(
+            f"no Gaussian of {args.ply} is in view of camera {camera.name}: are the map and the cameras "
+            f"({args.cameras}) of the same scene, in the same coordinate frame?"
+        )
     topk_ids, topk_weights = result.topk_ids, result.topk_weights
     assert topk_ids is not None and topk_weights is not None  # kept by default (want_topk)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        args.out,
-        rgb=result.rgb,
-        alpha=result.alpha,
-        depth=result.depth,
-        topk_ids=topk_ids,
-        topk_weights=topk_weights,
+    write_atomic(  # whole or absent
+        out,
+        lambda f: np.savez_compressed(
+            f, rgb=result.rgb, alpha=result.alpha, depth=result.depth, topk_ids=topk_ids, topk_weights=topk_weights
+        ),
     )
-    if args.png:
-        write_png(args.png, rgb_to_bgr8(result.rgb))
-    print(
-        f"rendered {camera.name} ({camera.width}x{camera.height}, {result.n_visible} Gaussians in view) -> {args.out}"
-    )
+    if png is not None:
+        write_png(png, rgb_to_bgr8(result.rgb))
+    written = f"{out}" + (f" and {png}" if png is not None else "")
+    print(f"rendered {camera.name} ({camera.width}x{camera.height}, {result.n_visible} Gaussians in view) -> {written}")
     return 0

@@ -186,20 +186,11 @@ def test_the_streamed_map_equals_the_offline_map(tiny, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def offline_map(tiny, tmp_path_factory):
+def offline_map(tiny_map):
     """The tiny flight aggregated offline (``olsplat aggregate``): what an uninterrupted run gives."""
-    import shutil
-
     from olsplat_nodes.aggregate import LanguageMap
-    from olsplat_nodes.encoders.spec import encoder_from_spec
-    from olsplat_nodes.method import named_method
-    from olsplat_nodes.pipeline import Scene, aggregate_scene
 
-    scene, _ = tiny
-    work = tmp_path_factory.mktemp("offline")
-    shutil.copytree(scene, work / "scene")
-    aggregate_scene(Scene.open(work / "scene"), named_method("outlangsplat"), encoder_from_spec(), work / "out")
-    return LanguageMap.load(work / "out" / "language_map.npz")
+    return LanguageMap.load(tiny_map)
 
 
 @pytest.mark.timeout(600)
