@@ -201,6 +201,7 @@ def run(args: argparse.Namespace) -> int:
                     (reply.heatmap != 0).astype("float32"),
                     reply.mask,
                     boxes,
+                    map_version=reply.map_version,
                 )
         status = ground.status()
         print_status(status, as_json=False)

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
                 negatives=negatives,
             )
         )
-        return print_answer(reply, args.json, args.out)
+        return print_answer(reply, args.json, args.out, args.threshold)
     except NoReply as exc:
         hint = (
             "is the drone's graph running? (olsplat launch launch/drone.yaml, or olsplat demo); "
@@ -111,7 +111,7 @@ def print_status(reply, as_json: bool) -> int:
     return 0
 
 
-def print_answer(reply, as_json: bool, out: Path | None) -> int:
+def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math.nan) -> int:
     if as_json:
         print(
             json.dumps(
@@ -153,7 +153,18 @@ def print_answer(reply, as_json: bool, out: Path | None) -> int:
 
         alpha = (reply.heatmap != 0).astype("float32")  # the server sends 0 where nothing was rendered
         boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]
-        paths = write_query_pictures(out, reply.view, reply.text, reply.image, reply.heatmap, alpha, reply.mask, boxes)
+        paths = write_query_pictures(
+            out,
+            reply.view,
+            reply.text,
+            reply.image,
+            reply.heatmap,
+            alpha,
+            reply.mask,
+            boxes,
+            map_version=reply.map_version,
+            threshold=threshold,
+        )
         if not as_json:
             print(f"pictures -> {', '.join(str(p) for p in paths)}")
     return 0
