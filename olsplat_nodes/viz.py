@@ -123,7 +123,7 @@ def _wrap(text: str, width: int, font, scale: float, lines: int) -> list[str]:
             line = word
     out.append(line)
     if len(out) > lines:
-        out = out[: lines - 1] + [" ".join(out[lines - 1 :])]
+        out = [*out[: lines - 1], " ".join(out[lines - 1 :])]
     return out
 
 
