@@ -9,6 +9,7 @@ is printed with a line saying so, and the exit code is 1 as well.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import traceback
 
@@ -71,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.run(args) or 0)
+    except BrokenPipeError:  # the reader of our output went away (`| head`): nothing to say to it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return EXIT_FAILED
     except (OlsplatInputError, OSError) as exc:
         print(f"olsplat {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_FAILED

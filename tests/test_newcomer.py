@@ -242,3 +242,17 @@ def test_a_bug_keeps_its_traceback_and_says_it_is_a_bug(monkeypatch, capsys):
     code = main(["keys", "generate", "--out", "x", "--name", "k"])
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" in err and "an impossible state" in err and "a bug in olsplat" in err
+
+
+def test_the_3d_clustering_can_be_set_and_follows_the_maps_density(scene, tiny_map, capsys):
+    def instances(*extra) -> int:
+        code, out, err = run(capsys, "query", "--map", tiny_map, "--scene", scene, "road", *extra)
+        assert code == 0, err
+        return int(out.split("negatives; ")[1].split(" instances")[0])
+
+    # the tiny map is sparse (26k Gaussians over the town): a fixed 1.5 m finds no road at all,
+    # the default radius from the map's density finds it
+    assert instances("--cluster-radius", "1.5") == 0 and instances() > 0
+    assert instances("--cluster-radius", "3") > instances("--cluster-radius", "8") > 0  # small splits, large joins
+    code, _, err = run(capsys, "query", "--map", tiny_map, "--scene", scene, "road", "--min-points", "0")
+    one_line_error(code, err, "query", "--min-points")

@@ -70,6 +70,8 @@ class QueryServerNode(Node):
         # a heatmap reply carries the view's heatmap (float32), mask (uint8) and photo (RGB): 8 bytes
         # per pixel, 8.8 MB at 1280x960; a view that would make a larger reply is refused
         max_reply_mb: float = 128.0
+        cluster_radius: float = 0.0  # 3D instances: chosen Gaussians closer than this (m) join one; 0 = from the map
+        cluster_min_points: int = 20  # ... and an instance has at least this many
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
         # true: serve it in clear anyway (a lab network), said in every status the server gives
         insecure: bool = False
@@ -79,6 +81,8 @@ class QueryServerNode(Node):
         from ..params import ParameterError
         from ..transport import curve
 
+        if not (params.cluster_radius >= 0 and params.cluster_min_points >= 1 and params.max_reply_mb > 0):
+            raise ParameterError(f"{where}: need cluster_radius >= 0, cluster_min_points >= 1 and max_reply_mb > 0")
         if params.server_secret:
             try:
                 curve.check_secret(params.server_secret)
@@ -277,6 +281,8 @@ class QueryServerNode(Node):
                 threshold,
                 images=self.feature_images if self.params.heatmap_cache_mb > 0 else None,
                 image_key=(self.version, camera.name if camera is not None else ""),
+                cluster_radius=self.params.cluster_radius or None,
+                min_points=self.params.cluster_min_points,
             )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))

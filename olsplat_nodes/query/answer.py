@@ -19,7 +19,7 @@ from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..scene import Camera, Gaussians
 from .heatmap import CANONICAL_NEGATIVES, FeatureImages, relevancy_mask, render_heatmaps, threshold_mask
-from .localize import Instance3D, Region2D, instances_in_3d, regions_in_view
+from .localize import Instance3D, Region2D, default_cluster_radius, instances_in_3d, regions_in_view
 
 
 @dataclass
@@ -79,11 +79,15 @@ def answer_query(
     threshold: float | None = None,
     images: FeatureImages | None = None,
     image_key: Hashable = None,
+    cluster_radius: float | None = None,
+    min_points: int = 20,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
     with ``threshold``, where its cosine heatmap exceeds that value. With ``images`` the view's
-    rendered features are taken from (and kept in) that cache under ``image_key``. Raises
+    rendered features are taken from (and kept in) that cache under ``image_key``. 3D instances:
+    DBSCAN of the chosen Gaussians' centres with radius ``cluster_radius`` (metres; None: from
+    the map's density, ``localize.default_cluster_radius``) and ``min_points``. Raises
     OlsplatInputError on an empty text or a map that does not match the Gaussians."""
     text = text.strip()
     if not text:
@@ -102,7 +106,8 @@ def answer_query(
     features = np.asarray(language_map.features, dtype=np.float32)  # no copy when the caller keeps float32
     relevance = features @ embeddings.T
     chosen = (relevance.argmax(1) == 0) & language_map.observed
-    answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen))
+    radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
+    answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen, radius, min_points))
     answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:
         if images is not None:

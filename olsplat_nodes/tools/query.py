@@ -7,7 +7,14 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("query", help="ask a language map for a text: heatmap, mask, instances")
+    parser = subparsers.add_parser(
+        "query",
+        help="ask a language map for a text: heatmap, mask, instances",
+        epilog='examples:\n  olsplat query --map maps/ols/language_map.npz --scene scene "red roof buildings" '
+        '--view 3 --out q/\n  olsplat query --map m.npz --scene scene road --negatives "trees,lawn,cars" '
+        "--cluster-radius 3",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--map", required=True, type=Path, help="language_map.npz (olsplat aggregate)")
     parser.add_argument("--scene", required=True, type=Path, help="the scene the map was made from")
     parser.add_argument("text", help='what to find, e.g. "red roof buildings"')
@@ -16,6 +23,16 @@ def add_parser(subparsers) -> None:
         "--negatives", help="comma-separated texts to beat (default: the scene's other queries, else canonical)"
     )
     parser.add_argument("--out", type=Path, help="write heatmap and mask PNGs here")
+    parser.add_argument(
+        "--cluster-radius",
+        type=float,
+        metavar="M",
+        help="3D instances: chosen Gaussians closer than this (metres) join one instance (default: from the "
+        "map's density, 2 x spacing x sqrt(min-points / pi), at least 1.5 m)",
+    )
+    parser.add_argument(
+        "--min-points", type=int, default=20, help="3D instances: the fewest Gaussians that make one (default 20)"
+    )
     parser.set_defaults(run=run)
 
 
@@ -46,7 +63,20 @@ def run(args: argparse.Namespace) -> int:
     else:
         negatives = list(CANONICAL_NEGATIVES)
     camera = select_view(scene.cameras, args.view if args.view is not None else 0)
-    answer = answer_query(language_map, gaussians, encoder_for_map(language_map), text, negatives, camera)
+    if not ((args.cluster_radius is None or args.cluster_radius > 0) and args.min_points >= 1):
+        raise OlsplatInputError(
+            f"--cluster-radius must be > 0 and --min-points >= 1, got {args.cluster_radius} and {args.min_points}"
+        )
+    answer = answer_query(
+        language_map,
+        gaussians,
+        encoder_for_map(language_map),
+        text,
+        negatives,
+        camera,
+        cluster_radius=args.cluster_radius,
+        min_points=args.min_points,
+    )
     assert answer.mask is not None  # answered over a view: camera is given
     print(
         f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; '
