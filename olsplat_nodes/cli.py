@@ -26,6 +26,71 @@ exit codes: 0 done; 1 bad input, a failed run or no answer (one line says which)
 command line itself (argparse); 130 interrupted (Ctrl-C)."""
 
 
+EXAMPLES = {
+    "render": "olsplat render --ply scene/map/point_cloud.ply --cameras scene/sparse/0 --view 3 --out r/v3 "
+    "--png r/v3.png",
+    "demo": "olsplat demo --out out\nolsplat demo --out out --preset small --seed 1",
+    "sim train-encoders": "olsplat sim train-encoders --out enc --seeds 10 --epochs 8",
+    "sim zeroshot": "olsplat sim zeroshot --seeds 0 1 2 --views 12",
+    "sim replay": "olsplat sim replay --log scene/replay.mcap --rate 2 --limit 10",
+    "encode": "olsplat encode --scene scene --png\n"
+    "olsplat encode --scene scene --encoders enc/remoteclip,enc/georsclip --weights 0.6,0.4",
+    "aggregate": "olsplat aggregate --scene scene --out maps/ols\nolsplat aggregate --scene scene --method projection "
+    "--out maps/proj --set topk_max=24",
+    "eval": "olsplat eval --scene small1 --scene small2 --methods outlangsplat,projection,topk,vala",
+    "launch": "olsplat launch launch/replay.yaml --run-dir out/run --set ingest.source=scene/replay.mcap "
+    "--set launch.map=scene/map/point_cloud.ply",
+    "ground query": 'olsplat ground query "red roof buildings" --view 3 --out pictures/\n'
+    "olsplat ground query road --connect tcp://DRONE:5600 --client-key ground.key_secret --server-key drone.key",
+    "ground status": "olsplat ground status\nolsplat ground status --connect tcp://DRONE:5600 --json",
+    "keys generate": "olsplat keys generate --out keys --name drone",
+    "export-clip": "olsplat export-clip --checkpoint RemoteCLIP-ViT-B-32.pt --vocab bpe_simple_vocab_16e6.txt.gz "
+    "--out enc/remoteclip",
+    "bench raster": "olsplat bench raster --gaussians 1000000 --sizes 960x720 --json raster.json",
+    "bench regions": "olsplat bench regions --scene small0",
+    "bench encode": "olsplat bench encode --scene small0",
+    "bench aggregate": "olsplat bench aggregate --scene small0",
+    "bench frame": "olsplat bench frame --scene small0 --json frame.json",
+    "bench query": "olsplat bench query --scene small0",
+    "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json",
+    "bench compression": "olsplat bench compression --scene small0",
+    "bench robustness": "olsplat bench robustness --scene small0",
+    "bench structure": "olsplat bench structure --scene small0",
+    "record": "olsplat record --source scene/replay.mcap --out session.mcap --frames 20\n"
+    "olsplat record --source-kind exif_folder --source photos/ --out photos.mcap",
+}
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Examples kept as written; each option's default shown unless its help already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            action.option_strings
+            and "default" not in text.lower()
+            and not any(default is skip for skip in (None, False, argparse.SUPPRESS))  # 0 is a default to show
+            and default != []
+            and not isinstance(action, (argparse._HelpAction, argparse._VersionAction))
+        ):
+            text += " (default: %(default)s)"
+        return text
+
+
+def _finish(parser: argparse.ArgumentParser, path: list[str]) -> None:
+    """Give every command the shared formatter and its examples (``EXAMPLES``; the ones a
+    command's module wrote itself are kept)."""
+    parser.formatter_class = _HelpFormatter
+    key = " ".join(path)
+    if key in EXAMPLES and not parser.epilog:
+        parser.epilog = "examples:\n" + "\n".join(f"  {line}" for line in EXAMPLES[key].split("\n"))
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                _finish(sub, [*path, name])
+
+
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -65,6 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
         record,
     ):
         module.add_parser(subparsers)
+    _finish(parser, [])
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     return parser
 
 

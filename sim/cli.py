@@ -49,12 +49,12 @@ def add_parser(subparsers) -> None:
     train.add_argument("--out", type=Path, help="output folder (default: the package's encoders/assets)")
     train.add_argument("--seeds", type=int, default=10, help="training scenes (seeds 1000, 1001, ...)")
     train.add_argument("--views", type=int, default=16, help="views per scene")
-    train.add_argument("--epochs", type=int, default=8)
+    train.add_argument("--epochs", type=int, default=8, help="passes over the training crops")
     train.set_defaults(run=run_train)
 
     zero = commands.add_parser("zeroshot", help="region-level zero-shot accuracy on held-out scenes")
     zero.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="evaluation seeds (< 1000)")
-    zero.add_argument("--views", type=int, default=12)
+    zero.add_argument("--views", type=int, default=12, help="views per evaluation scene")
     zero.add_argument("--encoders", help="comma-separated extra encoder folders to evaluate too")
     zero.set_defaults(run=run_zeroshot)
 

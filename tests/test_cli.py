@@ -124,3 +124,29 @@ def test_help_does_not_import_the_heavy_packages():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+def test_every_command_has_examples_and_every_option_a_help_text():
+    import argparse
+
+    from olsplat_nodes.cli import build_parser
+
+    leaves = []
+
+    def walk(parser, path):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        for action in subs:
+            for name, sub in action.choices.items():
+                walk(sub, [*path, name])
+        if not subs:
+            leaves.append((" ".join(path), parser))
+
+    walk(build_parser(), [])
+    assert len(leaves) >= 20
+    for name, parser in leaves:
+        assert parser.epilog and "examples:" in parser.epilog, name
+        for action in parser._actions:
+            assert action.help, (name, action.option_strings or action.dest)
+        text = parser.format_help()
+        if any(a.option_strings and a.default not in (None, False, []) for a in parser._actions[1:]):
+            assert "default" in text, name

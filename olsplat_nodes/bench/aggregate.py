@@ -21,8 +21,8 @@ import numpy as np
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("aggregate", help="aggregation seconds per view, refinement, store size, peak RSS")
-    parser.add_argument("--scene", required=True, type=Path)
-    parser.add_argument("--method", default="outlangsplat")
+    parser.add_argument("--scene", required=True, type=Path, help="a scene folder")
+    parser.add_argument("--method", default="outlangsplat", help="the method to time")
     parser.add_argument("--views", type=int, help="use the first N views (default: all)")
     parser.set_defaults(run=run)
 

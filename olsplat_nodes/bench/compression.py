@@ -15,7 +15,7 @@ from pathlib import Path
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("compression", help="query accuracy of float32 / float16 / codebook language maps")
-    parser.add_argument("--scene", required=True, type=Path)
+    parser.add_argument("--scene", required=True, type=Path, help="a scene folder")
     parser.add_argument(
         "--aggregated", required=True, type=Path, help="an `olsplat aggregate --out` folder (its store/)"
     )

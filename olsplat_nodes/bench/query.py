@@ -20,9 +20,9 @@ import numpy as np
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("query", help="query latency: relevance for all Gaussians, heatmap of one view")
     parser.add_argument("--map", required=True, type=Path, help="language_map.npz")
-    parser.add_argument("--scene", required=True, type=Path)
-    parser.add_argument("--repeats", type=int, default=100)
-    parser.add_argument("--heatmap-repeats", type=int, default=20)
+    parser.add_argument("--scene", required=True, type=Path, help="a scene folder")
+    parser.add_argument("--repeats", type=int, default=100, help="relevance queries timed")
+    parser.add_argument("--heatmap-repeats", type=int, default=20, help="heatmap queries timed")
     parser.set_defaults(run=run)
 
 

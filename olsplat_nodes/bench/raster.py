@@ -63,9 +63,13 @@ def reference_speedup(threads: int) -> tuple[float, float]:
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("raster", help="rasterizer speed per view and throughput")
-    parser.add_argument("--gaussians", type=int, nargs="+", default=[100_000, 1_000_000])
-    parser.add_argument("--sizes", nargs="+", default=["640x480", "960x720", "1280x960"])
-    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument(
+        "--gaussians", type=int, nargs="+", default=[100_000, 1_000_000], help="map sizes (generated towns)"
+    )
+    parser.add_argument(
+        "--sizes", nargs="+", default=["640x480", "960x720", "1280x960"], help="image sizes, WIDTHxHEIGHT"
+    )
+    parser.add_argument("--repeat", type=int, default=5, help="renders per case (the median is printed)")
     parser.add_argument("--skip-reference", action="store_true", help="skip the slow reference comparison")
     parser.add_argument("--json", type=Path, help="also write one row per case here")
     parser.set_defaults(run=run)

@@ -33,10 +33,10 @@ def confuse(bank: list[np.ndarray], p: float, rng: np.random.Generator) -> list[
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("robustness", help="methods under injected view-specific feature errors")
-    parser.add_argument("--scene", required=True, type=Path)
-    parser.add_argument("--methods", default="outlangsplat,projection,topk,vala")
+    parser.add_argument("--scene", required=True, type=Path, help="a scene folder")
+    parser.add_argument("--methods", default="outlangsplat,projection,topk,vala", help="comma-separated methods")
     parser.add_argument("--confusion", default="0,0.2,0.4", help="comma-separated probabilities p")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the perturbations")
     parser.add_argument(
         "--features", default="2d", help="comma-separated, from: 2d, 2d3d (fused with the 3D branch, lambda_f 0.7)"
     )

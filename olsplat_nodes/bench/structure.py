@@ -19,7 +19,7 @@ import numpy as np
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("structure", help="3D branch: seconds once per map and per view")
-    parser.add_argument("--scene", required=True, type=Path)
+    parser.add_argument("--scene", required=True, type=Path, help="a scene folder")
     parser.add_argument("--views", type=int, default=10, help="views to time (default 10)")
     parser.add_argument("--minkunet", action="store_true", help="also time a random-weight MinkUNet over the point set")
     parser.set_defaults(run=run)

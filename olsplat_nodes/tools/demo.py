@@ -29,7 +29,7 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default: out)")
     parser.add_argument("--preset", default="small", help="simulator preset of the flight (default: small, 60 frames)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="the generated town and flight")
     parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"), help="the launch file of the graph")
     parser.add_argument("--port", type=int, default=5600, help="TCP port of the query server on 127.0.0.1")
     parser.add_argument("--timeout", type=float, default=1800.0, help="give up after this many seconds")

@@ -34,7 +34,12 @@ def add_parser(subparsers) -> None:
         "(olsplat-cnn64, olsplat-vit48); 'shipped' (default): both shipped encoders fused; 'none': regions only",
     )
     parser.add_argument("--weights", help="comma-separated fusion weights (default: equal; the paper: 0.6,0.4)")
-    parser.add_argument("--fusion", choices=["concat", "sum"], default="concat")
+    parser.add_argument(
+        "--fusion",
+        choices=["concat", "sum"],
+        default="concat",
+        help="concat: stack the weighted features (encoders trained apart); sum: add them (one shared space)",
+    )
     parser.add_argument("--levels", type=int, default=3, help="region levels (default 3)")
     parser.add_argument("--png", action="store_true", help="also write region overlays")
     parser.add_argument("--limit", type=int, help="only the first N views")

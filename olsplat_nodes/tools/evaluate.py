@@ -21,7 +21,7 @@ def add_parser(subparsers) -> None:
         default="outlangsplat,projection,topk,vala",
         help=f"comma-separated, from: {', '.join(METHOD_NAMES)}",
     )
-    ev.add_argument("--encoders", default="shipped")
+    ev.add_argument("--encoders", default="shipped", help="'shipped', shipped names or exported encoder folders")
     ev.add_argument("--weights", help="lambda_2D fusion weights, e.g. 0.6,0.4")
     ev.add_argument(
         "--features",

@@ -14,7 +14,7 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--checkpoint", required=True, type=Path, help="open_clip state dict (.pt/.bin)")
     parser.add_argument("--vocab", required=True, type=Path, help="BPE merges file (bpe_simple_vocab_16e6.txt.gz)")
-    parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--out", required=True, type=Path, help="folder for the ONNX towers, vocabulary and manifest")
     parser.add_argument("--name", help="encoder name (default: the checkpoint's file name)")
     parser.add_argument(
         "--activation",
