@@ -101,6 +101,7 @@ def overview(
             cv2.line(out, previous[1], uv, (220, 220, 220), 1, cv2.LINE_AA)
         cv2.circle(out, uv, 4, colors.get(kind, (255, 255, 255)), -1, cv2.LINE_AA)
         previous = (kind, uv)
+    _scale_and_north(out, view, focal, pixels)
     for i, (kind, color) in enumerate(colors.items()):
         cv2.circle(out, (16, 18 + 20 * i), 5, color, -1)
         cv2.putText(
@@ -114,3 +115,29 @@ def overview(
             cv2.LINE_AA,
         )
     return out
+
+
+def _scale_and_north(out: np.ndarray, view: np.ndarray, focal: float, pixels: int) -> None:
+    """Draw a scale bar (a round number of metres on the ground, z = 0) and an arrow to north
+    (world +y, the ENU convention of the scene) in the lower right corner, both measured by
+    projecting ground points through the overview camera ``view`` (camera_from_world)."""
+
+    def project(x: float, y: float) -> np.ndarray:
+        p = view[:3, :3] @ np.array([x, y, 0.0]) + view[:3, 3]
+        return np.array([focal * p[0] / p[2] + pixels / 2, focal * p[1] / p[2] + pixels / 2])
+
+    per_metre = float(np.linalg.norm(project(1.0, 0.0) - project(0.0, 0.0)))
+    metres = next(m for m in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000) if m * per_metre >= 0.12 * pixels)
+    length = int(round(metres * per_metre))
+    right, bottom = pixels - 20, pixels - 24
+    white, font = (255, 255, 255), cv2.FONT_HERSHEY_SIMPLEX
+    cv2.rectangle(out, (right - length, bottom - 6), (right, bottom), (0, 0, 0), -1)
+    cv2.rectangle(out, (right - length, bottom - 6), (right - length // 2, bottom), white, -1)
+    cv2.putText(out, f"{metres} m", (right - length, bottom - 12), font, 0.5, white, 1, cv2.LINE_AA)
+    north = project(0.0, 1.0) - project(0.0, 0.0)
+    north = north / max(float(np.linalg.norm(north)), 1e-9)
+    base = np.array([right - 10.0, bottom - 60.0])
+    tip = base + 36.0 * north
+    cv2.arrowedLine(out, tuple(int(v) for v in base), tuple(int(v) for v in tip), white, 2, cv2.LINE_AA, tipLength=0.3)
+    label = tip + 14.0 * north + np.array([-5.0, 5.0])
+    cv2.putText(out, "N", tuple(int(v) for v in label), font, 0.55, white, 2, cv2.LINE_AA)

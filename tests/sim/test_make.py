@@ -160,3 +160,21 @@ def test_cli_options_and_motion_blur(tmp_path, capsys):
     assert sharpness(tmp_path / "blur" / name) < 0.8 * sharpness(tmp_path / "sharp" / name)
     assert main(["sim", "make", "--preset", "tiny", "--views", "0", "--out", str(tmp_path / "x")]) == 1
     assert "--views and --gaussians must be positive" in capsys.readouterr().err
+
+
+def test_the_overview_carries_a_true_scale_bar_and_a_north_arrow():
+    from olsplat_nodes.scene import Camera, intrinsics, look_at
+    from olsplat_sim.preview import _scale_and_north
+
+    pixels, focal, altitude = 400, 300.0, 150.0  # 2 px per metre on the ground
+    top = Camera(
+        "t", pixels, pixels, intrinsics(focal, focal, 200, 200), look_at([0, 0, altitude], [0, 1e-6, 0], (0, 1, 0))
+    )
+    image = np.zeros((pixels, pixels, 3), np.uint8)
+    _scale_and_north(image, top.camera_from_world, focal, pixels)
+    bar_row = image[pixels - 27]  # inside the bar (bottom - 3)
+    drawn = np.flatnonzero(bar_row.max(1) > 200)  # the white half of the bar
+    assert 0.12 * pixels <= 2 * (drawn.max() - drawn.min() + 1) <= 0.30 * pixels  # 50 m at 2 px/m = 100 px, half white
+    column = image[: pixels - 40, pixels - 30 : pixels - 20].max(axis=(1, 2))
+    top_of_arrow = np.flatnonzero(column > 200).min()
+    assert top_of_arrow < pixels - 90  # the arrow points up the picture: +y, north
