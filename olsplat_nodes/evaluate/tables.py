@@ -138,6 +138,8 @@ def paper_tables(results: dict[str, dict[str, dict]]) -> str:
         segmentation_table(results, baselines),
         category_table(results, baselines),
     ]
+    if len(results) > 1:
+        sections.insert(0, spread_table(results, baselines))
     where = "mean over the scenes" if len(results) > 1 else next(iter(results))
     sections.append(strategy_table(results, baselines, f"**Aggregation strategies** ({where}; paper Table 5)"))
     ablations = [m for m in ABLATIONS if m in methods]
@@ -150,3 +152,72 @@ def paper_tables(results: dict[str, dict[str, dict]]) -> str:
     if sweep:
         sections.append(sweep_table(results, sweep, f"**Fusion weights λ2D x λf** ({where}; paper Table 7)"))
     return "\n\n".join("\n".join(s) for s in sections) + "\n"
+
+
+REFERENCE = "outlangsplat"  # the method the paired differences are taken against
+
+
+def spread(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
+    """Per method, over the scenes: ``mIoU``, ``loc50`` ... means with ``mIoU_std``,
+    ``mIoU_ci95`` and ``loc50_std``, ``loc50_ci95`` ([low, high], None with one scene); and
+    ``paired``: against each other method, ``dmIoU``, ``dmIoU_ci95``, ``dloc50``,
+    ``dloc50_ci95`` (REFERENCE minus it, per scene) and ``verdict`` on mIoU and Loc@50."""
+    from .statistics import mean_ci, paired, verdict
+
+    scenes = list(results)
+    methods = [m for m in results[scenes[0]] if all(m in results[s] for s in scenes)]
+    out: dict[str, dict] = {}
+    for name in methods:
+        entry: dict[str, Any] = {}
+        for key in ("mIoU", "mAcc", "loc40", "loc50", "loc60"):
+            mean, std, interval = mean_ci([results[s][name][key] for s in scenes])
+            entry[key] = mean
+            if key in ("mIoU", "loc50"):
+                entry[f"{key}_std"] = std
+                entry[f"{key}_ci95"] = list(interval) if interval else None
+        out[name] = entry
+    if REFERENCE in methods:
+        ours = {key: [results[s][REFERENCE][key] for s in scenes] for key in ("mIoU", "loc50")}
+        out[REFERENCE]["paired"] = {}
+        for name in methods:
+            if name == REFERENCE:
+                continue
+            row: dict[str, Any] = {}
+            for key in ("mIoU", "loc50"):
+                mean, interval = paired(ours[key], [results[s][name][key] for s in scenes])
+                row[f"d{key}"] = mean
+                row[f"d{key}_ci95"] = list(interval) if interval else None
+                row[f"{key}_verdict"] = verdict(interval)
+            out[REFERENCE]["paired"][name] = row
+    return out
+
+
+def spread_table(results: dict[str, dict[str, dict]], methods: list[str]) -> list[str]:
+    """Mean ± half the 95 % interval over scenes, and the paired difference of REFERENCE with
+    each of ``methods``, marked a win / tie / loss only by whether its interval excludes zero."""
+    figures = {name: entry for name, entry in spread(results).items() if name in methods}
+    n = len(results)
+    lines = [
+        f"**Over {n} scenes** (mean ± half-width of the 95 % interval, Student's t; paired: "
+        f"{REFERENCE} minus the method, per scene)",
+        "",
+        _row(["method", "mIoU", "Loc@50", f"paired ΔmIoU ({REFERENCE} −)", "paired ΔLoc@50"]),
+        _row(["---"] * 5),
+    ]
+
+    def pm(mean: float, interval) -> str:
+        return f"{mean:.1f} ± {(interval[1] - interval[0]) / 2:.1f}" if interval else f"{mean:.1f}"
+
+    pairs = figures.get(REFERENCE, {}).get("paired", {})
+    for name, entry in figures.items():
+        cells = [name, pm(entry["mIoU"], entry["mIoU_ci95"]), pm(entry["loc50"], entry["loc50_ci95"])]
+        if name in pairs:
+            row = pairs[name]
+            cells += [
+                f"{pm(row['dmIoU'], row['dmIoU_ci95'])} ({row['mIoU_verdict']})",
+                f"{pm(row['dloc50'], row['dloc50_ci95'])} ({row['loc50_verdict']})",
+            ]
+        else:
+            cells += ["", ""]
+        lines.append(_row(cells))
+    return lines

@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluate import evaluate_map
     from ..evaluate.figures import qualitative_figures
     from ..evaluate.runs import plan_runs
-    from ..evaluate.tables import overall, paper_tables
+    from ..evaluate.tables import overall, paper_tables, spread
     from ..method import MethodParams
     from ..params import parse_assignments, parse_params
     from ..pipeline import Scene, aggregate_scene
@@ -144,13 +144,13 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(tables)
     if args.json:
-        args.json.write_text(json.dumps(_document(results, overall), indent=2))
+        args.json.write_text(json.dumps(_document(results, overall, spread), indent=2))
     if args.md:
         args.md.write_text(tables)
     return 0
 
 
-def _document(results: dict, overall) -> dict:
+def _document(results: dict, overall, spread) -> dict:
     """{"methods": {...}} as the issue specifies (the mean over scenes when there are several),
     plus "features" and "fusion_sweep" when those ran, and "scenes" with each scene's own."""
 
@@ -168,5 +168,8 @@ def _document(results: dict, overall) -> dict:
     for label, value in merged.items():
         value["run"] = next(iter(results.values()))[label]["run"]
     document = split(merged)
+    for label, figures in spread(results).items():  # spread over scenes and paired differences
+        if label in document["methods"]:
+            document["methods"][label].update(figures)
     document["scenes"] = {title: split(runs) for title, runs in results.items()}
     return document
