@@ -55,7 +55,7 @@ def _results(values: dict[str, list[float]]) -> dict:
                 "per_query": {"road": {"IoU": v[s], "acc": v[s]}},
                 "seconds": 1.0,
                 "peak_rss_mb": 1.0,
-            }  # fmt: skip
+            }
             for name, v in values.items()
         }
     return out
