@@ -73,7 +73,7 @@ def test_eval_over_several_scenes_reports_each_and_the_mean(tiny, tmp_path):
         "--scene",
         str(tmp_path / "b"),
         "--methods",
-        "topk",
+        "outlangsplat,topk",
         "--json",
         str(tmp_path / "r.json"),
         "--md",
@@ -86,6 +86,14 @@ def test_eval_over_several_scenes_reports_each_and_the_mean(tiny, tmp_path):
     assert abs(document["methods"]["topk"]["mIoU"] - (a + b) / 2) < 1e-9
     table = (tmp_path / "r.md").read_text()
     assert "| a | " in table and "| b | " in table and "| Overall | " in table
+    # spread over the two scenes, and the paired difference ours minus topk
+    topk = document["methods"]["topk"]
+    low, high = topk["mIoU_ci95"]
+    assert low <= topk["mIoU"] <= high and len(topk["loc50_ci95"]) == 2
+    pair = document["paired"]["topk"]
+    ours = [document["scenes"][s]["methods"]["outlangsplat"]["mIoU"] for s in "ab"]
+    assert abs(pair["dmIoU"] - (ours[0] - a + ours[1] - b) / 2) < 1e-9
+    assert set(pair) >= {"dmIoU", "dmIoU_ci95", "dloc50", "dloc50_ci95"} and "Over 2 scenes" in table
 
 
 def test_eval_feature_ablation_runs_the_3d_branch(tiny, tmp_path, capsys):

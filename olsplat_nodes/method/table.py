@@ -4,8 +4,11 @@
   iterations, with the retained-views gate (our default);
 - ``outlangsplat-paper``: the paper's equations exactly (no retained-views gate);
 - ``outlangsplat-noquality`` (no q_sum * q_eff), ``outlangsplat-noconsistency`` (T = 0);
-- ``topk`` (Dr.Splat-style): the same Top-K contributions, no reliability weighting, no tau_d,
-  plain weighted mean;
+- ``topk``: our adaptive Top-K contributions, no reliability weighting, no tau_d, plain
+  weighted mean (the ablation of everything but the Top-K);
+- ``drsplat`` (Dr.Splat, Sec. 3.2 of its paper): a fixed K = 45 contributors per pixel (its
+  released code's value), alpha*T weights, plain weighted mean; no product quantization (we
+  store float16 or our own codebook);
 - ``projection`` (LUDVIG-style): every contribution of every pixel (Top-K cap 32 and 100 %
   coverage, which holds all but a sliver of the weight), alpha*T-weighted mean, nothing else;
 - ``vala`` (VALA-style): the same contributions, a per-view mass gate (the fewest Gaussians
@@ -58,6 +61,7 @@ METHODS: dict[str, Method] = {
         Method("outlangsplat-noquality", AggregationConfig(use_quality=False), RasterConfig()),
         Method("outlangsplat-noconsistency", AggregationConfig(iterations=0), RasterConfig()),
         Method("topk", _PLAIN, RasterConfig()),
+        Method("drsplat", _PLAIN, RasterConfig(topk_min=45, topk_max=45, topk_coverage=1.0)),
         Method("projection", _PLAIN, RasterConfig(topk_min=32, topk_max=32, topk_coverage=1.0)),
         Method("vala", replace(_PLAIN, mass_gate=0.95, combine="streaming_cosine"), RasterConfig()),
     )

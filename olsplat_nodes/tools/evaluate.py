@@ -169,6 +169,8 @@ def _document(results: dict, overall, spread) -> dict:
         value["run"] = next(iter(results.values()))[label]["run"]
     document = split(merged)
     for label, figures in spread(results).items():  # spread over scenes and paired differences
+        if "paired" in figures:  # ours minus each other method, per scene: document["paired"][method]
+            document["paired"] = figures.pop("paired")
         if label in document["methods"]:
             document["methods"][label].update(figures)
     document["scenes"] = {title: split(runs) for title, runs in results.items()}

@@ -9,6 +9,7 @@ METHOD_NAMES = (
     "outlangsplat-noquality",
     "outlangsplat-noconsistency",
     "topk",
+    "drsplat",
     "projection",
     "vala",
 )
