@@ -17,6 +17,7 @@ import pytest
 from olsplat_nodes.cli import main
 from olsplat_nodes.nodes.query_server import QueryServerNode
 from olsplat_nodes.transport import curve
+from olsplat_nodes.viz import LEGEND_H
 from tests.helpers import free_port, wait_for
 
 from .conftest import ENCODE_VIEW, NodeThread
@@ -105,7 +106,7 @@ def test_query_over_a_view_writes_heatmap_and_mask_pngs(ctx, sockdir, tiny, tiny
     assert [p.name for p in pictures] == [f"{stem}_heatmap.png", f"{stem}_mask.png"]
     for picture in pictures:
         assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-        assert cv2.imread(str(picture)).shape == (240, 320, 3)  # the view's size
+        assert cv2.imread(str(picture)).shape == (240 + LEGEND_H, 320, 3)  # the view, then its legend
     assert f"view {ENCODE_VIEW}" in out and "pictures ->" in out
 
 
