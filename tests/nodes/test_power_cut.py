@@ -36,14 +36,22 @@ NODES = ("ingest", "region_encoder", "accumulator", "refiner", "query_server")
 
 def _frozen_copy(supervisor: Supervisor, run_dir, out) -> None:
     """Copy ``run_dir`` to ``out`` with every node stopped (sockets and logs left out)."""
-    pids = [pid for pid in (pid_of(supervisor, node) for node in NODES) if pid]
-    for pid in pids:
-        os.kill(pid, signal.SIGSTOP)
+    stopped = []
+    for pid in (pid_of(supervisor, node) for node in NODES):
+        try:
+            if pid:
+                os.kill(pid, signal.SIGSTOP)
+                stopped.append(pid)
+        except ProcessLookupError:  # it has just exited (the end of the flight): it writes nothing more
+            pass
     try:
         shutil.copytree(run_dir, out, ignore=shutil.ignore_patterns("*.sock", "logs"))
     finally:
-        for pid in pids:
-            os.kill(pid, signal.SIGCONT)
+        for pid in stopped:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
 
 
 def _check_consistent(copy, n_gaussians: int) -> dict:
@@ -144,7 +152,10 @@ def test_the_refiner_killed_while_it_writes_a_snapshot_leaves_a_readable_map(
             if not partial or not pid:
                 time.sleep(0.0005)
                 continue
-            os.kill(pid, signal.SIGKILL)
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:  # it had just exited (the final map): try the next write
+                continue
             if os.path.exists(partial[0].path):  # killed before the rename: mid-write
                 caught += 1
                 record = latest_map(map_dir)  # what a query server would read now
