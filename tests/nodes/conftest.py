@@ -336,3 +336,71 @@ def send(sock: zmq.Socket, frames: list) -> None:
 
 def send_msg(sock: zmq.Socket, msg, topic: str) -> None:
     sock.send_multipart(encode(msg, topic))
+
+
+# ---------------------------------------------------------------------------------------------
+# the whole graph on the tiny preset (launch/replay.yaml), as the graph-level tests run it
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def launch_tiny(scene: Path, run_dir: Path, port: int, *extra: str):
+    """The replay launch over ``scene`` into ``run_dir``, query server on 127.0.0.1:``port``;
+    ``extra`` overrides as on the command line."""
+    from olsplat_nodes.launcher import load_launch
+
+    ply = scene / "map" / "point_cloud.ply"
+    overrides = [
+        f"ingest.source={scene / 'replay.mcap'}",
+        f"query_server.map={ply}",
+        f"accumulator.map={ply}",
+        f"refiner.map={ply}",
+        f"query_server.query_endpoint=tcp://127.0.0.1:{port}",
+        "refiner.period_s=2",
+        "ingest.ack_timeout_s=10",
+        *extra,
+    ]
+    return load_launch(REPO / "launch" / "replay.yaml", overrides=overrides, run_dir=str(run_dir))
+
+
+class Background:
+    """``supervisor.run()`` in a thread; ``code`` is its exit code once it has ended."""
+
+    def __init__(self, supervisor):
+        self.supervisor, self.code = supervisor, None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        self.code = self.supervisor.run()
+
+
+def pid_of(supervisor, node: str) -> int | None:
+    return supervisor.pids.get(node) if isinstance(supervisor.pids, dict) else None
+
+
+@pytest.fixture(scope="session")
+def offline_map(tiny_map):
+    """The tiny flight aggregated offline (``olsplat aggregate``): what an uninterrupted run gives."""
+    from olsplat_nodes.aggregate import LanguageMap
+
+    return LanguageMap.load(tiny_map)
+
+
+def refiner(scene: Path, sockdir: Path, store: Path, map_dir: Path, diagnostics: str):
+    """A refiner over ``store`` whose passes come only from EndOfStream (no periodic pass),
+    reading observations.sock and writing map.sock under ``sockdir``."""
+    from olsplat_nodes.nodes.refiner import RefinerNode
+
+    return RefinerNode(
+        "refiner",
+        {
+            "map": str(scene / "map" / "point_cloud.ply"),
+            "store": str(store),
+            "map_dir": str(map_dir),
+            "period_s": 3600.0,  # no periodic pass: only EndOfStream makes a map here
+            "observations_in": f"ipc://{sockdir}/observations.sock",
+            "map_out": f"ipc://{sockdir}/map.sock",
+            "diagnostics": diagnostics,
+        },
+    )

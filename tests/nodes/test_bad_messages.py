@@ -47,6 +47,7 @@ from .conftest import (
     oversized,
     query_server,
     raw_socket,
+    refiner,
     send,
     send_msg,
 )
@@ -223,25 +224,13 @@ def test_refiner_counts_bad_observations_and_still_writes_the_final_map(ctx, soc
     import shutil
 
     from olsplat_nodes.aggregate import latest_map
-    from olsplat_nodes.nodes.refiner import RefinerNode
 
     scene, _ = tiny
     shutil.copytree(tiny_run / "store", tmp_path / "store")  # one view, as the accumulator left it
     observations = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/observations.sock", bind=True)
     beats = Heartbeats(ctx)
     maps = Tap(ctx, f"ipc://{sockdir}/map.sock", ["map"])
-    node = RefinerNode(
-        "refiner",
-        {
-            "map": str(scene / "map" / "point_cloud.ply"),
-            "store": str(tmp_path / "store"),
-            "map_dir": str(tmp_path / "map"),
-            "period_s": 3600.0,  # no periodic pass: only EndOfStream makes a map here
-            "observations_in": f"ipc://{sockdir}/observations.sock",
-            "map_out": f"ipc://{sockdir}/map.sock",
-            "diagnostics": beats.endpoint,
-        },
-    )
+    node = refiner(scene, sockdir, tmp_path / "store", tmp_path / "map", beats.endpoint)
     seq = iter(range(1, 10_000))
 
     def ack():

@@ -8,48 +8,18 @@ import json
 import os
 import signal
 import threading
-from pathlib import Path
 
 import pytest
 import zmq
 
 from olsplat_msgs import QueryRequest, StatusRequest
 from olsplat_nodes.aggregate import ObservationStore, latest_map
-from olsplat_nodes.launcher import Supervisor, load_launch
+from olsplat_nodes.launcher import Supervisor
 from olsplat_nodes.method import read_manifest
 from olsplat_nodes.transport import NoReply, QueryClient
 from tests.helpers import free_port, wait_for
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def launch_tiny(scene: Path, run_dir: Path, port: int, *extra: str):
-    ply = scene / "map" / "point_cloud.ply"
-    overrides = [
-        f"ingest.source={scene / 'replay.mcap'}",
-        f"query_server.map={ply}",
-        f"accumulator.map={ply}",
-        f"refiner.map={ply}",
-        f"query_server.query_endpoint=tcp://127.0.0.1:{port}",
-        "refiner.period_s=2",
-        "ingest.ack_timeout_s=10",
-        *extra,
-    ]
-    return load_launch(REPO / "launch" / "replay.yaml", overrides=overrides, run_dir=str(run_dir))
-
-
-class Background:
-    def __init__(self, supervisor: Supervisor):
-        self.supervisor, self.code = supervisor, None
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self):
-        self.code = self.supervisor.run()
-
-
-def pid_of(supervisor: Supervisor, node: str) -> int | None:
-    return supervisor.pids.get(node) if isinstance(supervisor.pids, dict) else None
+from .conftest import Background, launch_tiny, pid_of
 
 
 def _try(client, request):
@@ -183,14 +153,6 @@ def test_the_streamed_map_equals_the_offline_map(tiny, tmp_path):
     assert streamed.encoder == offline.encoder
     assert np.array_equal(streamed.observed, offline.observed) and streamed.observed.sum() > 1000
     np.testing.assert_array_equal(streamed.features, offline.features)
-
-
-@pytest.fixture(scope="module")
-def offline_map(tiny_map):
-    """The tiny flight aggregated offline (``olsplat aggregate``): what an uninterrupted run gives."""
-    from olsplat_nodes.aggregate import LanguageMap
-
-    return LanguageMap.load(tiny_map)
 
 
 @pytest.mark.timeout(600)

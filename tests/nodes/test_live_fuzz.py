@@ -33,8 +33,8 @@ from olsplat_nodes.scene import Camera, intrinsics, look_at
 from olsplat_nodes.transport import CONTROL_MAX_BYTES, REQUEST_MAX_BYTES, QueryClient
 from tests.helpers import free_port, wait_for
 
+from .conftest import Background, launch_tiny, pid_of
 from .livefuzz import GateProxy, Mutator, Oracle, bad_messages
-from .test_graph import Background, launch_tiny, offline_map, pid_of  # noqa: F401  (offline_map: a fixture)
 
 PER_SOCKET = int(os.environ.get("OLSPLAT_FUZZ_PER_SOCKET", "10000"))
 SEED = int(os.environ.get("OLSPLAT_FUZZ_SEED", "20261123"))
@@ -118,13 +118,13 @@ def _settled(client: QueryClient, want: dict[str, int], timeout_s: float) -> dic
 def test_the_fuzzed_graph_counts_every_bad_message_loses_no_node_and_makes_the_clean_map(
     tiny,
     tmp_path,
-    offline_map,  # noqa: F811
+    offline_map,
 ):
     from olsplat_nodes.encoders.spec import encoder_from_spec
 
     scene, summary = tiny
     run_dir, port = tmp_path / "run", free_port()
-    links = {  # link -> (upstream endpoint, proxy endpoint, the overrides that point its readers at the proxy)
+    links = {  # link -> (the upstream node's socket under run_dir, the parameters of its readers, pointed at the proxy)
         "frames": ("frames", ["region_encoder.frames_in"]),
         "regions": ("regions", ["accumulator.regions_in"]),
         "observations": ("observations", ["refiner.observations_in", "ingest.acks_in"]),

@@ -29,7 +29,7 @@ from olsplat_nodes.launcher import Supervisor
 from olsplat_nodes.scene import read_ply
 from tests.helpers import free_port, wait_for
 
-from .test_graph import Background, launch_tiny, offline_map, pid_of  # noqa: F401  (offline_map: a fixture)
+from .conftest import Background, launch_tiny, pid_of
 
 NODES = ("ingest", "region_encoder", "accumulator", "refiner", "query_server")
 
@@ -84,7 +84,7 @@ def _check_consistent(copy, n_gaussians: int) -> dict:
 def test_a_run_folder_copied_mid_write_is_consistent_and_a_restart_from_it_finishes_the_flight(
     tiny,
     tmp_path,
-    offline_map,  # noqa: F811
+    offline_map,
 ):
     scene, summary = tiny
     n_gaussians = len(read_ply(scene / "map" / "point_cloud.ply"))
@@ -131,7 +131,7 @@ def test_a_run_folder_copied_mid_write_is_consistent_and_a_restart_from_it_finis
 def test_the_refiner_killed_while_it_writes_a_snapshot_leaves_a_readable_map(
     tiny,
     tmp_path,
-    offline_map,  # noqa: F811
+    offline_map,
 ):
     """kill -9 of the refiner while a snapshot's temporary file exists (caught by watching the
     map folder; the file still being there after the kill shows the rename had not happened):

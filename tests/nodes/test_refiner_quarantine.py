@@ -12,14 +12,12 @@ from olsplat_msgs import DiagnosticStatus, EndOfStream, MapUpdated
 from olsplat_nodes.aggregate import LanguageMap, latest_map
 from tests.helpers import every, wait_for
 
-from .conftest import Heartbeats, NodeThread, Tap, raw_socket, send_msg
+from .conftest import Heartbeats, NodeThread, Tap, raw_socket, refiner, send_msg
 
 pytestmark = pytest.mark.timeout(120)
 
 
 def test_the_refiner_reports_a_damaged_segment_and_still_makes_the_map(ctx, sockdir, tmp_path, tiny, tiny_run):
-    from olsplat_nodes.nodes.refiner import RefinerNode
-
     scene, _ = tiny
     store = tmp_path / "store"
     shutil.copytree(tiny_run / "store", store)  # one good view (000000)
@@ -30,18 +28,7 @@ def test_the_refiner_reports_a_damaged_segment_and_still_makes_the_map(ctx, sock
     observations = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/observations.sock", bind=True)
     beats = Heartbeats(ctx)
     maps = Tap(ctx, f"ipc://{sockdir}/map.sock", ["map"])
-    node = RefinerNode(
-        "refiner",
-        {
-            "map": str(scene / "map" / "point_cloud.ply"),
-            "store": str(store),
-            "map_dir": str(tmp_path / "map"),
-            "period_s": 3600.0,
-            "observations_in": f"ipc://{sockdir}/observations.sock",
-            "map_out": f"ipc://{sockdir}/map.sock",
-            "diagnostics": beats.endpoint,
-        },
-    )
+    node = refiner(scene, sockdir, store, tmp_path / "map", beats.endpoint)
     try:
         with NodeThread(node) as running:
             beats.wait("refiner", lambda v: True, 20, "a first heartbeat (in sync)")
