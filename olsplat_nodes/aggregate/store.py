@@ -51,12 +51,19 @@ def _take_entries(offsets, slots, weights, rows, slot_base):
 
 
 class ObservationStore:
-    def __init__(self, folder: str | Path, n_gaussians: int):
+    """A store folder opened by its one writer (``writer=True``: the accumulator, an offline
+    run) or by any number of readers (the refiner, tools, tests). Only the writer removes the
+    ``*.tmp`` segment a crash left behind: a reader that did so could delete a segment the
+    live writer is still filling, which then enters the store with files missing."""
+
+    def __init__(self, folder: str | Path, n_gaussians: int, writer: bool = False):
         self.folder = Path(folder)
         self.n_gaussians = n_gaussians
-        (self.folder / "views").mkdir(parents=True, exist_ok=True)
-        for leftover in (self.folder / "views").glob("*.tmp"):  # a crash during an earlier append
-            shutil.rmtree(leftover)
+        self.writer = writer
+        if writer:
+            (self.folder / "views").mkdir(parents=True, exist_ok=True)
+            for leftover in (self.folder / "views").glob("*.tmp"):  # a crash during an earlier append
+                shutil.rmtree(leftover)
         self.touched = np.zeros(n_gaussians, bool)  # observed since the last refinement
         self.checked: set[str] = set()  # segments found whole (they never change once written)
         self.quarantined: dict[str, str] = {}  # segment folder name -> why it is skipped
@@ -65,10 +72,15 @@ class ObservationStore:
         return len(self.segments())
 
     def segments(self) -> list[Path]:
-        return sorted(p for p in (self.folder / "views").iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
+        views = self.folder / "views"
+        if not views.is_dir():  # a reader before the writer's first view
+            return []
+        return sorted(p for p in views.iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
 
     def append(self, name: str, observations: ViewObservations, bank: np.ndarray) -> int:
         """Write one view's observations and its stacked region bank [R, D]; returns the view index."""
+        if not self.writer:
+            raise RuntimeError(f"{self.folder}: the store was opened for reading; open it with writer=True")
         if len(observations) and observations.gaussians.max() >= self.n_gaussians:
             raise ValueError(
                 f"view {name!r}: Gaussian {observations.gaussians.max()} is outside the map of {self.n_gaussians}"
@@ -100,11 +112,14 @@ class ObservationStore:
                 np.save(f, value)
                 f.flush()
                 os.fsync(f.fileno())
-        with open(tmp / "name.txt", "w") as f:
-            f.write(name)
-            f.flush()
-            os.fsync(f.fileno())
+        with open(tmp / "name.txt", "w") as text:
+            text.write(name)
+            text.flush()
+            os.fsync(text.fileno())
         fsync_dir(tmp)  # the segment's file entries, before it becomes visible
+        missing = ({f"{key}.npy" for key in arrays} | {"name.txt"}) - {f.name for f in tmp.iterdir()}
+        if missing:  # something else removed them: never publish a segment with holes
+            raise OSError(f"{tmp}: {sorted(missing)} vanished while the segment was written")
         tmp.rename(final)
         fsync_dir(final.parent)  # the rename: once append returns, the view is on the disk
         self.touched[observations.gaussians] = True

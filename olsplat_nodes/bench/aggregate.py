@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     times: dict[str, list[float]] = {"rasterize": [], "observe": [], "append": []}
     kept = []
     with tempfile.TemporaryDirectory() as tmp:
-        store = ObservationStore(Path(tmp) / "store", len(gaussians))
+        store = ObservationStore(Path(tmp) / "store", len(gaussians), writer=True)
         for camera, (label_maps, bank) in zip(cameras, features, strict=True):
             stages = add_view(gaussians, camera, label_maps, bank, chosen, store)
             for key in times:

@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     cameras = scene.cameras[: args.views + 1]
     seconds: dict[str, list[float]] = {stage: [] for stage in STAGES}
     with tempfile.TemporaryDirectory() as tmp:
-        store = ObservationStore(Path(tmp) / "store", len(gaussians))
+        store = ObservationStore(Path(tmp) / "store", len(gaussians), writer=True)
         for i, camera in enumerate(cameras):
             image = scene.image(camera)
             clock = [time.perf_counter()]

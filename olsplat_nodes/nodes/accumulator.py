@@ -69,7 +69,7 @@ class AccumulatorNode(Node):
         self.method = method_params_of(p).resolve()
         self.gaussians = read_ply(p.map)
         self.manifest = claim_store(p.store, self.method)
-        self.store = ObservationStore(p.store, len(self.gaussians))
+        self.store = ObservationStore(p.store, len(self.gaussians), writer=True)
         self.names = set(self.store.names())
         if self.names:
             log.info("resuming: %d views already in %s", len(self.names), p.store)

@@ -54,7 +54,7 @@ def aggregate_scene(
     gives a view's (label maps, bank per level); default: ``view_features`` with ``encoder``.
     With ``structure``, region banks are fused with the 3D branch before aggregation."""
     gaussians = read_ply(scene.ply)
-    store = ObservationStore(out / "store", len(gaussians))
+    store = ObservationStore(out / "store", len(gaussians), writer=True)
     if len(store):
         raise OlsplatInputError(f"{out / 'store'} already holds {len(store)} views: choose a new --out")
     start = time.perf_counter()

@@ -51,7 +51,7 @@ def _durable(log, final: Path, written_as: Path) -> None:
 
 
 def test_a_store_segment_is_durable_before_append_returns(tmp_path, events):
-    store = ObservationStore(tmp_path / "store", 150)
+    store = ObservationStore(tmp_path / "store", 150, writer=True)
     name, obs, bank = next(_views(1, 150))
     store.append(name, obs, bank)
     segment = tmp_path / "store" / "views" / "000000"

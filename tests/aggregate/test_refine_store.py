@@ -99,12 +99,12 @@ def _views(count: int, n: int):
 def test_streaming_views_equal_the_batch(tmp_path, min_retained):
     n = 150
     config = AggregationConfig(min_retained_views=min_retained)
-    streaming = ObservationStore(tmp_path / "stream", n)
+    streaming = ObservationStore(tmp_path / "stream", n, writer=True)
     F = None
     for name, obs, bank in _views(5, n):
         streaming.append(name, obs, bank)
         F, _ = streaming.refine(F, config)  # only the Gaussians this view touched
-    batch = ObservationStore(tmp_path / "batch", n)
+    batch = ObservationStore(tmp_path / "batch", n, writer=True)
     for name, obs, bank in _views(5, n):
         batch.append(name, obs, bank)
     F_batch, observed = batch.refine(None, config, max_observations=37)  # small ranges: the chunking is exercised
@@ -114,11 +114,15 @@ def test_streaming_views_equal_the_batch(tmp_path, min_retained):
 
 def test_store_survives_reopening_and_half_written_views(tmp_path):
     n = 150
-    store = ObservationStore(tmp_path, n)
+    store = ObservationStore(tmp_path, n, writer=True)
     for name, obs, bank in _views(2, n):
         store.append(name, obs, bank)
     (tmp_path / "views" / "000002.tmp").mkdir()  # as if a crash interrupted a third append
-    reopened = ObservationStore(tmp_path, n)
+    reader = ObservationStore(tmp_path, n)  # e.g. the refiner: the writer may still be filling it
+    assert len(reader) == 2 and (tmp_path / "views" / "000002.tmp").exists()
+    with pytest.raises(RuntimeError, match="opened for reading"):
+        reader.append(*next(_views(1, n)))
+    reopened = ObservationStore(tmp_path, n, writer=True)
     assert len(reopened) == 2 and not (tmp_path / "views" / "000002.tmp").exists()
     obs, bank = reopened.load(1)
     assert isinstance(obs.gaussians, np.memmap) and bank.dtype == np.float16
@@ -181,7 +185,7 @@ def test_mixed_features_equal_their_dense_form(tmp_path):
     from olsplat_nodes.aggregate.refine import refine_mixed
 
     n = 150
-    store = ObservationStore(tmp_path, n)
+    store = ObservationStore(tmp_path, n, writer=True)
     for name, obs, bank in _views(4, n):
         store.append(name, obs, bank)
     mixed = store.gather(np.ones(n, bool))
@@ -201,7 +205,7 @@ def test_mixed_features_equal_their_dense_form(tmp_path):
 
 def test_the_store_refuses_a_view_of_another_feature_width(tmp_path):
     n = 150
-    store = ObservationStore(tmp_path, n)
+    store = ObservationStore(tmp_path, n, writer=True)
     views = list(_views(2, n))
     store.append(*views[0])
     name, obs, bank = views[1]
@@ -216,20 +220,20 @@ def test_a_damaged_segment_is_quarantined_not_fatal(tmp_path):
     reason, for good (a marker in its folder), and the map is that of the other views."""
     n = 150
     views = list(_views(3, n))
-    store = ObservationStore(tmp_path / "store", n)
+    store = ObservationStore(tmp_path / "store", n, writer=True)
     for view in views:
         store.append(*view)
     (tmp_path / "store" / "views" / "000001" / "bank.npy").write_bytes(b"not an array")
     F, observed = store.refine(None, AggregationConfig())
     assert list(store.quarantined) == ["000001"] and "unreadable" in store.quarantined["000001"]
     assert (tmp_path / "store" / "views" / "000001" / "QUARANTINED.txt").exists()
-    clean = ObservationStore(tmp_path / "clean", n)
+    clean = ObservationStore(tmp_path / "clean", n, writer=True)
     for view in (views[0], views[2]):
         clean.append(*view)
     F_clean, observed_clean = clean.refine(None, AggregationConfig())
     np.testing.assert_array_equal(observed, observed_clean)
     np.testing.assert_array_equal(F, F_clean)
-    reopened = ObservationStore(tmp_path / "store", n)  # a restarted refiner skips it at once
+    reopened = ObservationStore(tmp_path / "store", n, writer=True)  # a restarted refiner skips it at once
     reopened.refine(None, AggregationConfig())
     assert list(reopened.quarantined) == ["000001"] and len(reopened) == 3
     assert reopened.names() == ["v0", "", "v2"]  # so the accumulator stores the view anew if it comes again

@@ -40,7 +40,7 @@ def test_add_view_stores_what_the_reference_equations_give(tmp_path, settings):
     gaussians = random_gaussians(300, 0, seed=1)
     camera = camera_for("PINHOLE_SKEWED", 48, 36)
     label_maps, bank = _regions(camera.height, camera.width)
-    store = ObservationStore(tmp_path / "store", len(gaussians))
+    store = ObservationStore(tmp_path / "store", len(gaussians), writer=True)
 
     stages = add_view(gaussians, camera, label_maps, bank, method, store)
 
@@ -70,6 +70,6 @@ def test_a_method_parameter_changes_what_the_step_keeps(tmp_path):
     kept = {}
     for tau_d in (0.0, 0.5):
         method = MethodParams(tau_d=tau_d).resolve()
-        store = ObservationStore(tmp_path / f"store{tau_d}", len(gaussians))
+        store = ObservationStore(tmp_path / f"store{tau_d}", len(gaussians), writer=True)
         kept[tau_d] = add_view(gaussians, camera, label_maps, bank, method, store)["kept"]
     assert kept[0.0] > kept[0.5] > 0

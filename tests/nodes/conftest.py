@@ -103,7 +103,7 @@ def tiny_run(tiny, region_features, tmp_path_factory):
     run = tmp_path_factory.mktemp("tiny_run")
     gaussians = read_ply(scene / "map" / "point_cloud.ply")
     chosen = named_method("outlangsplat")
-    store = ObservationStore(run / "store", len(gaussians))
+    store = ObservationStore(run / "store", len(gaussians), writer=True)
     write_manifest(run / "store", StoreManifest(chosen, region_features.encoder))
     camera = camera_of(region_features)
     label_maps, bank = split_bank(region_features)
