@@ -60,20 +60,24 @@ def refine_dense(features, strength, config: AggregationConfig):
     return F
 
 
-def streaming_cosine_reference(owner, view, strength, features, n):
-    """VALA's streaming update in plain numpy, view by view: (F [n, D], count [n]). A new
-    observation enters the running mean with weight d (1 + cos(f, F)) / 2, the first with d."""
-    total = np.zeros((n, features.shape[1]), np.float64)
-    weight = np.zeros(n, np.float64)
+def streaming_median_reference(owner, view, strength, features, n):
+    """VALA's streaming median in plain numpy, view by view (VALA Algorithm 1): (F [n, D] unit
+    rows, count [n]). z starts at a Gaussian's first unit feature; each next view's unit f with
+    weight w gives z <- normalize(z + w / (W + w) (f - (f . z) z)), W += w."""
+    z = np.zeros((n, features.shape[1]), np.float64)
+    total = np.zeros(n, np.float64)
     order = np.argsort(view, kind="stable")
     owner, view, strength, features = owner[order], view[order], strength[order], features[order].astype(np.float64)
     for v in np.unique(view):
-        here = view == v
-        g, f, d = owner[here], features[here], strength[here]
-        current = total[g] / np.maximum(weight[g], 1e-12)[:, None]
-        norm = np.linalg.norm(f, axis=1) * np.linalg.norm(current, axis=1)
-        cos = np.where(norm > 0, (f * current).sum(1) / np.maximum(norm, 1e-12), 1.0)
-        w = d * np.where(weight[g] > 0, (1.0 + cos) / 2.0, 1.0)
-        np.add.at(total, g, w[:, None] * f)
-        np.add.at(weight, g, w)
-    return (total / np.maximum(weight, 1e-12)[:, None]).astype(np.float32), np.bincount(owner, minlength=n)
+        for i, w, f in zip(owner[view == v], strength[view == v], features[view == v], strict=True):
+            norm = np.linalg.norm(f)
+            if norm <= 0 or w <= 0:
+                continue
+            f = f / norm
+            if total[i] == 0:
+                z[i] = f
+            else:
+                z[i] = z[i] + w / (total[i] + w) * (f - (f @ z[i]) * z[i])
+                z[i] /= np.linalg.norm(z[i])
+            total[i] += w
+    return z.astype(np.float32), np.bincount(owner, minlength=n)

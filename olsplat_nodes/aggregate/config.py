@@ -17,8 +17,14 @@ class AggregationConfig:
     beta: tuple[float, ...] = (2.0, 4.0, 8.0)  # beta_t per iteration (the last repeats); not given by the paper
     eps: float = 1e-8
     use_quality: bool = True  # multiply by q_sum * q_eff (off: the "noquality" ablation and the baselines)
-    mass_gate: float | None = None  # VALA-style: per view keep the fewest Gaussians holding this share of all d
-    combine: Literal["consistency", "streaming_cosine"] = "consistency"  # how views are combined
+    # How a Gaussian's weight and feature in a view are formed: "pixels" (the paper's: every
+    # pixel's Top-K contribution) or "centre" (VALA's: alpha*T and the feature at the pixel of
+    # its projected centre, then VALA's visibility gate with gate_mass and gate_floor).
+    view_feature: Literal["pixels", "centre"] = "pixels"
+    gate_mass: float = 0.75  # VALA tau_mass: keep the strongest Gaussians holding this share of the view's weight ...
+    gate_floor: float = 0.13  # ... whose weight is at least tau_abs (VALA's LERF values) ...
+    gate_cut: float = 0.15  # ... and above min(gate_cut, the view's 0.85 quantile) (VALA's released code)
+    combine: Literal["consistency", "streaming_median"] = "consistency"  # how views are combined
     # Keep F0 for a Gaussian whose consistency weights retain less than this share of its
     # effective number of views, (sum rho)^2 / sum rho^2 over (sum d)^2 / sum d^2: its views
     # disagree as a whole (e.g. a floater seen against different backgrounds), they do not hold
@@ -30,6 +36,8 @@ class AggregationConfig:
             raise ValueError(f"q_min must be in (0, 1], got q_min={self.q_min}")
         if self.min_retained_views is not None and not 0.0 < self.min_retained_views <= 1.0:
             raise ValueError(f"min_retained_views must be in (0, 1], got {self.min_retained_views}")
+        if not 0.0 < self.gate_mass <= 1.0 or self.gate_floor < 0.0 or self.gate_cut < 0.0:
+            raise ValueError(f"need 0 < gate_mass <= 1, gate_floor >= 0 and gate_cut >= 0, got {self}")
         if self.kappa <= 0 or self.tau_d < 0 or self.iterations < 0 or not self.beta:
             raise ValueError(f"need kappa > 0, tau_d >= 0, iterations >= 0 and a beta schedule, got {self}")
 

@@ -191,6 +191,14 @@ def _mixtures(entry_offsets, pixels, weights, slot_maps, level_weights, strength
     return offsets, out_slots[:n_out].copy(), out_weights[:n_out].copy()
 
 
+def level_weights(config: AggregationConfig, levels: int) -> np.ndarray:
+    """[levels] float64 a_l, summing to 1 (the finest level only by default)."""
+    a = np.eye(levels)[-1] if config.level_weights is None else np.asarray(config.level_weights, np.float64)
+    if len(a) != levels or a.min() < 0 or a.sum() <= 0:
+        raise ValueError(f"level_weights must give {levels} non-negative weights, got {config.level_weights}")
+    return a / a.sum()
+
+
 def observe_view(
     topk_ids: np.ndarray,  # [H, W, K] int32, -1 padded
     topk_weights: np.ndarray,  # [H, W, K] float32 alpha*T
@@ -208,18 +216,10 @@ def observe_view(
     factors = _pixel_factors(w, valid, config.q_min, config.tau_e, config.kappa, config.eps, config.use_quality)
     strength = _strengths(ids, w, factors, n_gaussians)
     kept = np.flatnonzero(strength > config.tau_d).astype(np.int32)
-    if config.mass_gate is not None:  # the fewest, strongest Gaussians holding mass_gate of the view's d
-        ranked = kept[np.argsort(-strength[kept], kind="stable")]
-        cumulative = np.cumsum(strength[ranked])
-        count = int(np.searchsorted(cumulative, config.mass_gate * cumulative[-1])) + 1 if len(ranked) else 0
-        kept = np.sort(ranked[:count]).astype(np.int32)
     kept_of = np.full(n_gaussians, -1, np.int32)
     kept_of[kept] = np.arange(len(kept), dtype=np.int32)
     levels = slot_maps.shape[0]
-    a = np.eye(levels)[-1] if config.level_weights is None else np.asarray(config.level_weights, np.float64)
-    if len(a) != levels or a.min() < 0 or a.sum() <= 0:
-        raise ValueError(f"level_weights must give {levels} non-negative weights, got {config.level_weights}")
-    a = a / a.sum()
+    a = level_weights(config, levels)
     kept_strength = strength[kept]
     entry_offsets, pixels, entry_weights = _group_entries(ids, w, factors, kept_of, len(kept))
     offsets, slots, weights = _mixtures(

@@ -10,8 +10,8 @@ A Gaussian's result depends on its own observations only, so the kernels work on
 a time on its few observations (one per view that saw it), in cache, and never build [O, D]
 temporaries: a refinement pass costs O(observations of the refined Gaussians x D x T). The
 features stay in the store's mixture form, f = sum_e w_e bank[slot_e], and are mixed inside the
-kernel. ``_reference.py`` holds the dense equations (``refine_dense``) and the numpy streaming
-update (``streaming_cosine_reference``) these kernels are tested against.
+kernel. ``_reference.py`` holds the dense equations (``refine_dense``) and VALA's streaming
+median in numpy (``streaming_median_reference``), which these kernels are tested against.
 """
 
 from __future__ import annotations
@@ -147,8 +147,12 @@ def _consistency(first, order, strength, entry_offsets, slots, weights, bank, be
 
 
 @njit(parallel=True, cache=True)
-def _streaming(first, order, strength, entry_offsets, slots, weights, bank):
-    """[n, D] float32: VALA's streaming update per Gaussian, observations in arrival order."""
+def _streaming_median(first, order, strength, entry_offsets, slots, weights, bank):
+    """[n, D] float32 unit rows: VALA's streaming weighted geometric median in cosine space
+    (VALA Sec. 4.2, Algorithm 1), per Gaussian over its observations in arrival order: z starts
+    at the first unit feature with W = its weight; each next one (unit f, weight w) moves z
+    along its tangent direction, z <- normalize(z + w / (W + w) * (f - (f . z) z)), W += w.
+    Observations with a zero feature or weight are skipped."""
     n, dim = first.shape[0] - 1, bank.shape[1]
     out = np.zeros((n, dim), np.float32)
     for g in prange(n):
@@ -158,16 +162,19 @@ def _streaming(first, order, strength, entry_offsets, slots, weights, bank):
         features, norms = np.empty((k, dim)), np.empty(k)
         d = np.empty(k)
         _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
-        total, weight = np.zeros(dim), 0.0
+        z, total = np.zeros(dim), 0.0
         for j in range(k):
-            scale = 1.0 / max(weight, 1e-12)  # the current F is total * scale
-            norm = norms[j] * np.sqrt(_dot(total, total)) * scale
-            cosine = _dot(features[j], total) * scale / max(norm, 1e-12) if norm > 0 else 1.0
-            w = d[j] * ((1.0 + cosine) / 2.0 if weight > 0 else 1.0)
-            for dd in range(dim):
-                total[dd] += w * features[j, dd]
-            weight += w
-        out[g] = total / max(weight, 1e-12)
+            if norms[j] <= 0.0 or d[j] <= 0.0:
+                continue
+            f = features[j] / norms[j]
+            if total == 0.0:
+                z[:] = f
+            else:
+                eta = d[j] / (total + d[j])
+                z += eta * (f - _dot(f, z) * z)
+                z /= np.sqrt(_dot(z, z))
+            total += d[j]
+        out[g] = z
     return out
 
 
@@ -176,7 +183,7 @@ def refine_mixed(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(F [n, D] float32, observation count [n] int64) combining each Gaussian's observations
     as ``config.combine`` says: the consistency update with config.iterations iterations, or
-    the streaming cosine update in arrival order."""
+    VALA's streaming median in arrival order."""
     first, order = _group_by_owner(observations.owner, n)
     arrays = (
         first,
@@ -187,8 +194,8 @@ def refine_mixed(
         np.ascontiguousarray(observations.weights, np.float32),
         np.ascontiguousarray(observations.bank, np.float32),
     )
-    if config.combine == "streaming_cosine":
-        F = _streaming(*arrays)
+    if config.combine == "streaming_median":
+        F = _streaming_median(*arrays)
     else:
         betas = np.array([config.beta_at(t) for t in range(1, config.iterations + 1)], np.float64)
         min_retained = -1.0 if config.min_retained_views is None else float(config.min_retained_views)
@@ -206,18 +213,3 @@ def refine_observations(
     """(F [n, D] float32, observation count [n] int) after config.iterations iterations (the
     consistency update; observations with plain features)."""
     return refine_mixed(MixedObservations.dense(owner, strength, features), n, config)
-
-
-def streaming_cosine(
-    owner: np.ndarray,  # [O] Gaussian index
-    view: np.ndarray,  # [O] view index (arrival order)
-    strength: np.ndarray,  # [O] d_iv
-    features: np.ndarray,  # [O, D] f_iv
-    n: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """VALA-style streaming update, view by view in arrival order: a new observation enters the
-    running weighted mean with weight d * (1 + cos(f, F)) / 2 (its agreement with the current
-    feature; the first observation of a Gaussian enters with weight d). Returns (F, count)."""
-    order = np.argsort(view, kind="stable")
-    observations = MixedObservations.dense(owner[order], strength[order], features[order])
-    return refine_mixed(observations, n, AggregationConfig(combine="streaming_cosine"))

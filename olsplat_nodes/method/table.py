@@ -9,11 +9,13 @@
 - ``drsplat`` (Dr.Splat, Sec. 3.2 of its paper): a fixed K = 45 contributors per pixel (its
   released code's value), alpha*T weights, plain weighted mean; no product quantization (we
   store float16 or our own codebook);
-- ``projection`` (LUDVIG-style): every contribution of every pixel (Top-K cap 32 and 100 %
-  coverage, which holds all but a sliver of the weight), alpha*T-weighted mean, nothing else;
-- ``vala`` (VALA-style): the same contributions, a per-view mass gate (the fewest Gaussians
-  holding 95 % of the view's contribution; VALA's own threshold is not published here) and a
-  streaming update weighted by each observation's cosine agreement, in flight order.
+- ``projection`` (LUDVIG, Marrie et al. 2024, its uplifting: every contributor of every
+  pixel of every view, alpha*T-weighted mean, nothing else; no graph diffusion): a
+  contribution list of ``ALL_CONTRIBUTORS`` per pixel, more than any pixel of our scenes has
+  (the most on the small preset: 186), in full;
+- ``vala`` (VALA, Wang et al. 2025, Secs. 4.1-4.2): alpha*T and the feature at each Gaussian's
+  centre pixel, VALA's visibility gate, streaming geometric median in cosine space in flight
+  order (``aggregate/vala.py``).
 """
 
 from __future__ import annotations
@@ -53,6 +55,8 @@ class Method:
 
 
 _PLAIN = AggregationConfig(use_quality=False, tau_d=0.0, iterations=0)
+ALL_CONTRIBUTORS = 256  # a contribution list this long holds every contributor of every pixel we render
+_EVERY = RasterConfig(topk_min=ALL_CONTRIBUTORS, topk_max=ALL_CONTRIBUTORS, topk_coverage=1.0)
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
@@ -62,8 +66,8 @@ METHODS: dict[str, Method] = {
         Method("outlangsplat-noconsistency", AggregationConfig(iterations=0), RasterConfig()),
         Method("topk", _PLAIN, RasterConfig()),
         Method("drsplat", _PLAIN, RasterConfig(topk_min=45, topk_max=45, topk_coverage=1.0)),
-        Method("projection", _PLAIN, RasterConfig(topk_min=32, topk_max=32, topk_coverage=1.0)),
-        Method("vala", replace(_PLAIN, mass_gate=0.95, combine="streaming_cosine"), RasterConfig()),
+        Method("projection", _PLAIN, _EVERY),
+        Method("vala", replace(_PLAIN, view_feature="centre", combine="streaming_median"), _EVERY),
     )
 }
 

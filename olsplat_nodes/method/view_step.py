@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..aggregate import ObservationStore, observe_view, stack_levels
+from ..aggregate.vala import observe_view_centres
 from ..raster import rasterize
 from ..scene import Camera, Gaussians
 from .table import Method
@@ -40,7 +41,13 @@ def add_view(
         bank = branch.fuse_view(camera, rendered.depth, label_maps, bank)
     t2 = time.perf_counter()
     slots, stacked = stack_levels(label_maps, bank)
-    observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), method.aggregation)
+    config = method.aggregation
+    if config.view_feature == "centre":  # VALA: each Gaussian's centre pixel, then its visibility gate
+        observations = observe_view_centres(
+            rendered.topk_ids, rendered.topk_weights, rendered.means2d, rendered.radii, slots, len(gaussians), config
+        )
+    else:
+        observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), config)
     t3 = time.perf_counter()
     store.append(camera.name, observations, stacked)
     t4 = time.perf_counter()

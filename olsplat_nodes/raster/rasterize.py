@@ -23,6 +23,8 @@ class RenderResult:
     # (with feature_queries: [H, W, Q] the cosine of that feature with each query)
     topk_ids: np.ndarray | None  # [H, W, topk_max] int32 Gaussian indices by weight, -1 padded
     topk_weights: np.ndarray | None  # [H, W, topk_max] float32 alpha*T weights, 0 padded
+    means2d: np.ndarray  # [N, 2] float32 projected centres (u, v) in pixels, pixel centres at +0.5; 0 if culled
+    radii: np.ndarray  # [N] int32 screen radius in pixels; 0 = culled (never rasterized)
     n_evaluations: int  # Gaussian-pixel pairs evaluated (the sigma computed)
     n_tile_pairs: int  # pairs a per-pixel tile-list loop (gsplat classic) evaluates for the same image
     n_intersections: int  # Gaussian-tile pairs after binning
@@ -93,6 +95,8 @@ def rasterize(
         features=out_features if features is not None else None,
         topk_ids=topk_ids if want_topk else None,
         topk_weights=topk_weights if want_topk else None,
+        means2d=projected.means2d,
+        radii=projected.radii,
         n_evaluations=int(evals[:, 0].sum()),
         n_tile_pairs=int(evals[:, 1].sum()),
         n_intersections=len(slots),

@@ -130,55 +130,6 @@ def test_store_survives_reopening_and_half_written_views(tmp_path):
     assert F.shape == (n, 6) and observed.any()
 
 
-def test_mass_gate_keeps_the_fewest_strongest():
-    from olsplat_nodes.aggregate import observe_view as observe
-
-    gaussians = random_gaussians(150, 0, seed=4)
-    camera = camera_for("PINHOLE_CENTRED", 40, 30)
-    result = rasterize(gaussians, camera)
-    labels = np.stack([(np.arange(30)[:, None] // 10) * 4 + np.arange(40)[None, :] // 10]).astype(np.int32)
-    slots, _ = stack_levels(labels, [np.eye(12, 6, dtype=np.float32)])
-    everyone = observe(result.topk_ids, result.topk_weights, slots, 150, AggregationConfig(tau_d=0.0))
-    gated = observe(result.topk_ids, result.topk_weights, slots, 150, AggregationConfig(tau_d=0.0, mass_gate=0.8))
-    assert 0 < len(gated) < len(everyone)
-    total = everyone.strength.sum()
-    assert gated.strength.sum() >= 0.8 * total - 1e-5
-    assert gated.strength.sum() - gated.strength.min() < 0.8 * total  # one fewer would not do
-    assert gated.strength.min() >= np.sort(everyone.strength)[::-1][len(gated) - 1] - 1e-7
-
-
-def test_streaming_cosine_update():
-    from olsplat_nodes.aggregate.refine import streaming_cosine
-
-    f = np.array([[1.0, 0.0], [1.0, 0.0], [-1.0, 0.0]])
-    F, count = streaming_cosine(np.zeros(3, int), np.array([0, 1, 2]), np.ones(3), f, 1)
-    np.testing.assert_allclose(F[0], [1.0, 0.0])  # the opposed third view agrees 0: weight 0
-    assert count[0] == 3
-    F, _ = streaming_cosine(
-        np.zeros(2, int), np.array([0, 1]), np.array([1.0, 3.0]), np.array([[1.0, 0.0], [0.0, 1.0]]), 1
-    )
-    np.testing.assert_allclose(F[0], [1.0 / 2.5, 1.5 / 2.5])  # second view: weight 3 * (1 + 0) / 2
-
-
-def test_streaming_cosine_equals_the_numpy_reference():
-    from olsplat_nodes.aggregate._reference import streaming_cosine_reference
-    from olsplat_nodes.aggregate.refine import streaming_cosine
-
-    rng = np.random.default_rng(5)
-    n, views, dim = 50, 8, 6
-    seen = rng.random((n, views)) < 0.7  # at most one observation per Gaussian and view
-    owner, view = np.nonzero(seen)
-    shuffle = rng.permutation(len(owner))  # arrival order comes from `view`, not from the list order
-    owner, view = owner[shuffle], view[shuffle]
-    strength = rng.uniform(0.1, 1.0, len(owner))
-    features = rng.normal(size=(len(owner), dim))
-    features[::7] = 0.0  # zero features: the cosine falls back to 1
-    expected, expected_count = streaming_cosine_reference(owner, view, strength, features, n)
-    got, count = streaming_cosine(owner, view, strength, features, n)
-    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(count, expected_count)
-
-
 def test_mixed_features_equal_their_dense_form(tmp_path):
     """The store refines from the views' banks and mixture entries; the same observations with
     their features mixed out beforehand give the same map."""
