@@ -37,7 +37,7 @@ EXAMPLES = {
     "olsplat encode --scene scene --encoders enc/remoteclip,enc/georsclip --weights 0.6,0.4",
     "aggregate": "olsplat aggregate --scene scene --out maps/ols\nolsplat aggregate --scene scene --method projection "
     "--out maps/proj --set topk_max=24",
-    "eval": "olsplat eval --scene small1 --scene small2 --methods outlangsplat,projection,topk,vala",
+    "eval": "olsplat eval --scene small31 --scene small32 --methods outlangsplat,projection,vala",
     "launch": "olsplat launch launch/replay.yaml --run-dir out/run --set ingest.source=scene/replay.mcap "
     "--set launch.map=scene/map/point_cloud.ply",
     "ground query": 'olsplat ground query "red roof buildings" --view 3 --out pictures/\n'
@@ -54,7 +54,8 @@ EXAMPLES = {
     "bench query": "olsplat bench query --scene small0",
     "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json",
     "bench compression": "olsplat bench compression --scene small0",
-    "bench robustness": "olsplat bench robustness --scene small0",
+    "bench robustness": "olsplat bench robustness --scene small31 --confusion 0,0.15,0.3,0.45 --md robust.md",
+    "bench tune": "olsplat bench tune --scene small1001 --scene small1002 --json tune.json",
     "bench structure": "olsplat bench structure --scene small0",
     "record": "olsplat record --source scene/replay.mcap --out session.mcap --frames 20\n"
     "olsplat record --source-kind exif_folder --source photos/ --out photos.mcap",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import aggregate, compression, encode, frame, graph, query, raster, regions, robustness, structure
+from . import aggregate, compression, encode, frame, graph, query, raster, regions, robustness, structure, tune
 
 
 def add_parser(subparsers) -> None:
@@ -18,3 +18,4 @@ def add_parser(subparsers) -> None:
     compression.add_parser(targets)
     robustness.add_parser(targets)
     structure.add_parser(targets)
+    tune.add_parser(targets)

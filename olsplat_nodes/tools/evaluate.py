@@ -18,7 +18,7 @@ def add_parser(subparsers) -> None:
     )
     ev.add_argument(
         "--methods",
-        default="outlangsplat,projection,topk,vala",
+        default="outlangsplat,outlangsplat-paper,projection,drsplat,topk,vala",
         help=f"comma-separated, from: {', '.join(METHOD_NAMES)}",
     )
     ev.add_argument("--encoders", default="shipped", help="'shipped', shipped names or exported encoder folders")

@@ -75,8 +75,15 @@ def test_confusion_replaces_rows_by_rows_of_the_same_view():
 def test_robustness_benchmark_runs(tiny, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(tiny[0], scene)
-    assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5"]) == 0
-    assert re.search(r"p 0\.50\s+topk\s+mIoU\s+\d+\.\d", capsys.readouterr().out)
+    table, scores = tmp_path / "r.md", tmp_path / "r.json"
+    argv = ["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5"]
+    assert main([*argv, "--md", str(table), "--json", str(scores)]) == 0
+    printed = re.search(
+        r"p 0\.50\s+topk\s+mIoU\s+(\d+\.\d)\s+mAcc\s+\d+\.\d\s+Loc@50\s+(\d+\.\d)", capsys.readouterr().out
+    )
+    assert printed
+    assert f"| topk | **{printed[1]} / {printed[2]}** |" in table.read_text()  # one scene: the mean is the run
+    assert json.loads(scores.read_text())["topk"]["0.5"]["scene"]["mIoU"] == pytest.approx(float(printed[1]), abs=0.05)
     assert (
         main(
             [
@@ -136,3 +143,23 @@ def test_raster_benchmark_writes_one_row_per_case(tmp_path, capsys):
             row["evaluations"] / (row["s_per_view_topk"] * row["threads"])
         )
     assert "Mevals/s" in capsys.readouterr().out
+
+
+def test_tuning_runs_on_training_seeds_only(tiny, tmp_path, capsys):
+    """Every setting of a method's grid is run and scored, the best mIoU chosen; a scene of a
+    held-out seed (< 1000) is refused before any work."""
+    from olsplat_nodes.bench.tune import GRIDS
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny[0], scene)
+    assert main(["bench", "tune", "--scene", str(scene), "--methods", "projection"]) == 1
+    assert "training scenes only" in capsys.readouterr().err
+    record = json.loads((scene / "scene.json").read_text())
+    (scene / "scene.json").write_text(json.dumps({**record, "seed": 1000}))  # the same scene, as a training seed
+    out = tmp_path / "tune.json"
+    assert main(["bench", "tune", "--scene", str(scene), "--methods", "projection", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())["methods"]["projection"]
+    assert [row["setting"] for row in result["rows"]] == GRIDS["projection"]
+    best = max(result["rows"], key=lambda row: row["mIoU"])
+    assert result["chosen"] == best["setting"] and best["per_scene"]["scene"]["mIoU"] == best["mIoU"]
+    assert f"chosen: {json.dumps(result['chosen'])}" in capsys.readouterr().out

@@ -1,0 +1,118 @@
+"""``olsplat bench tune``: the same tuning budget for every method, on training scenes only.
+
+Each method gets ``len(GRIDS[method])`` settings of its own parameters (its published or current
+default first); every setting aggregates and scores every given scene as ``olsplat eval`` does;
+the chosen setting has the best mean mIoU over the scenes (ties: the best mean Loc@50, then the
+earlier setting). Scenes must be simulator scenes of training seeds (>= 1000, their
+``scene.json``): choices made on the held-out seeds of the results would flatter whoever is
+tuned most. The chosen values are the defaults of ``method/table.py``; README "Comparisons"
+shows the sweep.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+TRAINING_SEEDS = 1000  # scenes of seeds below this are held out for results
+
+# Four settings per method. Symbols in method/params.py; each grid varies what its paper leaves
+# open or what decides the most for that method.
+GRIDS: dict[str, list[dict[str, Any]]] = {
+    "outlangsplat": [{}, {"tau_d": 0.02}, {"tau_d": 0.1}, {"beta": [1.0, 2.0, 4.0]}],
+    "outlangsplat-paper": [{}, {"tau_d": 0.02}, {"tau_d": 0.1}, {"beta": [1.0, 2.0, 4.0]}],
+    # LUDVIG prunes Gaussians with little total weight; here: observations with d_iv <= tau_d
+    "projection": [{}, {"tau_d": 0.01}, {"tau_d": 0.05}, {"tau_d": 0.2}],
+    "drsplat": [
+        {},
+        {"topk_min": 16, "topk_max": 16},
+        {"topk_min": 32, "topk_max": 32},
+        {"topk_min": 64, "topk_max": 64},
+    ],
+    "topk": [{}, {"topk_coverage": 0.8}, {"topk_coverage": 0.95}, {"topk_min": 8}],
+    "vala": [
+        {},  # VALA's LERF values: tau_mass 0.75, tau_abs 0.13, stage-B cut 0.15
+        {"gate_mass": 0.9, "gate_floor": 0.0, "gate_cut": 0.05},
+        {"gate_mass": 0.75, "gate_floor": 0.0, "gate_cut": 0.0},
+        {"gate_mass": 0.5, "gate_floor": 0.0, "gate_cut": 0.0},
+    ],
+}
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("tune", help="the same tuning budget for every method, on training scenes")
+    parser.add_argument("--scene", required=True, type=Path, action="append", help="a training scene; repeatable")
+    parser.add_argument("--methods", default=",".join(GRIDS), help="comma-separated, from: " + ", ".join(GRIDS))
+    parser.add_argument("--json", type=Path, help="write every setting's scores and the choices here")
+    parser.set_defaults(run=run)
+
+
+def _seed_of(folder: Path) -> int | None:
+    try:
+        return int(json.loads((folder / "scene.json").read_text())["seed"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..aggregate.snapshot import LanguageMap
+    from ..encoders.spec import encoder_from_spec
+    from ..errors import OlsplatInputError
+    from ..evaluate import evaluate_map
+    from ..method import MethodParams
+    from ..params import parse_params
+    from ..pipeline import Scene, aggregate_scene
+
+    names = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = [n for n in names if n not in GRIDS]
+    if unknown:
+        raise OlsplatInputError(f"--methods: no tuning grid for {', '.join(unknown)}; known: {', '.join(GRIDS)}")
+    for folder in args.scene:
+        seed = _seed_of(folder)
+        if seed is None or seed < TRAINING_SEEDS:
+            raise OlsplatInputError(
+                f"{folder}: tune on training scenes only (simulator seed >= {TRAINING_SEEDS} in scene.json), "
+                f"found seed {seed}"
+            )
+    scenes = [Scene.open(folder) for folder in args.scene]
+    settings = {  # every setting is checked before any work
+        name: [parse_params(MethodParams, {**s, "method": name}, f"{name} {s}").resolve() for s in GRIDS[name]]
+        for name in names
+    }
+    encoder = encoder_from_spec()
+    results: dict[str, Any] = {}
+    for name in names:
+        rows: list[dict[str, Any]] = []
+        for grid, method in zip(GRIDS[name], settings[name], strict=True):
+            scores = []
+            start = time.perf_counter()
+            for scene in scenes:
+                with tempfile.TemporaryDirectory() as tmp:
+                    aggregate_scene(scene, method, encoder, Path(tmp))
+                    scores.append(evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder))
+            row = {
+                "setting": grid,
+                "mIoU": float(np.mean([s["mIoU"] for s in scores])),
+                "loc50": float(np.mean([s["loc50"] for s in scores])),
+                "per_scene": {
+                    s.folder.name: {"mIoU": r["mIoU"], "loc50": r["loc50"]} for s, r in zip(scenes, scores, strict=True)
+                },
+                "seconds": time.perf_counter() - start,
+            }
+            rows.append(row)
+            figures = f"mIoU {row['mIoU']:5.2f}  Loc@50 {row['loc50']:5.2f}  ({row['seconds']:.0f} s)"
+            print(f"{name:20s} {json.dumps(grid):55s} {figures}", flush=True)
+        best = max(range(len(rows)), key=lambda i: (round(rows[i]["mIoU"], 6), round(rows[i]["loc50"], 6), -i))
+        results[name] = {"rows": rows, "chosen": rows[best]["setting"]}
+        print(f"{name:20s} chosen: {json.dumps(rows[best]['setting'])}", flush=True)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"scenes": [str(s.folder) for s in scenes], "methods": results}, indent=1))
+        print(f"figures -> {args.json}")
+    return 0
