@@ -1,6 +1,6 @@
 """The method's tunable parameters, as a launch file, ``--set`` and ``olsplat aggregate|eval``
 give them: a method name plus any of the fields below; a field left at None keeps the named
-method's own value (so ``method: projection`` keeps its 32-wide Top-K unless told otherwise).
+method's own value (so ``method: projection`` keeps its 256-long contribution lists unless told otherwise).
 
 Symbols are the paper's; defaults and the values the sweeps tried are in README.md.
 """
