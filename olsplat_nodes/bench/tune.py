@@ -48,7 +48,29 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--scene", required=True, type=Path, action="append", help="a training scene; repeatable")
     parser.add_argument("--methods", default=",".join(GRIDS), help="comma-separated, from: " + ", ".join(GRIDS))
     parser.add_argument("--json", type=Path, help="write every setting's scores and the choices here")
+    parser.add_argument("--md", type=Path, help="write the sweep as a Markdown table here")
     parser.set_defaults(run=run)
+
+
+def tune_table(methods: dict[str, Any]) -> str:
+    """Markdown: one row per method and setting (mean mIoU and Loc@50 over the training
+    scenes, then per scene), the chosen setting in bold."""
+    scenes = list(next(iter(methods.values()))["rows"][0]["per_scene"])
+    lines = [
+        "| method | setting | mIoU | Loc@50 | " + " | ".join(f"{s} mIoU / Loc@50" for s in scenes) + " |",
+        "| --- | --- | --- | --- |" + " --- |" * len(scenes),
+    ]
+    for name, result in methods.items():
+        for row in result["rows"]:
+            setting = ", ".join(f"{k}={v}" for k, v in row["setting"].items()) or "default"
+            mark = "**" if row["setting"] == result["chosen"] else ""
+            per_scene = " | ".join(
+                f"{row['per_scene'][s]['mIoU']:.1f} / {row['per_scene'][s]['loc50']:.1f}" for s in scenes
+            )
+            lines.append(
+                f"| {name} | {mark}{setting}{mark} | {mark}{row['mIoU']:.2f}{mark} | {row['loc50']:.2f} | {per_scene} |"
+            )
+    return "\n".join(lines)
 
 
 def _seed_of(folder: Path) -> int | None:
@@ -115,4 +137,6 @@ def run(args: argparse.Namespace) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"scenes": [str(s.folder) for s in scenes], "methods": results}, indent=1))
         print(f"figures -> {args.json}")
+    if args.md:
+        args.md.write_text(tune_table(results) + "\n")
     return 0

@@ -156,10 +156,13 @@ def test_tuning_runs_on_training_seeds_only(tiny, tmp_path, capsys):
     assert "training scenes only" in capsys.readouterr().err
     record = json.loads((scene / "scene.json").read_text())
     (scene / "scene.json").write_text(json.dumps({**record, "seed": 1000}))  # the same scene, as a training seed
-    out = tmp_path / "tune.json"
-    assert main(["bench", "tune", "--scene", str(scene), "--methods", "projection", "--json", str(out)]) == 0
+    out, table = tmp_path / "tune.json", tmp_path / "tune.md"
+    argv = ["bench", "tune", "--scene", str(scene), "--methods", "projection", "--json", str(out), "--md", str(table)]
+    assert main(argv) == 0
     result = json.loads(out.read_text())["methods"]["projection"]
     assert [row["setting"] for row in result["rows"]] == GRIDS["projection"]
     best = max(result["rows"], key=lambda row: row["mIoU"])
     assert result["chosen"] == best["setting"] and best["per_scene"]["scene"]["mIoU"] == best["mIoU"]
     assert f"chosen: {json.dumps(result['chosen'])}" in capsys.readouterr().out
+    rows = [line for line in table.read_text().splitlines() if line.startswith("| projection |")]
+    assert len(rows) == len(GRIDS["projection"]) and sum("**" in row for row in rows) == 1
