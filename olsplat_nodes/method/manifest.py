@@ -1,5 +1,6 @@
 """The observation store's manifest, ``STORE/manifest.json``: the method (with every resolved
-parameter), the encoder and the feature width the store's observations were made with.
+parameter), the encoder and the feature width the store's observations were made with, and the
+3D branch's settings when its features were fused with it (``structure``; None: 2D only).
 
 The accumulator writes it, the refiner reads it: the two can never refine with settings other
 than those the observations were made with. A store made with other settings is refused rather
@@ -24,6 +25,7 @@ class StoreManifest:
     method: Method
     encoder: str | None  # the encoder spec of the features; None until the first view
     feature_dim: int | None = None  # D, the width of the features; None until the first view
+    structure: dict | None = None  # the 3D branch's settings (``structure_record``); None: 2D features only
 
 
 def read_manifest(store: str | Path) -> StoreManifest | None:
@@ -38,7 +40,10 @@ def read_manifest(store: str | Path) -> StoreManifest | None:
     if not isinstance(record, dict) or "method" not in record:
         raise OlsplatInputError(f"{path}: not a store manifest (no 'method')")
     dim = record.get("feature_dim")
-    return StoreManifest(Method.from_record(record["method"], str(path)), record.get("encoder"), dim)
+    structure = record.get("structure")
+    if structure is not None and not isinstance(structure, dict):
+        raise OlsplatInputError(f"{path}: 'structure' must be an object or null")
+    return StoreManifest(Method.from_record(record["method"], str(path)), record.get("encoder"), dim, structure)
 
 
 def write_manifest(store: str | Path, manifest: StoreManifest) -> None:
@@ -46,7 +51,12 @@ def write_manifest(store: str | Path, manifest: StoreManifest) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     tmp = folder / (MANIFEST + ".tmp")
     with open(tmp, "w") as f:
-        record = {"method": manifest.method.record(), "encoder": manifest.encoder, "feature_dim": manifest.feature_dim}
+        record = {
+            "method": manifest.method.record(),
+            "encoder": manifest.encoder,
+            "feature_dim": manifest.feature_dim,
+            "structure": manifest.structure,
+        }
         json.dump(record, f, indent=1)
         f.flush()
         os.fsync(f.fileno())
@@ -58,12 +68,14 @@ def write_manifest(store: str | Path, manifest: StoreManifest) -> None:
         os.close(fd)
 
 
-def check_store(store: str | Path, method: Method) -> StoreManifest | None:
+def check_store(store: str | Path, method: Method, structure: dict | None = None) -> StoreManifest | None:
     """The store's manifest (None when it has none yet); OlsplatInputError naming the differing
-    settings when the store was made with another method or other parameters."""
+    settings when the store was made with another method, other parameters or other 3D-branch
+    settings (``structure``, None = 2D only)."""
     existing = read_manifest(store)
-    if existing is not None and existing.method != method:
-        old, new = _flat(existing.method), _flat(method)
+    if existing is not None and (existing.method != method or existing.structure != structure):
+        old = {**_flat(existing.method), **_prefixed(existing.structure)}
+        new = {**_flat(method), **_prefixed(structure)}
         changed = [
             f"{k}: {old.get(k)!r} in the store, {new.get(k)!r} now"
             for k in sorted(set(old) | set(new))
@@ -76,14 +88,23 @@ def check_store(store: str | Path, method: Method) -> StoreManifest | None:
     return existing
 
 
-def claim_store(store: str | Path, method: Method) -> StoreManifest:
-    """The store's manifest for a run with ``method``: written when the store has none, returned
-    when it has the same method; OlsplatInputError naming the differing settings otherwise."""
-    existing = check_store(store, method)
+def claim_store(store: str | Path, method: Method, structure: dict | None = None) -> StoreManifest:
+    """The store's manifest for a run with ``method`` (and the 3D branch's ``structure``
+    settings): written when the store has none, returned when it has the same settings;
+    OlsplatInputError naming the differing settings otherwise."""
+    existing = check_store(store, method, structure)
     if existing is None:
-        existing = StoreManifest(method, None)
+        existing = StoreManifest(method, None, None, structure)
         write_manifest(store, existing)
     return existing
+
+
+def _prefixed(structure: dict | None) -> dict[str, object]:
+    return (
+        {"features": "2d"}
+        if structure is None
+        else {"features": "2d3d", **{f"3d.{k}": v for k, v in structure.items()}}
+    )
 
 
 def _flat(method: Method) -> dict[str, object]:

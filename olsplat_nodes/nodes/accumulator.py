@@ -8,8 +8,13 @@ reads, so the two never disagree. A store made with other settings is refused at
 Per view: check the message against itself (label maps vs image size, regions vs feature rows,
 one encoder for the whole run), run the method's per-view step (``method.add_view``), save the
 photo and camera (``aggregate.views``) and append to the observation store; only then
-acknowledge. A view already in the store (by name) is acknowledged again without being added
-twice, so a restarted node or a re-sent frame never double-counts. ``EndOfStream`` is forwarded
+acknowledge. With ``features: 2d3d`` each view's region bank is first fused with the 3D branch
+(the paper's dual branch, ``structure.StructuralBranch``): its point features are made at the
+first view (from that view's camera centre), h_theta trains online as views arrive, and its
+whole state is saved (``STORE/branch.npz``) after every stored view, so a restarted node goes on
+with h as it was; the branch's settings are in the store's manifest. A view already in the
+store (by name) is acknowledged again without being added twice, so a restarted node or a
+re-sent frame never double-counts. ``EndOfStream`` is forwarded
 on the observations topic after the views before it.
 """
 
@@ -18,6 +23,9 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
 
 from olsplat_msgs import EndOfStream, ObservationsAdded, RegionFeatures
 
@@ -48,16 +56,39 @@ class AccumulatorNode(Node):
         # numba threads of the rasterizer and observations (0 = one per core); 2: the region encoder
         # now leaves most of the second core idle, and the accumulator is the graph's slowest stage
         threads: int = 2
+        features: str = "2d"  # "2d3d": fuse the region features with the 3D branch before aggregating
+        lambda_f: float = 0.7  # 2D share of that fusion (paper)
+        minkunet: str = ""  # the 3D branch's point features from this MinkUNet checkpoint ("": geometric descriptors)
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
         from ..method import check_store, method_params_of
 
         method = method_params_of(params).resolve(where)  # a known method, values in range
-        try:
-            check_store(params.store, method)  # a resumed run keeps the settings its store was made with
+        if params.features not in ("2d", "2d3d") or not 0.0 <= params.lambda_f <= 1.0:
+            raise ParameterError(f"{where}: features must be 2d or 2d3d and 0 <= lambda_f <= 1, got {params}")
+        if params.minkunet and not Path(params.minkunet).is_file():
+            raise ParameterError(f"{where}.minkunet: {params.minkunet}: no such MinkUNet checkpoint")
+        try:  # a resumed run keeps the settings its store was made with
+            check_store(params.store, method, cls._structure_record(params))
         except OlsplatInputError as exc:
             raise ParameterError(f"{where}: {exc}") from exc
+
+    @staticmethod
+    def _structure(params: Params):
+        """The 3D branch's settings, or None for 2D features only."""
+        from ..structure.branch import StructureConfig
+
+        if params.features != "2d3d":
+            return None
+        return StructureConfig(lambda_f=params.lambda_f, minkunet=Path(params.minkunet) if params.minkunet else None)
+
+    @classmethod
+    def _structure_record(cls, params: Params) -> dict | None:
+        from ..structure.branch import structure_record
+
+        structure = cls._structure(params)
+        return None if structure is None else structure_record(structure)
 
     def setup(self) -> None:
         from ..aggregate import ObservationStore  # heavy imports here: the launcher imports node classes
@@ -68,8 +99,13 @@ class AccumulatorNode(Node):
         self.limit_threads(p.threads)
         self.method = method_params_of(p).resolve()
         self.gaussians = read_ply(p.map)
-        self.manifest = claim_store(p.store, self.method)
+        self.manifest = claim_store(p.store, self.method, self._structure_record(p))
         self.store = ObservationStore(p.store, len(self.gaussians), writer=True)
+        self.structure = self._structure(p)
+        self.branch = None  # made at the first view, or restored from the store
+        self.branch_file = Path(p.store) / "branch.npz"
+        if self.structure is not None and self.branch_file.exists():
+            self.branch = self._restore_branch()
         self.names = set(self.store.names())
         if self.names:
             log.info("resuming: %d views already in %s", len(self.names), p.store)
@@ -94,6 +130,35 @@ class AccumulatorNode(Node):
             self.diag.beat(0, f"{len(self.names)} views in the store", values)
         return None
 
+    def _restore_branch(self):
+        """The 3D branch as the last run left it (``STORE/branch.npz``); a damaged file is an
+        error (silently starting h again would make the rest of the map another method's)."""
+        from ..errors import SceneFormatError
+        from ..structure.branch import StructuralBranch
+
+        try:
+            with np.load(self.branch_file) as data:
+                state = {k: data[k] for k in data.files}
+            branch = StructuralBranch.restore(self.gaussians, state, self.structure)
+        except (OSError, KeyError, ValueError) as exc:
+            raise SceneFormatError(self.branch_file, f"not a 3D-branch state ({exc})") from exc
+        log.info(
+            "3D branch resumed: h_theta trained on %d regions over %d views",
+            branch.distiller.seen if branch.distiller else 0,
+            len(branch.losses),
+        )
+        return branch
+
+    def _save_branch(self) -> None:
+        import io
+
+        from ..durable import write_atomic
+
+        assert self.branch is not None
+        buffer = io.BytesIO()
+        np.savez(buffer, **self.branch.state())
+        write_atomic(self.branch_file, buffer.getvalue())
+
     def _add(self, message: RegionFeatures) -> None:
         from ..aggregate import save_view
         from ..method import add_view, write_manifest
@@ -114,8 +179,15 @@ class AccumulatorNode(Node):
                 self.manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
                 write_manifest(self.params.store, self.manifest)
             save_view(self.params.views, len(self.store), camera, image)
-            kept = int(add_view(self.gaussians, camera, label_maps, bank, self.method, self.store)["kept"])
+            if self.structure is not None and self.branch is None:
+                from ..structure.branch import StructuralBranch
+
+                self.branch = StructuralBranch.build(self.gaussians, camera.center[None], self.structure)
+            stages = add_view(self.gaussians, camera, label_maps, bank, self.method, self.store, self.branch)
+            kept = int(stages["kept"])
             self.names.add(message.name)
+            if self.branch is not None:  # after the view is stored: a restart goes on from h as it is now
+                self._save_branch()
         added = ObservationsAdded(
             stamp_ns=message.stamp_ns,
             frame_id=message.frame_id,

@@ -32,10 +32,28 @@ class StructureConfig:
     minkunet: Path | None = None  # a MinkUNet checkpoint for the point features; None = geometric descriptors
 
 
+def structure_record(config: StructureConfig) -> dict:
+    """The settings that decide a fused map's numbers, JSON-ready (the store's manifest)."""
+    return {
+        "lambda_f": config.lambda_f,
+        "tau_o": config.tau_o,
+        "voxel": config.voxel,
+        "minkunet": str(config.minkunet) if config.minkunet is not None else None,
+    }
+
+
 class StructuralBranch:
-    def __init__(self, points: StructuralPoints, features: np.ndarray, config: StructureConfig = StructureConfig()):
-        """``features`` [P, D3]: one structural feature per point of ``points``."""
+    def __init__(
+        self,
+        points: StructuralPoints,
+        features: np.ndarray,
+        config: StructureConfig = StructureConfig(),
+        camera_centres: np.ndarray | None = None,
+    ):
+        """``features`` [P, D3]: one structural feature per point of ``points``, made with the
+        ``camera_centres`` [V, 3] (world) that ``build`` was given."""
         self.config, self.points, self.features = config, points, features
+        self.camera_centres = None if camera_centres is None else np.asarray(camera_centres, np.float64)
         self.distiller: OnlineDistiller | None = None
         self.losses: list[float] = []  # mean distillation loss per view
 
@@ -53,7 +71,33 @@ class StructuralBranch:
             )
         else:
             features = geometric_descriptors(points, np.asarray(camera_centres, np.float64))
-        return StructuralBranch(points, features, config)
+        return StructuralBranch(points, features, config, camera_centres)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """What a restarted stream needs to go on exactly as this one would: the camera centres
+        the point features were made with, h_theta's full training state and the losses so far."""
+        if self.camera_centres is None:
+            raise ValueError("a branch made without build() has no camera centres to save")
+        arrays = {"camera_centres": self.camera_centres, "losses": np.asarray(self.losses, np.float64)}
+        if self.distiller is not None:
+            arrays.update({f"h.{k}": v for k, v in self.distiller.state().items()})
+        return arrays
+
+    @staticmethod
+    def restore(gaussians: Gaussians, state: dict[str, np.ndarray], config: StructureConfig) -> StructuralBranch:
+        """The branch of ``state()`` over the same map (its point features made again, the same
+        way); KeyError/ValueError when the state does not fit."""
+        branch = StructuralBranch.build(gaussians, np.asarray(state["camera_centres"], np.float64), config)
+        distiller = {k[2:]: v for k, v in state.items() if k.startswith("h.")}
+        if distiller:
+            branch.distiller = OnlineDistiller.from_state(distiller)
+            if branch.distiller.in_dim != branch.features.shape[1]:
+                raise ValueError(
+                    f"h_theta takes {branch.distiller.in_dim}-d point features, "
+                    f"the map gives {branch.features.shape[1]}"
+                )
+        branch.losses = [float(x) for x in state["losses"]]
+        return branch
 
     def fuse_view(
         self, camera: Camera, depth: np.ndarray, label_maps: np.ndarray, bank: list[np.ndarray]

@@ -9,6 +9,7 @@ Weights are saved as plain ``.npz`` arrays (no pickle): a loaded h gives identic
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -105,6 +106,52 @@ class OnlineDistiller:
             **arrays,
             **{f"config_{k}": v for k, v in asdict(self.config).items()},
         )
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything the next update depends on, as plain arrays: the weights, Adam's moments
+        and step counts, the replay reservoir, the random generator and the count of regions
+        seen. ``from_state`` continues training exactly where this one stopped."""
+        arrays = {f"param_{i}": p.detach().numpy().copy() for i, p in enumerate(self.model.parameters())}
+        for i, p in enumerate(self.model.parameters()):
+            moments = self.optimizer.state.get(p, {})
+            for key in ("exp_avg", "exp_avg_sq", "step"):
+                if key in moments:
+                    arrays[f"adam_{key}_{i}"] = np.asarray(moments[key].detach().numpy()).copy()
+        rng = json.dumps(self.rng.bit_generator.state)
+        config = json.dumps(asdict(self.config))
+        return {
+            **arrays,
+            "memory_3d": self.memory_3d,
+            "memory_2d": self.memory_2d,
+            "dims": np.array([self.in_dim, self.out_dim, self.seen], np.int64),
+            "rng": np.array(rng),
+            "config": np.array(config),
+        }
+
+    @staticmethod
+    def from_state(state: dict[str, np.ndarray]) -> OnlineDistiller:
+        """The distiller that ``state()`` described; KeyError/ValueError when it does not fit."""
+        import torch
+
+        in_dim, out_dim, seen = (int(x) for x in state["dims"])
+        distiller = OnlineDistiller(in_dim, out_dim, DistillConfig(**json.loads(str(state["config"]))))
+        with torch.no_grad():
+            for i, p in enumerate(distiller.model.parameters()):
+                value = np.asarray(state[f"param_{i}"], np.float32)
+                if value.shape != tuple(p.shape):
+                    raise ValueError(f"parameter {i} has shape {value.shape}, expected {tuple(p.shape)}")
+                p.copy_(torch.from_numpy(value))
+                if f"adam_step_{i}" in state:
+                    distiller.optimizer.state[p] = {
+                        "step": torch.tensor(float(state[f"adam_step_{i}"])),
+                        "exp_avg": torch.from_numpy(np.array(state[f"adam_exp_avg_{i}"], np.float32)),
+                        "exp_avg_sq": torch.from_numpy(np.array(state[f"adam_exp_avg_sq_{i}"], np.float32)),
+                    }
+        distiller.memory_3d = np.array(state["memory_3d"], np.float32)
+        distiller.memory_2d = np.array(state["memory_2d"], np.float32)
+        distiller.rng.bit_generator.state = json.loads(str(state["rng"]))
+        distiller.seen = seen
+        return distiller
 
     @staticmethod
     def load(path: str | Path) -> OnlineDistiller:

@@ -76,6 +76,14 @@ def test_a_store_keeps_its_settings_and_refuses_others(tmp_path):
         match=r"manifest.json: this store was made with other method settings \(tau_d: 0.3 in the store, 0.05 now\)",
     ):
         claim_store(store, MethodParams().resolve())
+    fused = tmp_path / "fused"  # the 3D branch's settings are part of what a store was made with
+    structure = {"lambda_f": 0.7, "tau_o": 0.1, "voxel": None, "minkunet": None}
+    assert claim_store(fused, chosen, structure).structure == structure
+    assert read_manifest(fused).structure == structure
+    with pytest.raises(OlsplatInputError, match=r"features: '2d3d' in the store, '2d' now"):
+        claim_store(fused, chosen)
+    with pytest.raises(OlsplatInputError, match=r"3d.lambda_f: 0.7 in the store, 0.5 now"):
+        claim_store(fused, chosen, {**structure, "lambda_f": 0.5})
     (store / "manifest.json").write_text("{not json")
     with pytest.raises(OlsplatInputError, match=r"manifest.json: unreadable store manifest"):
         read_manifest(store)

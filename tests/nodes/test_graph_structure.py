@@ -1,0 +1,57 @@
+"""The graph with the paper's dual branch on (``accumulator.features=2d3d``): the 3D branch's
+settings go into the store's manifest, h_theta's state is saved with the store after every
+view, and an accumulator killed mid-flight goes on with h as it was instead of a fresh one."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.aggregate import LanguageMap, ObservationStore, latest_map
+from olsplat_nodes.launcher import Supervisor
+from olsplat_nodes.method import read_manifest
+from olsplat_nodes.structure.branch import StructureConfig, structure_record
+from tests.helpers import free_port, wait_for
+
+from .conftest import Background, launch_tiny, pid_of
+
+
+@pytest.mark.timeout(600)
+def test_the_dual_branch_runs_in_the_graph_and_survives_a_restart(tiny, tmp_path, offline_map):
+    scene, summary = tiny
+    run_dir = tmp_path / "run"
+    supervisor = Supervisor(launch_tiny(scene, run_dir, free_port(), "accumulator.features=2d3d"))
+    running = Background(supervisor)
+    try:
+        store = run_dir / "store" / "views"
+        wait_for(lambda: store.is_dir() and len(list(store.iterdir())) >= 3, 300, "three stored views")
+        pid = pid_of(supervisor, "accumulator")
+        assert pid, "the supervisor reports the accumulator's pid"
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: running.code is not None, 480, "the launch to end after the final map")
+    finally:
+        supervisor.request_stop()
+        running.thread.join(30)
+    assert running.code == 0
+    names = ObservationStore(run_dir / "store", 1).names()
+    assert sorted(names) == sorted(set(names)) and len(names) == summary["views"]  # every frame, once
+    manifest = read_manifest(run_dir / "store")
+    assert manifest is not None and manifest.structure == structure_record(StructureConfig())
+    log = (run_dir / "logs" / "accumulator.log").read_text()
+    resumed = [line for line in log.splitlines() if "3D branch resumed" in line]
+    assert resumed and " 0 views" not in resumed[0], log[-2000:]  # the restart went on from h, not from scratch
+    with np.load(run_dir / "store" / "branch.npz") as state:
+        assert len(state["losses"]) == summary["views"]  # h trained once on every stored view, across the restart
+        assert int(state["h.dims"][2]) > 500  # regions seen: past the warm-up, so views were fused
+    record = latest_map(run_dir / "map")
+    assert record["final"] and record["views"] == summary["views"]
+    fused = LanguageMap.load(record["path"])
+    np.testing.assert_array_equal(fused.observed, offline_map.observed)  # the same Gaussians seen ...
+    # ... with other features: beyond the 2e-3 within which a 2D-only stream equals the offline
+    # map (test_graph.py), on most of them; the fusion keeps 0.7 of the 2D feature, so the
+    # changes are small (median 0.004 per component here)
+    change = np.abs(fused.features.astype(np.float32) - offline_map.features.astype(np.float32)).max(1)
+    assert (change[fused.observed] > 2e-3).mean() > 0.5
