@@ -68,11 +68,11 @@ class Waiter(Node):
 
     def run(self, stop: threading.Event) -> int:
         p = self.params
+        log.info("%s waiting (pid %d)", self.name, os.getpid())  # before the pid file: a test waits on it
         if p.pid_file:
             tmp = Path(p.pid_file + ".tmp")
             tmp.write_text(str(os.getpid()))
             tmp.replace(p.pid_file)  # atomic: a reader never sees an empty file
-        log.info("%s waiting (pid %d)", self.name, os.getpid())
         while p.ignore_stop or not stop.is_set():
             if p.release_file and os.path.exists(p.release_file):
                 log.info("%s released", self.name)

@@ -22,8 +22,8 @@ def read_logs(tmp_path) -> dict[str, str]:
 def test_exit_when_node_finishing_ends_the_launch_and_stops_the_rest(tmp_path, compose):
     path = write_launch(tmp_path, [
         {"name": "forever", "exec": f"{NODES}:Waiter", "params": {"pid_file": "{run_dir}/{name}.pid"}},
-        {"name": "ticker", "exec": f"{NODES}:Ticker", "params": {"ticks": 3}},
-    ], exit_when=["ticker"], compose=compose)  # fmt: skip
+        {"name": "ticker", "exec": f"{NODES}:Ticker", "params": {"ticks": 3, "wait_for": "{run_dir}/forever.pid"}},
+    ], exit_when=["ticker"], compose=compose)  # fmt: skip  # the ticker ends only once "forever" is up
     code, out = run_launch(load_launch(path))
     assert code == 0, out
     assert "ticker: exited with code 0" in out and "exit_when nodes finished (ticker); stopping the rest" in out
