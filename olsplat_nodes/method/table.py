@@ -6,8 +6,9 @@
 - ``outlangsplat-noquality`` (no q_sum * q_eff), ``outlangsplat-noconsistency`` (T = 0);
 - ``topk``: our adaptive Top-K contributions, no reliability weighting, no tau_d, plain
   weighted mean (the ablation of everything but the Top-K);
-- ``drsplat`` (Dr.Splat, Sec. 3.2 of its paper): a fixed K = 45 contributors per pixel (its
-  released code's value), alpha*T weights, plain weighted mean; no product quantization (we
+- ``drsplat`` (Dr.Splat, Sec. 3.2 of its paper): a fixed K contributors per pixel (45 in its
+  released code; 16 chosen by the same tuning as every method), alpha*T weights, plain
+  weighted mean; no product quantization (we
   store float16 or our own codebook);
 - ``projection`` (LUDVIG, Marrie et al. 2024, its uplifting: every contributor of every
   pixel of every view, alpha*T-weighted mean, nothing else; no graph diffusion): a
@@ -69,7 +70,7 @@ METHODS: dict[str, Method] = {
         Method("outlangsplat-noquality", AggregationConfig(use_quality=False), RasterConfig()),
         Method("outlangsplat-noconsistency", AggregationConfig(iterations=0), RasterConfig()),
         Method("topk", _PLAIN, RasterConfig()),
-        Method("drsplat", _PLAIN, RasterConfig(topk_min=45, topk_max=45, topk_coverage=1.0)),
+        Method("drsplat", _PLAIN, RasterConfig(topk_min=16, topk_max=16, topk_coverage=1.0)),  # tuned; its code: 45
         Method("projection", _PLAIN, _EVERY),
         Method("vala", replace(_PLAIN, view_feature="centre", combine="streaming_median", **_VALA_TUNED), _EVERY),
     )
