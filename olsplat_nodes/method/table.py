@@ -61,7 +61,7 @@ _EVERY = RasterConfig(topk_min=ALL_CONTRIBUTORS, topk_max=ALL_CONTRIBUTORS, topk
 # Chosen by ``olsplat bench tune`` on training seeds 1001 and 1002 (README "Comparisons"); every
 # method had the same four settings of budget. VALA's own values for LERF scenes (tau_mass 0.75,
 # tau_abs 0.13, stage-B cut 0.15) are AggregationConfig's defaults and gave 3 mIoU less here.
-_VALA_TUNED = {"gate_mass": 0.9, "gate_floor": 0.0, "gate_cut": 0.05}
+_VALA = replace(_PLAIN, view_feature="centre", combine="streaming_median", gate_mass=0.9, gate_floor=0.0, gate_cut=0.05)
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
@@ -72,7 +72,7 @@ METHODS: dict[str, Method] = {
         Method("topk", _PLAIN, RasterConfig()),
         Method("drsplat", _PLAIN, RasterConfig(topk_min=16, topk_max=16, topk_coverage=1.0)),  # tuned; its code: 45
         Method("projection", _PLAIN, _EVERY),
-        Method("vala", replace(_PLAIN, view_feature="centre", combine="streaming_median", **_VALA_TUNED), _EVERY),
+        Method("vala", _VALA, _EVERY),
     )
 }
 
