@@ -96,8 +96,8 @@ def observe_view_centres(
     reached = np.flatnonzero(w > 0)
     kept = reached[visibility_gate(w[reached], config.gate_mass, config.gate_floor, config.gate_cut)]
     slots = slot_maps.reshape(slot_maps.shape[0], -1)[:, pixel[kept]]  # [L, kept]
-    kept = kept[(slots >= 0).all(0)]  # the gate's survivors on a pixel with a feature
-    slots = slot_maps.reshape(slot_maps.shape[0], -1)[:, pixel[kept]]
+    valid = (slots >= 0).all(0)  # the gate's survivors on a pixel with a feature
+    kept, slots = kept[valid], slots[:, valid]
     a = level_weights(config, slot_maps.shape[0])
     used = np.flatnonzero(a > 0)
     return ViewObservations(

@@ -6,7 +6,9 @@ synchronisation. Every socket a test opens is closed (the context is destroyed a
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import tempfile
 import threading
 import time
@@ -20,6 +22,8 @@ import pytest
 import zmq
 
 from olsplat_msgs import DEFAULT_MAX_BYTES, DiagnosticStatus, ImageFrame, WireError, decode, encode
+from olsplat_nodes.launcher import Supervisor
+from tests.helpers import free_port, wait_for
 
 ENCODE_VIEW = "frame_0003.jpg"  # the tiny scene's view the tests encode and aggregate
 
@@ -361,6 +365,27 @@ def launch_tiny(scene: Path, run_dir: Path, port: int, *extra: str):
         *extra,
     ]
     return load_launch(REPO / "launch" / "replay.yaml", overrides=overrides, run_dir=str(run_dir))
+
+
+def fly_and_kill(scene: Path, run_dir: Path, victim: str, *extra: str, stored: int = 2, kills: int = 1) -> int:
+    """Launch the tiny flight into ``run_dir``, kill -9 ``victim`` once ``stored`` views are in
+    the store (``kills`` times in a row, each time once it is back), and return the launch's
+    exit code after it has ended by itself with the final map."""
+    supervisor = Supervisor(launch_tiny(scene, run_dir, free_port(), *extra))
+    running = Background(supervisor)
+    try:
+        store = run_dir / "store" / "views"
+        wait_for(lambda: store.is_dir() and len(list(store.iterdir())) >= stored, 300, f"{stored} stored views")
+        for _ in range(kills):
+            pid = pid_of(supervisor, victim)
+            assert pid, f"the supervisor reports the {victim}'s pid"
+            os.kill(pid, signal.SIGKILL)
+            wait_for(lambda old=pid: pid_of(supervisor, victim) not in (None, old), 60, f"the {victim} restarted")
+        wait_for(lambda: running.code is not None, 480, "the launch to end after the final map")
+    finally:
+        supervisor.request_stop()
+        running.thread.join(30)
+    return running.code
 
 
 class Background:

@@ -19,7 +19,7 @@ from olsplat_nodes.method import read_manifest
 from olsplat_nodes.transport import NoReply, QueryClient
 from tests.helpers import free_port, wait_for
 
-from .conftest import Background, launch_tiny, pid_of
+from .conftest import Background, fly_and_kill, launch_tiny, pid_of
 
 
 def _try(client, request):
@@ -171,21 +171,7 @@ def test_any_node_killed_mid_flight_loses_nothing(victim, kills, tiny, tmp_path,
 
     scene, summary = tiny
     run_dir = tmp_path / "run"
-    supervisor = Supervisor(launch_tiny(scene, run_dir, free_port()))
-    running = Background(supervisor)
-    try:
-        store = run_dir / "store" / "views"
-        wait_for(lambda: store.is_dir() and len(list(store.iterdir())) >= 2, 240, "two stored views")
-        for _ in range(kills):
-            pid = pid_of(supervisor, victim)
-            assert pid, f"the supervisor reports the {victim}'s pid"
-            os.kill(pid, signal.SIGKILL)
-            wait_for(lambda old=pid: pid_of(supervisor, victim) not in (None, old), 60, f"the {victim} restarted")
-        wait_for(lambda: running.code is not None, 480, "the launch to end after the final map")
-    finally:
-        supervisor.request_stop()
-        running.thread.join(30)
-    assert running.code == 0
+    assert fly_and_kill(scene, run_dir, victim, kills=kills) == 0
     names = ObservationStore(run_dir / "store", 1).names()
     assert sorted(names) == sorted(set(names)) and len(names) == summary["views"]  # every frame, once
     record = latest_map(run_dir / "map")

@@ -4,38 +4,21 @@ view, and an accumulator killed mid-flight goes on with h as it was instead of a
 
 from __future__ import annotations
 
-import os
-import signal
-
 import numpy as np
 import pytest
 
 from olsplat_nodes.aggregate import LanguageMap, ObservationStore, latest_map
-from olsplat_nodes.launcher import Supervisor
 from olsplat_nodes.method import read_manifest
 from olsplat_nodes.structure.branch import StructureConfig, structure_record
-from tests.helpers import free_port, wait_for
 
-from .conftest import Background, launch_tiny, pid_of
+from .conftest import fly_and_kill
 
 
 @pytest.mark.timeout(600)
 def test_the_dual_branch_runs_in_the_graph_and_survives_a_restart(tiny, tmp_path, offline_map):
     scene, summary = tiny
     run_dir = tmp_path / "run"
-    supervisor = Supervisor(launch_tiny(scene, run_dir, free_port(), "accumulator.features=2d3d"))
-    running = Background(supervisor)
-    try:
-        store = run_dir / "store" / "views"
-        wait_for(lambda: store.is_dir() and len(list(store.iterdir())) >= 3, 300, "three stored views")
-        pid = pid_of(supervisor, "accumulator")
-        assert pid, "the supervisor reports the accumulator's pid"
-        os.kill(pid, signal.SIGKILL)
-        wait_for(lambda: running.code is not None, 480, "the launch to end after the final map")
-    finally:
-        supervisor.request_stop()
-        running.thread.join(30)
-    assert running.code == 0
+    assert fly_and_kill(scene, run_dir, "accumulator", "accumulator.features=2d3d", stored=3) == 0
     names = ObservationStore(run_dir / "store", 1).names()
     assert sorted(names) == sorted(set(names)) and len(names) == summary["views"]  # every frame, once
     manifest = read_manifest(run_dir / "store")
