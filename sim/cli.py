@@ -52,6 +52,22 @@ def add_parser(subparsers) -> None:
     train.add_argument("--epochs", type=int, default=8, help="passes over the training crops")
     train.set_defaults(run=run_train)
 
+    structure = commands.add_parser(
+        "train-structure",
+        help="pre-train the 3D branch's MinkUNet (SegContrast, no labels) on training-seed maps",
+        epilog="example:\n  olsplat sim train-structure --seeds 3 --steps 1200   # ~30 min on one core",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    structure.add_argument("--out", type=Path, help="checkpoint file (default: the package's shipped one)")
+    structure.add_argument("--seeds", type=int, default=3, help="training maps (seeds 1000, 1001, ...; default 3)")
+    structure.add_argument("--preset", choices=sorted(PRESETS), default="small", help="map size (default small)")
+    structure.add_argument("--steps", type=int, default=1200, help="training windows (default 1200)")
+    structure.add_argument(
+        "--cr", type=float, default=0.25, help="channel ratio; 1.0 = SegContrast's size (default 0.25)"
+    )
+    structure.add_argument("--seed", type=int, default=0, help="seed of the windows and augmentations")
+    structure.set_defaults(run=run_train_structure)
+
     zero = commands.add_parser("zeroshot", help="region-level zero-shot accuracy on held-out scenes")
     zero.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="evaluation seeds (< 1000)")
     zero.add_argument("--views", type=int, default=12, help="views per evaluation scene")
@@ -118,6 +134,16 @@ def run_train(args: argparse.Namespace) -> int:
     from .train_encoders import ASSETS, train_all
 
     train_all(args.out or ASSETS, args.seeds, args.views, args.epochs)
+    return 0
+
+
+def run_train_structure(args: argparse.Namespace) -> int:
+    from olsplat_nodes.structure.segcontrast import PretrainConfig
+
+    from .train_structure import SHIPPED, train_structure
+
+    config = PretrainConfig(cr=args.cr, steps=args.steps, seed=args.seed)
+    train_structure(args.out or SHIPPED, args.seeds, args.preset, config)
     return 0
 
 

@@ -224,7 +224,8 @@ def _fill_commercial(b: _Builder, block, ground) -> None:
     w = min(x1 - x0 - 6, rng.uniform(20, 45))
     d = min(y1 - y0 - 6, rng.uniform(16, 35))
     if w > 10 and d > 10:
-        bx, by = rng.uniform(x0 + 3, x1 - 3 - w), rng.uniform(y0 + 3, y1 - 3 - d)
+        # w may fill the block exactly: keep rounding from putting the high end below the low one
+        bx, by = rng.uniform(x0 + 3, max(x0 + 3, x1 - 3 - w)), rng.uniform(y0 + 3, max(y0 + 3, y1 - 3 - d))
         b.building((bx, by, bx + w, by + d), rng.uniform(8, 26), "flat", l_shape=rng.random() < 0.3)
     # the largest free strip becomes a parking lot
     lot = max(

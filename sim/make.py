@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from olsplat_nodes.raster import rasterize
-from olsplat_nodes.scene import Camera, write_colmap, write_ply
+from olsplat_nodes.scene import Camera, Gaussians, write_colmap, write_ply
 from olsplat_nodes.sources import SourceFrame
 from olsplat_nodes.sources.replay_log import encode_jpeg, write_mcap, write_timestamps
 
@@ -65,18 +65,13 @@ def _render_frame(gaussians, frame: FlightFrame, velocity: np.ndarray, sensor: S
     return rgb / sensor.blur_samples, result
 
 
-def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = MakeOptions(), log=print) -> dict:
-    """Write the dataset of ``preset`` and ``seed`` to ``out``; returns the scene.json summary."""
-    start = time.perf_counter()
-    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)]
-    flight_rng, sensor_rng, recon_rng, pose_rng = streams
-    for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-
+def _town_flight_map(preset: Preset, seed: int, options: MakeOptions):
+    """(true scene, flight frames, reconstructed map, (sensor rng, pose rng)) of (preset, seed):
+    each part drawn from its own stream of the seed, so any part can be made alone."""
+    flight_rng, sensor_rng, recon_rng, pose_rng = [
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
+    ]
     truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
-    log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
-        f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x "
-        f"{preset.size_m:.0f} m")  # fmt: skip
     spec = FlightSpec(
         preset.n_views,
         preset.width,
@@ -86,8 +81,27 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
         rate_hz=options.rate_hz,
     )
     frames = plan_flight(preset.size_m, spec, flight_rng)
-    gains = exposure_gains(len(frames), options.sensor, sensor_rng)
     recon = reconstruct(truth, options.reconstruction, recon_rng)
+    return truth, frames, recon, (sensor_rng, pose_rng)
+
+
+def prior_map(preset: Preset, seed: int, options: MakeOptions = MakeOptions()) -> tuple[Gaussians, np.ndarray]:
+    """The map ``make_dataset`` writes to map/point_cloud.ply for (preset, seed) and the flight's
+    true camera centres [V, 3] (metres), without rendering a frame."""
+    _, frames, recon, _ = _town_flight_map(preset, seed, options)
+    return recon.gaussians, np.array([f.camera.center for f in frames])
+
+
+def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = MakeOptions(), log=print) -> dict:
+    """Write the dataset of ``preset`` and ``seed`` to ``out``; returns the scene.json summary."""
+    start = time.perf_counter()
+    for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    truth, frames, recon, (sensor_rng, pose_rng) = _town_flight_map(preset, seed, options)
+    log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
+        f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x "
+        f"{preset.size_m:.0f} m")  # fmt: skip
+    gains = exposure_gains(len(frames), options.sensor, sensor_rng)
     sfm_cameras = [perturb_pose(f.camera, options.reconstruction, pose_rng) for f in frames]
 
     write_ply(out / "map" / "point_cloud.ply", recon.gaussians)

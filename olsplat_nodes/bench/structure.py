@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.minkunet:
         t0 = time.perf_counter()
-        features = minkunet_point_features(MinkUNet(4), points.positions, points.opacity, points.voxel)
+        features = minkunet_point_features(MinkUNet(4), points, centres)
         print(f"  once per map: MinkUNet (random weights) {time.perf_counter() - t0:.1f} s ({features.shape[1]} dims)")
     branch = StructuralBranch(points, descriptors)
     encoder = encoder_from_spec()

@@ -66,9 +66,7 @@ class StructuralBranch:
         if config.minkunet is not None:
             from .minkunet import load_minkunet, minkunet_point_features  # torch: ~1 s to import, only for this
 
-            features = minkunet_point_features(
-                load_minkunet(config.minkunet), points.positions, points.opacity, points.voxel
-            )
+            features = minkunet_point_features(load_minkunet(config.minkunet), points, camera_centres)
         else:
             features = geometric_descriptors(points, np.asarray(camera_centres, np.float64))
         return StructuralBranch(points, features, config, camera_centres)

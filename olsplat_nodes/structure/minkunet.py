@@ -12,7 +12,14 @@ stripped), with MinkowskiEngine's key names, e.g. ``stem.0.kernel`` [27, 4, 32],
 ``stem.1.bn.running_mean``, ``stage1.1.net.0.kernel``, ``up1.0.net.0.kernel`` [8, 256, 256].
 SegContrast's pre-trained backbone is such a file (its input has 4 channels: here
 [normalised x, y, z, opacity]). Keys or shapes that do not match are reported by name.
-Loaded with ``weights_only=True``: a checkpoint cannot run code.
+Loaded with ``weights_only=True``: a checkpoint cannot run code. The channel ratio ``cr``
+(SegContrast's MinkUNet takes one; 1.0 = the sizes above) and the number of input channels are
+read from ``stem.0.kernel``'s shape, so smaller networks of the same layout load too.
+
+Input recipes (what the input channels mean), chosen by the checkpoint's optional "olsplat"
+record: "xyz-opacity" (no record: SegContrast's xyz + intensity, here [x, y, z centred and
+divided by their largest spread, opacity] on the world-axis voxel grid) or "height-opacity"
+(checkpoints pre-trained by ``segcontrast.pretrain``: see ``segcontrast.ground_frame``).
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ import torch
 from torch import nn
 
 from ..errors import SceneFormatError
+from .points import StructuralPoints
 from .sparse_conv import SparseTensor, conv, conv_transpose
 
 CHANNELS = (32, 32, 64, 128, 256, 256, 128, 96, 96)
@@ -87,8 +95,9 @@ def _cat(a: SparseTensor, b: SparseTensor) -> SparseTensor:
 class MinkUNet(nn.Module):
     def __init__(self, in_channels: int = 4, cr: float = 1.0):
         super().__init__()
-        cs = [int(cr * c) for c in CHANNELS]
+        cs = [int(round(cr * c)) for c in CHANNELS]
         self.out_channels = cs[8]
+        self.inputs = "xyz-opacity" if in_channels == 4 else "height-opacity"  # see INPUT_RECIPES
         self.stem = nn.Sequential(*_conv_bn_relu(in_channels, cs[0], 3, 1), *_conv_bn_relu(cs[0], cs[0], 3, 1))
         for i, (a, b) in enumerate([(cs[0], cs[1]), (cs[1], cs[2]), (cs[2], cs[3]), (cs[3], cs[4])], start=1):
             setattr(self, f"stage{i}", nn.Sequential(BasicBlock(a, a), ResidualBlock(a, b), ResidualBlock(b, b)))
@@ -116,8 +125,9 @@ class MinkUNet(nn.Module):
         return y
 
 
-def load_minkunet(path: str | Path, in_channels: int = 4, cr: float = 1.0) -> MinkUNet:
-    """A MinkUNet with the checkpoint's weights (see the module docstring for the layout)."""
+def load_minkunet(path: str | Path) -> MinkUNet:
+    """A MinkUNet with the checkpoint's weights (see the module docstring for the layout); its
+    ``inputs`` attribute names the checkpoint's input recipe."""
     path = Path(path)
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
@@ -125,6 +135,10 @@ def load_minkunet(path: str | Path, in_channels: int = 4, cr: float = 1.0) -> Mi
         raise SceneFormatError(path, "does not exist") from None
     except Exception as exc:  # torch raises many kinds for a file that is not a checkpoint
         raise SceneFormatError(path, f"not a PyTorch checkpoint ({type(exc).__name__}: {exc})") from None
+    record = data.get("olsplat", {}) if isinstance(data, dict) else {}
+    inputs = record.get("inputs", "xyz-opacity") if isinstance(record, dict) else "xyz-opacity"
+    if inputs not in INPUT_RECIPES:
+        raise SceneFormatError(path, f"unknown input recipe {inputs!r} (known: {', '.join(INPUT_RECIPES)})")
     for key in ("model", "model_state_dict", "state_dict"):
         if isinstance(data, dict) and isinstance(data.get(key), dict):
             data = data[key]
@@ -132,6 +146,16 @@ def load_minkunet(path: str | Path, in_channels: int = 4, cr: float = 1.0) -> Mi
     if not isinstance(data, dict):
         raise SceneFormatError(path, "holds no state dict")
     state = {k.removeprefix("module."): v for k, v in data.items()}
+    stem = state.get("stem.0.kernel")
+    if not isinstance(stem, torch.Tensor) or stem.ndim != 3 or stem.shape[0] != 27:
+        raise SceneFormatError(
+            path, "not a MinkUNet checkpoint of this layout: no stem.0.kernel of shape [27, C_in, C]"
+        )
+    in_channels, cr = int(stem.shape[1]), stem.shape[2] / CHANNELS[0]
+    if in_channels != INPUT_RECIPES[inputs]:
+        raise SceneFormatError(
+            path, f"takes {in_channels} input channels; its recipe {inputs!r} gives {INPUT_RECIPES[inputs]}"
+        )
     model = MinkUNet(in_channels, cr)
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
@@ -146,23 +170,28 @@ def load_minkunet(path: str | Path, in_channels: int = 4, cr: float = 1.0) -> Mi
                  f"{len(unexpected)} unexpected keys (first: {', '.join(unexpected[:3])})" if unexpected else "",
                  f"shape mismatches: {'; '.join(wrong[:3])}" if wrong else ""]  # fmt: skip
         raise SceneFormatError(path, "not a MinkUNet checkpoint of this layout: " + ", ".join(p for p in parts if p))
-    model.load_state_dict(state)
+    model.load_state_dict({k: v.float() for k, v in state.items()})
+    model.inputs = inputs
     return model.eval()
 
 
-def minkunet_point_features(model: MinkUNet, positions: np.ndarray, opacity: np.ndarray, voxel: float) -> np.ndarray:
-    """[P, 96] float32 features of points voxelised at side ``voxel``, from [normalised xyz,
-    opacity] inputs (xyz centred and divided by their largest spread). Points sharing a voxel
-    share its input (their mean) and its output."""
-    coords = np.floor(positions / voxel).astype(np.int64)
-    centred = positions - positions.mean(0)
-    inputs = np.c_[centred / max(np.abs(centred).max(), 1e-12), opacity].astype(np.float64)
-    unique, inverse = np.unique(coords, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((len(unique), inputs.shape[1]))
-    np.add.at(sums, inverse, inputs)
-    voxel_inputs = (sums / np.bincount(inverse, minlength=len(unique))[:, None]).astype(np.float32)
+INPUT_RECIPES = {"xyz-opacity": 4, "height-opacity": 3}  # recipe -> input channels
+
+
+def minkunet_point_features(model: MinkUNet, points: StructuralPoints, camera_centres: np.ndarray) -> np.ndarray:
+    """[P, out_channels] float32 features of the point set, through the model's input recipe.
+    Points sharing a voxel share its input (their mean) and its output."""
+    from .segcontrast import ground_frame, voxelise
+
+    if model.inputs == "height-opacity":
+        frame = ground_frame(points, camera_centres)
+        voxels, inputs = frame.voxels, frame.inputs
+    else:
+        centred = points.positions - points.positions.mean(0)
+        voxels = points.positions / points.voxel
+        inputs = np.c_[centred / max(np.abs(centred).max(), 1e-12), points.opacity].astype(np.float32)
+    coords, voxel_inputs, inverse = voxelise(voxels, inputs)
     with torch.no_grad():
-        out = model(SparseTensor(torch.from_numpy(unique), torch.from_numpy(voxel_inputs), 1))
+        out = model(SparseTensor(coords, voxel_inputs, 1))
     # the network returns to the input coordinates at stride 1, in the same row order
     return out.feats.numpy().astype(np.float32)[inverse]

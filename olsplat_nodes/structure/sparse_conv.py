@@ -65,6 +65,10 @@ class SparseTensor:
     # the coordinates of every stride made so far in this forward pass (MinkowskiEngine's
     # coordinate manager): transposed convolutions return to them
     levels: dict[int, tuple[torch.Tensor, CoordinateTable]] = field(default_factory=dict)
+    # neighbour tables already built in this forward pass, by (input stride, kernel size,
+    # conv stride): every convolution of a level reuses its level's table (MinkowskiEngine's
+    # kernel-map cache); the lookups otherwise dominate a forward pass
+    kernel_maps: dict[tuple[int, int, int], torch.Tensor] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.stride not in self.levels:
@@ -75,49 +79,65 @@ class SparseTensor:
         return self.levels[self.stride][1]
 
     def with_feats(self, feats: torch.Tensor) -> SparseTensor:
-        return SparseTensor(self.coords, feats, self.stride, self.levels)
+        return SparseTensor(self.coords, feats, self.stride, self.levels, self.kernel_maps)
 
 
-def _gather_matmul(feats, rows_in, weight_k, out, rows_out):
-    if len(rows_in):
-        out.index_add_(0, rows_out, feats[rows_in] @ weight_k)
+_CHUNK = 1 << 15  # output rows per gathered block: bounds the [rows, K, C_in] gather's memory
+
+
+def _neighbours(x: SparseTensor, coords_out: torch.Tensor, size: int, stride: int) -> torch.Tensor:
+    """[N_out, K] int64 input row of each output voxel's k-th kernel offset; ``len(x.feats)``
+    (the index of an appended zero row) where that neighbour is not occupied."""
+    key = (x.stride, size, stride)
+    if key not in x.kernel_maps:
+        offsets = kernel_offsets(size) * x.stride
+        rows = torch.stack([x.table.lookup(coords_out + offsets[k]) for k in range(len(offsets))], dim=1)
+        x.kernel_maps[key] = torch.where(rows >= 0, rows, torch.full_like(rows, len(x.coords)))
+    return x.kernel_maps[key]
 
 
 def conv(x: SparseTensor, kernel: torch.Tensor, size: int, stride: int) -> SparseTensor:
     """Convolution with a [size^3, C_in, C_out] kernel; stride 1 keeps the coordinates, stride 2
-    halves the resolution (output voxels: the occupied parents at stride 2 s)."""
+    halves the resolution (output voxels: the occupied parents at stride 2 s).
+
+    Each output row gathers its K neighbours' features (a zero row where a neighbour is empty)
+    into [rows, K * C_in] and multiplies once by the kernel flattened to [K * C_in, C_out]."""
     if stride == 1:
-        coords_out, levels, stride_out = x.coords, x.levels, x.stride
+        coords_out, stride_out = x.coords, x.stride
     else:
         stride_out = x.stride * stride
-        coords_out = torch.unique(torch.div(x.coords, stride_out, rounding_mode="floor") * stride_out, dim=0)
-        levels = x.levels
-    out = torch.zeros((len(coords_out), kernel.shape[2]), dtype=x.feats.dtype)
-    offsets = kernel_offsets(size) * x.stride
-    for k in range(len(offsets)):
-        rows = x.table.lookup(coords_out + offsets[k])
-        hit = torch.nonzero(rows >= 0).squeeze(1)
-        _gather_matmul(x.feats, rows[hit], kernel[k], out, hit)
-    return SparseTensor(coords_out, out, stride_out, levels)
+        if stride_out in x.levels:
+            coords_out = x.levels[stride_out][0]
+        else:
+            coords_out = torch.unique(torch.div(x.coords, stride_out, rounding_mode="floor") * stride_out, dim=0)
+    neighbours = _neighbours(x, coords_out, size, stride)
+    padded = torch.cat([x.feats, x.feats.new_zeros((1, x.feats.shape[1]))])
+    weight = kernel.reshape(-1, kernel.shape[2])  # [K * C_in, C_out], k-major as the gather
+    blocks = [
+        padded[neighbours[i : i + _CHUNK]].reshape(-1, weight.shape[0]) @ weight
+        for i in range(0, len(coords_out), _CHUNK)
+    ]
+    out = torch.cat(blocks) if blocks else x.feats.new_zeros((0, kernel.shape[2]))
+    return SparseTensor(coords_out, out, stride_out, x.levels, x.kernel_maps)
 
 
 def conv_transpose(x: SparseTensor, kernel: torch.Tensor, size: int, stride: int) -> SparseTensor:
     """Transposed convolution back to the finer stride s / stride, onto that stride's existing
-    coordinates: output voxel c takes its parent p's feature through kernel entry (c - p) / s."""
+    coordinates: output voxel c takes its parent p's feature through kernel entry (c - p) / s.
+
+    Every parent is multiplied by all 8 kernel entries at once ([N_parent, 8, C_out]); each
+    output row then picks its parent's row and its own entry."""
+    if size != 2 or stride != 2:
+        raise ValueError("only kernel size 2, stride 2 transposed convolutions are implemented (MinkUNet's)")
     stride_out = x.stride // stride
     if stride_out not in x.levels:
         raise ValueError(f"no coordinates at stride {stride_out} to return to")
     coords_out = x.levels[stride_out][0]
     parent = torch.div(coords_out, x.stride, rounding_mode="floor") * x.stride
     offset = torch.div(coords_out - parent, stride_out, rounding_mode="floor")
-    offsets = kernel_offsets(size)
-    if size != 2 or stride != 2:
-        raise ValueError("only kernel size 2, stride 2 transposed convolutions are implemented (MinkUNet's)")
     entry = offset[:, 0] * 4 + offset[:, 1] * 2 + offset[:, 2]  # z fastest, as kernel_offsets(2)
-    assert torch.equal(offsets[entry], offset)
     rows = x.table.lookup(parent)
-    out = torch.zeros((len(coords_out), kernel.shape[2]), dtype=x.feats.dtype)
-    for k in range(len(offsets)):
-        hit = torch.nonzero((entry == k) & (rows >= 0)).squeeze(1)
-        _gather_matmul(x.feats, rows[hit], kernel[k], out, hit)
-    return SparseTensor(coords_out, out, stride_out, x.levels)
+    if bool((rows < 0).any()):  # cannot happen when x was made from these coordinates by conv
+        raise ValueError("a voxel's parent is not in the coarser tensor")
+    all_entries = (x.feats @ kernel.permute(1, 0, 2).reshape(kernel.shape[1], -1)).reshape(len(x.feats), 8, -1)
+    return SparseTensor(coords_out, all_entries[rows, entry], stride_out, x.levels, x.kernel_maps)

@@ -62,3 +62,18 @@ def test_strided_conv_and_transpose_equal_dense():
     torch.testing.assert_close(
         up.feats, dense_up[0, :, coords[:, 0], coords[:, 1], coords[:, 2]].T, atol=1e-5, rtol=1e-5
     )
+
+
+def test_gradients_equal_dense():
+    """Training needs the backward pass: input and kernel gradients match conv3d's."""
+    coords, feats = _occupied(seed=2)
+    feats.requires_grad_(True)
+    kernel = torch.randn((27, 3, 4), requires_grad=True)
+    probe = torch.randn((len(coords), 4))
+    (conv(SparseTensor(coords, feats, 1), kernel, 3, 1).feats * probe).sum().backward()
+    dense_feats = feats.detach().clone().requires_grad_(True)
+    weight = kernel.detach().clone().requires_grad_(True)
+    dense = torch.nn.functional.conv3d(_dense(coords, dense_feats, 8), _dense_weight(weight, 3), padding=1)
+    (dense[0, :, coords[:, 0], coords[:, 1], coords[:, 2]].T * probe).sum().backward()
+    torch.testing.assert_close(feats.grad, dense_feats.grad, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(kernel.grad, weight.grad, atol=1e-4, rtol=1e-4)
