@@ -138,12 +138,13 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_train_structure(args: argparse.Namespace) -> int:
+    from olsplat_nodes.structure.branch import SHIPPED_MINKUNET
     from olsplat_nodes.structure.segcontrast import PretrainConfig
 
-    from .train_structure import SHIPPED, train_structure
+    from .train_structure import train_structure
 
     config = PretrainConfig(cr=args.cr, steps=args.steps, seed=args.seed)
-    train_structure(args.out or SHIPPED, args.seeds, args.preset, config)
+    train_structure(args.out or SHIPPED_MINKUNET, args.seeds, args.preset, config)
     return 0
 
 

@@ -30,8 +30,6 @@ from .make import prior_map
 from .presets import PRESETS
 from .region_samples import TRAINING_SEED_BASE
 
-SHIPPED = Path(__file__).resolve().parent.parent / "olsplat_nodes" / "structure" / "assets" / "segcontrast-olsplat.pt"
-
 
 def training_maps(seeds: list[int], preset: str = "small", config: PretrainConfig = PretrainConfig(), log=print):
     """One TrainingMap per seed: the branch's point set of the seed's map, segmented."""

@@ -115,11 +115,18 @@ def test_eval_feature_ablation_runs_the_3d_branch(tiny, tmp_path, capsys):
     document = json.loads((tmp_path / "r.json").read_text())
     assert document["methods"]["outlangsplat"]["run"]["features"] == "2d3d"
     features = document["features"]
-    assert list(features) == ["olsplat-cnn64", "olsplat-vit48", "w/o 3D fusion", "2D-3D fusion"]
-    assert (
-        features["2D-3D fusion"]["mIoU"] == document["methods"]["outlangsplat"]["mIoU"]
-    )  # the same run, aggregated once
-    assert features["w/o 3D fusion"]["mIoU"] != features["2D-3D fusion"]["mIoU"]  # the 3D branch changed the features
+    assert list(features) == [
+        "olsplat-cnn64",
+        "olsplat-vit48",
+        "w/o 3D fusion",
+        "2D-3D fusion (descriptors)",
+        "2D-3D fusion (MinkUNet)",
+    ]
+    fused = features["2D-3D fusion (descriptors)"]
+    assert fused["mIoU"] == document["methods"]["outlangsplat"]["mIoU"]  # the same run, aggregated once
+    assert features["w/o 3D fusion"]["mIoU"] != fused["mIoU"]  # the 3D branch changed the features
+    minkunet = features["2D-3D fusion (MinkUNet)"]["run"]
+    assert minkunet["minkunet"].endswith("segcontrast-olsplat.pt") and fused["run"]["minkunet"] is None
     assert "paper Table 6)" in capsys.readouterr().out
     assert main(["eval", "--scene", str(scene), "--lambda-f", "1.5"]) == 1
     assert "--lambda-f must be in [0, 1]" in capsys.readouterr().err

@@ -1,10 +1,10 @@
 """``olsplat bench structure``: the 3D branch's cost on a scene.
 
 Once per map: opacity filter + voxel downsampling, then the point features (geometric
-descriptors, or a MinkUNet with random weights of the SegContrast layout when ``--minkunet``
-is given, to time the network). Per view: visibility + region pooling, the h_theta update and
-the fusion (region features from the scene's cache; the view's depth from the rasterizer,
-not timed here).
+descriptors; with ``--minkunet``, also a MinkUNet: "shipped" = the packaged self-supervised
+one, "random" = random weights of SegContrast's full size, or a checkpoint file).
+Per view: visibility + region pooling, the h_theta update and the fusion (region features
+from the scene's cache; the view's depth from the rasterizer, not timed here).
 """
 
 from __future__ import annotations
@@ -21,7 +21,12 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("structure", help="3D branch: seconds once per map and per view")
     parser.add_argument("--scene", required=True, type=Path, help="a scene folder")
     parser.add_argument("--views", type=int, default=10, help="views to time (default 10)")
-    parser.add_argument("--minkunet", action="store_true", help="also time a random-weight MinkUNet over the point set")
+    parser.add_argument(
+        "--minkunet",
+        nargs="?",
+        const="shipped",
+        help="also time a MinkUNet over the point set: shipped (default), random (SegContrast's full size) or a file",
+    )
     parser.set_defaults(run=run)
 
 
@@ -30,9 +35,9 @@ def run(args: argparse.Namespace) -> int:
     from ..pipeline import Scene, view_features
     from ..raster import rasterize
     from ..scene import read_ply
-    from ..structure.branch import StructuralBranch
+    from ..structure.branch import StructuralBranch, minkunet_path
     from ..structure.descriptors import geometric_descriptors
-    from ..structure.minkunet import MinkUNet, minkunet_point_features
+    from ..structure.minkunet import MinkUNet, load_minkunet, minkunet_point_features
     from ..structure.points import structural_points
 
     scene = Scene.open(args.scene)
@@ -50,9 +55,13 @@ def run(args: argparse.Namespace) -> int:
         f"  once per map: points {t1 - t0:.1f} s, geometric descriptors {t2 - t1:.1f} s ({descriptors.shape[1]} dims)"
     )
     if args.minkunet:
+        model = MinkUNet(4) if args.minkunet == "random" else load_minkunet(minkunet_path(args.minkunet) or "")
         t0 = time.perf_counter()
-        features = minkunet_point_features(MinkUNet(4), points, centres)
-        print(f"  once per map: MinkUNet (random weights) {time.perf_counter() - t0:.1f} s ({features.shape[1]} dims)")
+        features = minkunet_point_features(model, points, centres)
+        print(
+            f"  once per map: MinkUNet ({args.minkunet}, {sum(p.numel() for p in model.parameters()) / 1e6:.2f} M "
+            f"parameters) {time.perf_counter() - t0:.1f} s ({features.shape[1]} dims, {len(points):,} points)"
+        )
     branch = StructuralBranch(points, descriptors)
     encoder = encoder_from_spec()
     seconds = []

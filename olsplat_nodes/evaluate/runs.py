@@ -4,7 +4,8 @@ Three kinds, one per group of the paper's tables:
 - ``method``: the aggregation methods on the chosen features (Tables 2-5 and the component
   ablation);
 - ``feature``: the full method on each 2D encoder alone, the 2D fusion without the 3D branch
-  and the 2D-3D fusion (Table 6);
+  and the 2D-3D fusion, once with the geometric descriptors and once with the MinkUNet (the
+  given checkpoint, else the shipped self-supervised one) as point features (Table 6);
 - ``sweep``: the full method with the 3D branch over lambda_2D x lambda_f (Table 7).
 Runs with identical settings are aggregated once and reported under every label they carry.
 """
@@ -13,10 +14,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from ..structure.branch import StructureConfig
+from ..structure.branch import SHIPPED_MINKUNET, StructureConfig
 
 LAMBDA_2D = (0.5, 0.6, 0.7, 1.0)  # 1.0: the first encoder (cnn64) alone
 LAMBDA_F = (0.6, 0.7, 0.8)
+WITHOUT_3D = "w/o 3D fusion"  # Table 6's reference: the paired differences are taken against it
+FUSED_DESCRIPTORS = "2D-3D fusion (descriptors)"
+FUSED_MINKUNET = "2D-3D fusion (MinkUNet)"
 
 
 @dataclass(frozen=True)
@@ -40,6 +44,7 @@ class Run:
             "weights": list(self.weights) if self.weights else None,
             "features": "2d3d" if self.structure else "2d",
             "lambda_f": self.structure.lambda_f if self.structure else None,
+            "minkunet": str(self.structure.minkunet) if self.structure and self.structure.minkunet else None,
         }
 
 
@@ -62,8 +67,11 @@ def plan_runs(
 
             members = list(SHIPPED)
         runs += [Run(name, "feature", "outlangsplat", name, None, None) for name in members]
-        runs.append(Run("w/o 3D fusion", "feature", "outlangsplat", encoders, weights, None))
-        runs.append(Run("2D-3D fusion", "feature", "outlangsplat", encoders, weights, structure))
+        runs.append(Run(WITHOUT_3D, "feature", "outlangsplat", encoders, weights, None))
+        descriptors = replace(structure, minkunet=None)
+        minkunet = structure if structure.minkunet is not None else replace(structure, minkunet=SHIPPED_MINKUNET)
+        runs.append(Run(FUSED_DESCRIPTORS, "feature", "outlangsplat", encoders, weights, descriptors))
+        runs.append(Run(FUSED_MINKUNET, "feature", "outlangsplat", encoders, weights, minkunet))
     if fusion_sweep:
         for l2d in LAMBDA_2D:
             for lf in LAMBDA_F:

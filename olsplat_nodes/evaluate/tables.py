@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from .runs import WITHOUT_3D
+
 ABLATIONS = ("outlangsplat", "outlangsplat-noquality", "outlangsplat-noconsistency")
 
 
@@ -148,6 +150,8 @@ def paper_tables(results: dict[str, dict[str, dict]]) -> str:
     features = [m for m in labels if _kind(first[m]) == "feature"]
     if features:
         sections.append(strategy_table(results, features, f"**Feature configurations** ({where}; paper Table 6)"))
+        if len(results) > 1 and WITHOUT_3D in features:
+            sections.append(spread_table(results, features, WITHOUT_3D, "Feature configurations, paper Table 6. "))
     sweep = [m for m in labels if _kind(first[m]) == "sweep"]
     if sweep:
         sections.append(sweep_table(results, sweep, f"**Fusion weights λ2D x λf** ({where}; paper Table 7)"))
@@ -157,15 +161,20 @@ def paper_tables(results: dict[str, dict[str, dict]]) -> str:
 REFERENCE = "outlangsplat"  # the method the paired differences are taken against
 
 
-def spread(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
-    """Per method, over the scenes: ``mIoU``, ``loc50`` ... means with ``mIoU_std``,
-    ``mIoU_ci95`` and ``loc50_std``, ``loc50_ci95`` ([low, high], None with one scene); and
-    ``paired``: against each other method, ``dmIoU``, ``dmIoU_ci95``, ``dloc50``,
-    ``dloc50_ci95`` (REFERENCE minus it, per scene) and ``verdict`` on mIoU and Loc@50."""
+def spread(
+    results: dict[str, dict[str, dict]], reference: str = REFERENCE, labels: list[str] | None = None
+) -> dict[str, dict]:
+    """Per run label (``labels``, default every label all scenes have), over the scenes:
+    ``mIoU``, ``loc50`` ... means with ``mIoU_std``, ``mIoU_ci95`` and ``loc50_std``,
+    ``loc50_ci95`` ([low, high], None with one scene); and, under ``reference``, ``paired``:
+    against each other label, ``dmIoU``, ``dmIoU_ci95``, ``dloc50``, ``dloc50_ci95``
+    (``reference`` minus it, per scene) and ``verdict`` on mIoU and Loc@50."""
     from .statistics import mean_ci, paired, verdict
 
     scenes = list(results)
     methods = [m for m in results[scenes[0]] if all(m in results[s] for s in scenes)]
+    if labels is not None:
+        methods = [m for m in methods if m in labels]
     out: dict[str, dict] = {}
     for name in methods:
         entry: dict[str, Any] = {}
@@ -176,11 +185,11 @@ def spread(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
                 entry[f"{key}_std"] = std
                 entry[f"{key}_ci95"] = list(interval) if interval else None
         out[name] = entry
-    if REFERENCE in methods:
-        ours = {key: [results[s][REFERENCE][key] for s in scenes] for key in ("mIoU", "loc50")}
-        out[REFERENCE]["paired"] = {}
+    if reference in methods:
+        ours = {key: [results[s][reference][key] for s in scenes] for key in ("mIoU", "loc50")}
+        out[reference]["paired"] = {}
         for name in methods:
-            if name == REFERENCE:
+            if name == reference:
                 continue
             row: dict[str, Any] = {}
             for key in ("mIoU", "loc50"):
@@ -188,27 +197,29 @@ def spread(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
                 row[f"d{key}"] = mean
                 row[f"d{key}_ci95"] = list(interval) if interval else None
                 row[f"{key}_verdict"] = verdict(interval)
-            out[REFERENCE]["paired"][name] = row
+            out[reference]["paired"][name] = row
     return out
 
 
-def spread_table(results: dict[str, dict[str, dict]], methods: list[str]) -> list[str]:
-    """Mean ± half the 95 % interval over scenes, and the paired difference of REFERENCE with
-    each of ``methods``, marked a win / tie / loss only by whether its interval excludes zero."""
-    figures = {name: entry for name, entry in spread(results).items() if name in methods}
+def spread_table(
+    results: dict[str, dict[str, dict]], methods: list[str], reference: str = REFERENCE, title: str = ""
+) -> list[str]:
+    """Mean ± half the 95 % interval over scenes, and the paired difference of ``reference``
+    with each of ``methods``, marked a win / tie / loss only by whether its interval excludes zero."""
+    figures = spread(results, reference, methods)
     n = len(results)
     lines = [
-        f"**Over {n} scenes** (mean ± half-width of the 95 % interval, Student's t; paired: "
-        f"{REFERENCE} minus the method, per scene)",
+        f"**{title}Over {n} scenes** (mean ± half-width of the 95 % interval, Student's t; paired: "
+        f"{reference} minus the row, per scene)",
         "",
-        _row(["method", "mIoU", "Loc@50", f"paired ΔmIoU ({REFERENCE} −)", "paired ΔLoc@50"]),
+        _row(["run", "mIoU", "Loc@50", f"paired ΔmIoU ({reference} −)", "paired ΔLoc@50"]),
         _row(["---"] * 5),
     ]
 
     def pm(mean: float, interval) -> str:
         return f"{mean:.1f} ± {(interval[1] - interval[0]) / 2:.1f}" if interval else f"{mean:.1f}"
 
-    pairs = figures.get(REFERENCE, {}).get("paired", {})
+    pairs = figures.get(reference, {}).get("paired", {})
     for name, entry in figures.items():
         cells = [name, pm(entry["mIoU"], entry["mIoU_ci95"]), pm(entry["loc50"], entry["loc50_ci95"])]
         if name in pairs:

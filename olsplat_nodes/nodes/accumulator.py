@@ -58,7 +58,9 @@ class AccumulatorNode(Node):
         threads: int = 2
         features: str = "2d"  # "2d3d": fuse the region features with the 3D branch before aggregating
         lambda_f: float = 0.7  # 2D share of that fusion (paper)
-        minkunet: str = ""  # the 3D branch's point features from this MinkUNet checkpoint ("": geometric descriptors)
+        # the 3D branch's point features: "" geometric descriptors, "shipped" the packaged
+        # self-supervised MinkUNet, or a MinkUNet checkpoint file
+        minkunet: str = ""
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -67,7 +69,10 @@ class AccumulatorNode(Node):
         method = method_params_of(params).resolve(where)  # a known method, values in range
         if params.features not in ("2d", "2d3d") or not 0.0 <= params.lambda_f <= 1.0:
             raise ParameterError(f"{where}: features must be 2d or 2d3d and 0 <= lambda_f <= 1, got {params}")
-        if params.minkunet and not Path(params.minkunet).is_file():
+        from ..structure.branch import minkunet_path
+
+        checkpoint = minkunet_path(params.minkunet)
+        if checkpoint is not None and not checkpoint.is_file():
             raise ParameterError(f"{where}.minkunet: {params.minkunet}: no such MinkUNet checkpoint")
         try:  # a resumed run keeps the settings its store was made with
             check_store(params.store, method, cls._structure_record(params))
@@ -77,11 +82,11 @@ class AccumulatorNode(Node):
     @staticmethod
     def _structure(params: Params):
         """The 3D branch's settings, or None for 2D features only."""
-        from ..structure.branch import StructureConfig
+        from ..structure.branch import StructureConfig, minkunet_path
 
         if params.features != "2d3d":
             return None
-        return StructureConfig(lambda_f=params.lambda_f, minkunet=Path(params.minkunet) if params.minkunet else None)
+        return StructureConfig(lambda_f=params.lambda_f, minkunet=minkunet_path(params.minkunet))
 
     @classmethod
     def _structure_record(cls, params: Params) -> dict | None:

@@ -21,12 +21,24 @@ from .distill import DistillConfig, OnlineDistiller, fuse_regions
 from .points import StructuralPoints, structural_points
 from .pooling import Visibility, pool_regions, visible_pixels
 
+# the MinkUNet pre-trained here with SegContrast's objective (``olsplat sim train-structure``)
+SHIPPED_MINKUNET = Path(__file__).resolve().parent / "assets" / "segcontrast-olsplat.pt"
+
+
+def minkunet_path(value: str | Path | None) -> Path | None:
+    """A user's choice of MinkUNet checkpoint: "shipped" = SHIPPED_MINKUNET, "" or None = none
+    (geometric descriptors), anything else a file path."""
+    if value is None or str(value) == "":
+        return None
+    return SHIPPED_MINKUNET if str(value) == "shipped" else Path(value)
+
 
 @dataclass(frozen=True)
 class StructureConfig:
     tau_o: float = 0.1  # opacity threshold of the point set (paper's tau_o; value not given there)
     voxel: float | None = None  # voxel side in map units; None = auto (about 150k points on the ground footprint)
     lambda_f: float = 0.7  # weight of the 2D feature in the fusion (paper)
+    lambda_f_points: int = 0  # > 0: the 3D share scales with a region's visible points up to this many (not the paper)
     visibility: Visibility = Visibility()
     distill: DistillConfig = field(default_factory=DistillConfig)
     minkunet: Path | None = None  # a MinkUNet checkpoint for the point features; None = geometric descriptors
@@ -34,12 +46,15 @@ class StructureConfig:
 
 def structure_record(config: StructureConfig) -> dict:
     """The settings that decide a fused map's numbers, JSON-ready (the store's manifest)."""
-    return {
+    record = {
         "lambda_f": config.lambda_f,
         "tau_o": config.tau_o,
         "voxel": config.voxel,
         "minkunet": str(config.minkunet) if config.minkunet is not None else None,
     }
+    if config.lambda_f_points:  # only when set: stores made before the option existed still match
+        record["lambda_f_points"] = config.lambda_f_points
+    return record
 
 
 class StructuralBranch:
@@ -111,6 +126,6 @@ class StructuralBranch:
         if not self.distiller.ready:
             return bank
         return [
-            fuse_regions(b, self.distiller.project(p), c, self.config.lambda_f)
+            fuse_regions(b, self.distiller.project(p), c, self.config.lambda_f, self.config.lambda_f_points)
             for b, p, c in zip(bank, pooled, counts, strict=True)
         ]

@@ -181,11 +181,20 @@ class OnlineDistiller:
             raise SceneFormatError(path, f"not an h_theta file ({type(exc).__name__}: {exc})") from None
 
 
-def fuse_regions(f2d: np.ndarray, projected_3d: np.ndarray, counts: np.ndarray, lambda_f: float) -> np.ndarray:
+def fuse_regions(
+    f2d: np.ndarray, projected_3d: np.ndarray, counts: np.ndarray, lambda_f: float, full_points: int = 0
+) -> np.ndarray:
     """[R, D] fused region features: lambda_f f2D + (1 - lambda_f) |f2D| h^(f3D) where the
-    region has visible points (counts > 0), else f2D unchanged (paper eq. 2d3d fusion)."""
+    region has visible points (counts > 0), else f2D unchanged (paper eq. 2d3d fusion).
+
+    ``full_points`` > 0 (not in the paper): a region with n visible points gets the 3D share
+    (1 - lambda_f) min(1, n / full_points), so a region that pooled a handful of points leans
+    on its 2D feature."""
     has = counts > 0
     out = f2d.astype(np.float32).copy()
+    share = np.full((int(has.sum()), 1), 1.0 - lambda_f)
+    if full_points > 0:
+        share *= np.minimum(1.0, counts[has, None] / full_points)
     scale = np.linalg.norm(f2d[has], axis=1, keepdims=True)
-    out[has] = lambda_f * f2d[has] + (1.0 - lambda_f) * scale * projected_3d[has]
+    out[has] = (1.0 - share) * f2d[has] + share * scale * projected_3d[has]
     return out

@@ -31,14 +31,22 @@ def add_parser(subparsers) -> None:
     )
     ev.add_argument("--lambda-f", type=float, default=0.7, help="2D share of the 2D-3D fusion (paper: 0.7)")
     ev.add_argument(
+        "--lambda-f-points",
+        type=int,
+        default=0,
+        metavar="N",
+        help="scale each region's 3D share by its visible points up to N (0: the paper's constant share)",
+    )
+    ev.add_argument(
         "--minkunet",
-        type=Path,
-        help="3D branch: a MinkUNet checkpoint (SegContrast layout) instead of geometric descriptors",
+        help="3D branch: 'shipped' (the packaged self-supervised MinkUNet) or a MinkUNet checkpoint "
+        "(SegContrast layout) instead of geometric descriptors",
     )
     ev.add_argument(
         "--feature-ablation",
         action="store_true",
-        help="also run the paper's Table 6 (each encoder, 2D fusion, 2D-3D fusion)",
+        help="also run the paper's Table 6 (each encoder, 2D fusion, 2D-3D fusion with descriptors and with "
+        "the MinkUNet)",
     )
     ev.add_argument(
         "--fusion-sweep", action="store_true", help="also run the paper's Table 7 (lambda_2D x lambda_f, 12 runs)"
@@ -78,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     from ..method import MethodParams
     from ..params import parse_assignments, parse_params
     from ..pipeline import Scene, aggregate_scene
-    from ..structure.branch import StructureConfig
+    from ..structure.branch import StructureConfig, minkunet_path
 
     scenes = [Scene.open(folder) for folder in args.scene]  # every folder is checked before any work
     names = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -87,10 +95,13 @@ def run(args: argparse.Namespace) -> int:
         raise OlsplatInputError("--set method=...: choose methods with --methods")
     if not 0.0 <= args.lambda_f <= 1.0:
         raise OlsplatInputError(f"--lambda-f must be in [0, 1], got {args.lambda_f}")
-    if args.minkunet and not args.minkunet.is_file():
-        raise OlsplatInputError(f"{args.minkunet}: no such MinkUNet checkpoint")
+    checkpoint = minkunet_path(args.minkunet)
+    if checkpoint is not None and not checkpoint.is_file():
+        raise OlsplatInputError(f"{checkpoint}: no such MinkUNet checkpoint")
     weights = tuple(float(w) for w in args.weights.split(",")) if args.weights else None
-    structure = StructureConfig(lambda_f=args.lambda_f, minkunet=args.minkunet)
+    if args.lambda_f_points < 0:
+        raise OlsplatInputError(f"--lambda-f-points must be >= 0, got {args.lambda_f_points}")
+    structure = StructureConfig(lambda_f=args.lambda_f, lambda_f_points=args.lambda_f_points, minkunet=checkpoint)
     runs = plan_runs(
         names, args.encoders, weights, args.features == "2d3d", args.feature_ablation, args.fusion_sweep, structure
     )
@@ -152,7 +163,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _document(results: dict, overall, spread) -> dict:
     """{"methods": {...}} as the issue specifies (the mean over scenes when there are several),
-    plus "features" and "fusion_sweep" when those ran, and "scenes" with each scene's own."""
+    plus "features" and "fusion_sweep" when those ran, and "scenes" with each scene's own.
+    Over several scenes: "paired" (outlangsplat minus each method) and, with Table 6's runs,
+    "features_paired" (the 2D-only run minus each feature configuration)."""
+    from ..evaluate.runs import WITHOUT_3D
 
     def split(runs: dict) -> dict:
         out = {"methods": {k: v for k, v in runs.items() if v["run"]["kind"] == "method"}}
@@ -168,10 +182,14 @@ def _document(results: dict, overall, spread) -> dict:
     for label, value in merged.items():
         value["run"] = next(iter(results.values()))[label]["run"]
     document = split(merged)
-    for label, figures in spread(results).items():  # spread over scenes and paired differences
+    for label, figures in spread(results, labels=list(document["methods"])).items():  # over scenes, paired
         if "paired" in figures:  # ours minus each other method, per scene: document["paired"][method]
             document["paired"] = figures.pop("paired")
-        if label in document["methods"]:
-            document["methods"][label].update(figures)
+        document["methods"][label].update(figures)
+    if WITHOUT_3D in document.get("features", {}):  # Table 6: paired against the 2D-only run
+        for label, figures in spread(results, WITHOUT_3D, list(document["features"])).items():
+            if "paired" in figures:
+                document["features_paired"] = figures.pop("paired")
+            document["features"][label].update(figures)
     document["scenes"] = {title: split(runs) for title, runs in results.items()}
     return document

@@ -115,7 +115,7 @@ def test_structure_benchmark_runs(tiny, tmp_path, capsys):
     assert main(["bench", "structure", "--scene", str(scene), "--views", "3", "--minkunet"]) == 0
     out = capsys.readouterr().out
     assert re.search(r"geometric descriptors \d+\.\d s \(75 dims\)", out) and re.search(
-        r"MinkUNet \(random weights\) \d+\.\d s \(96 dims\)", out
+        r"MinkUNet \(shipped, \d\.\d\d M parameters\) \d+\.\d s \(24 dims, [\d,]+ points\)", out
     ), out
     assert re.search(r"per view: \d+\.\d+ s", out)
 

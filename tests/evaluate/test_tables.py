@@ -47,13 +47,13 @@ def test_feature_and_sweep_tables():
             scores["run"] = {"kind": "sweep", "weights": [l2d, 1 - l2d], "lambda_f": lf}
             runs[f"lambda_2D={l2d} lambda_f={lf}"] = scores
     runs["olsplat-cnn64"] = {**_scores(50, 40, 60), "run": {"kind": "feature"}}
-    runs["2D-3D fusion"] = {**_scores(58, 45, 60), "run": {"kind": "feature"}}
+    runs["2D-3D fusion (MinkUNet)"] = {**_scores(58, 45, 60), "run": {"kind": "feature"}}
     runs["outlangsplat"] = {**_scores(58, 45, 60), "run": {"kind": "method"}}
     text = paper_tables({"s": runs})
     assert "| 0.5 | 0.6/0.7 | 61.0/62.0 | " in text and "| 0.6 | 0.6/0.7 | 62.0/**63.0** | " in text
     feature_table = text.split("paper Table 6")[1]
     assert (
-        "| Metrics | olsplat-cnn64 | 2D-3D fusion |" in feature_table
+        "| Metrics | olsplat-cnn64 | 2D-3D fusion (MinkUNet) |" in feature_table
         and "| mIoU ↑ | 50.0 | **58.0** |" in feature_table
     )
     assert "lambda_2D" not in text.split("paper Table 6")[0]  # sweep runs stay out of the method tables
@@ -74,3 +74,25 @@ def test_sweep_includes_the_first_encoder_alone_and_renders_it():
     text = paper_tables({"s": runs}).split("paper Table 7")[1]
     assert "| 0.6 | 0.7/0.8 | 66.0/66.5 | " in text and "| 1 | 0.7/0.8 | 67.0/**67.5** | " in text
     assert text.index("| 0.6 |") < text.index("| 1 |")  # rows in lambda_2D order
+
+
+def test_table_6_over_several_scenes_pairs_each_configuration_with_the_2d_only_run():
+    from olsplat_nodes.evaluate.tables import spread
+    from olsplat_nodes.tools.evaluate import _document
+
+    results = {}
+    for i, (base, fused) in enumerate(((60, 58), (70, 67), (65, 63.5))):  # fused always 1.5-3 below
+        results[f"s{i}"] = {
+            "outlangsplat": {**_scores(base, 50, 70), "run": {"kind": "method"}},
+            "w/o 3D fusion": {**_scores(base, 50, 70), "run": {"kind": "feature"}},
+            "2D-3D fusion (MinkUNet)": {**_scores(fused, 50 + i, 70), "run": {"kind": "feature"}},
+        }
+    text = paper_tables(results)
+    table = text.split("Feature configurations, paper Table 6. Over 3 scenes")[1]
+    assert "paired: w/o 3D fusion minus the row" in table
+    row = next(line for line in table.splitlines() if line.startswith("| 2D-3D fusion (MinkUNet) |"))
+    assert "2.2 ± " in row and "(win)" in row  # 2, 3, 1.5: the interval excludes zero
+    document = _document(results, overall, spread)
+    pair = document["features_paired"]["2D-3D fusion (MinkUNet)"]
+    assert abs(pair["dmIoU"] - 6.5 / 3) < 1e-9 and pair["dmIoU_ci95"][0] > 0 and abs(pair["dloc50"] + 1) < 1e-9
+    assert document["paired"] == {}  # feature runs are paired with the 2D-only run, not with the methods

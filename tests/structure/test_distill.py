@@ -40,3 +40,11 @@ def test_fusion_keeps_2d_where_no_point_is_visible():
     h = np.array([[0.0, 1.0], [1.0, 0.0]], np.float32)
     fused = fuse_regions(f2d, h, np.array([3, 0]), lambda_f=0.7)
     np.testing.assert_allclose(fused, [[0.7, 0.3], [0.0, 2.0]])
+
+
+def test_fusion_by_points_scales_the_3d_share_with_the_visible_points():
+    f2d = np.array([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]], np.float32)
+    h = np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]], np.float32)
+    fused = fuse_regions(f2d, h, np.array([5, 10, 40]), lambda_f=0.6, full_points=20)
+    np.testing.assert_allclose(fused, [[0.9, 0.1], [0.8, 0.2], [0.6, 0.4]], atol=1e-6)  # 3D share 0.4 n / 20
+    np.testing.assert_allclose(fuse_regions(f2d, h, np.array([5, 10, 40]), 0.6), [[0.6, 0.4]] * 3, atol=1e-6)
