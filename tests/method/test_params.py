@@ -87,3 +87,15 @@ def test_a_store_keeps_its_settings_and_refuses_others(tmp_path):
     (store / "manifest.json").write_text("{not json")
     with pytest.raises(OlsplatInputError, match=r"manifest.json: unreadable store manifest"):
         read_manifest(store)
+
+
+def test_the_accumulator_takes_the_shipped_minkunet_and_names_a_missing_one(tmp_path):
+    from olsplat_nodes.nodes.accumulator import AccumulatorNode
+    from olsplat_nodes.structure.branch import SHIPPED_MINKUNET
+
+    shipped = AccumulatorNode.Params(store=str(tmp_path / "a"), features="2d3d", minkunet="shipped")
+    AccumulatorNode.validate(shipped, "accumulator")
+    assert AccumulatorNode._structure(shipped).minkunet == SHIPPED_MINKUNET and SHIPPED_MINKUNET.is_file()
+    missing = AccumulatorNode.Params(store=str(tmp_path / "b"), features="2d3d", minkunet=str(tmp_path / "no.pt"))
+    with pytest.raises(ParameterError, match=r"accumulator\.minkunet: .*no\.pt: no such MinkUNet checkpoint"):
+        AccumulatorNode.validate(missing, "accumulator")
