@@ -57,7 +57,7 @@ def train_structure(out: Path, n_seeds: int, preset: str, config: PretrainConfig
     log(f"pre-training a MinkUNet (cr {config.cr}) for {config.steps} windows on {torch.get_num_threads()} thread(s)")
     model = pretrain(maps, config, log)
     trained_on = f"olsplat simulator maps, preset {preset}, seeds {seeds[0]}..{seeds[-1]} (no labels)"
-    save_checkpoint(model, out, config, trained_on)
+    save_checkpoint(model, out, config, trained_on, half=True)  # the shipped file stays small
     size = out.stat().st_size / 1e6
     log(f"done in {time.perf_counter() - start:.0f} s -> {out} ({size:.1f} MB, {model.out_channels}-d features)")
     return out

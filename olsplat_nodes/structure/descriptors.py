@@ -40,6 +40,13 @@ def estimate_up(positions: np.ndarray, camera_centres: np.ndarray, voxel: float)
     return normal if np.mean(camera_centres @ normal + plane[3]) > 0 else -normal
 
 
+def ground_axes(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors that span the ground plane normal to ``up`` (with ``up``: right-handed)."""
+    axis_a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    axis_a /= np.linalg.norm(axis_a)
+    return axis_a, np.cross(up, axis_a)
+
+
 def height_above_ground(positions: np.ndarray, up: np.ndarray, cell: float, window_cells: int) -> np.ndarray:
     """[P] height of each point above the local ground (map units).
 
@@ -49,9 +56,7 @@ def height_above_ground(positions: np.ndarray, up: np.ndarray, cell: float, wind
     """
     import cv2
 
-    axis_a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    axis_a /= np.linalg.norm(axis_a)
-    axis_b = np.cross(up, axis_a)
+    axis_a, axis_b = ground_axes(up)
     height = positions @ up
     cells = np.floor(np.c_[positions @ axis_a, positions @ axis_b] / cell).astype(np.int64)
     cells -= cells.min(0)

@@ -36,12 +36,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from .descriptors import estimate_up, height_above_ground
+from .descriptors import estimate_up, ground_axes, height_above_ground
 from .minkunet import MinkUNet
 from .points import StructuralPoints
 from .sparse_conv import SparseTensor
 
-INPUTS = "height-opacity"  # the input recipe of checkpoints made here (see minkunet.point_inputs)
+INPUTS = "height-opacity"  # the input recipe of checkpoints made here (see minkunet.INPUT_RECIPES)
 
 
 @dataclass(frozen=True)
@@ -75,9 +75,7 @@ def ground_frame(points: StructuralPoints, camera_centres: np.ndarray) -> Ground
     """The point set rotated so that "up" is the third axis, in voxel units, with its inputs."""
     positions, voxel = points.positions, points.voxel
     up = estimate_up(positions, np.asarray(camera_centres, np.float64), voxel)
-    axis_a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    axis_a /= np.linalg.norm(axis_a)
-    rotation = np.stack([axis_a, np.cross(up, axis_a), up])  # rows: the frame's axes in world
+    rotation = np.stack([*ground_axes(up), up])  # rows: the frame's axes in world
     height = height_above_ground(positions, up, 4.0 * voxel, 25)
     # the filter's ground is each cell's lowest point, and a reconstruction has Gaussians below
     # the surface: the ground itself sits a few voxels higher. Most of a town is ground, so its
@@ -188,7 +186,7 @@ def _view_segment_features(model, head, tmap: TrainingMap, keep, moved, common):
 
 def pretrain(maps: list[TrainingMap], config: PretrainConfig = PretrainConfig(), log=print) -> MinkUNet:
     """A MinkUNet (3 inputs, channel ratio ``config.cr``) trained with the segment-contrastive
-    objective on windows of ``maps`` (see the module docstring); batch norm left in eval mode."""
+    objective on windows of ``maps`` (see the module docstring), returned in eval mode."""
     if not maps:
         raise ValueError("pre-training needs at least one map")
     torch.manual_seed(config.seed)
@@ -224,13 +222,15 @@ def pretrain(maps: list[TrainingMap], config: PretrainConfig = PretrainConfig(),
     return model.eval()
 
 
-def save_checkpoint(model: MinkUNet, path: Path, config: PretrainConfig, trained_on: str) -> Path:
+def save_checkpoint(model: MinkUNet, path: Path, config: PretrainConfig, trained_on: str, half: bool = False) -> Path:
     """The backbone in SegContrast's checkpoint layout ({"model": state dict} with
     MinkowskiEngine's key names), plus an "olsplat" record of how it was made and which input
-    recipe it expects; written atomically."""
+    recipe it expects; written atomically. ``half``: floating tensors stored as float16 (half
+    the file; ``load_minkunet`` computes in float32 either way)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     record = {"inputs": INPUTS, "cr": config.cr, "trained_on": trained_on, "config": repr(asdict(config))}
     tmp = path.with_name(path.name + ".tmp")
-    torch.save({"model": model.state_dict(), "olsplat": record}, tmp)
+    state = {k: v.half() if half and v.is_floating_point() else v for k, v in model.state_dict().items()}
+    torch.save({"model": state, "olsplat": {**record, "stored_as": "float16" if half else "float32"}}, tmp)
     tmp.replace(path)
     return path
