@@ -131,6 +131,7 @@ class QueryServerNode(Node):
         self.maps = self.own(Subscriber(self.context, [p.map_in], [p.topic_map], hwm=100, max_bytes=CONTROL_MAX_BYTES))
         self.warm_up = threading.Thread(target=self._warm_up, name=f"{self.name}-warm-up", daemon=True)
         self.warm_up.start()
+        self.reservation: threading.Thread | None = None  # touches the heatmap cache, once views exist
         self._load_latest()
         self.last_check = time.monotonic()
 
@@ -139,6 +140,9 @@ class QueryServerNode(Node):
         # a stopped node does not leave it running in a process that goes on (composed launches, tests)
         if getattr(self, "warm_up", None) is not None:
             self.warm_up.join(120)
+        reservation = getattr(self, "reservation", None)
+        if reservation is not None:
+            reservation.join(120)
 
     def spin(self) -> int | None:
         request = self.server.poll(100)
@@ -204,6 +208,26 @@ class QueryServerNode(Node):
         language_map.features = language_map.features.astype(np.float32)  # once, not per query
         self.language_map, self.version = language_map, record["version"]
         log.info("map version %d loaded (%d views)", self.version, record["views"])
+        if self.reservation is None and self.params.heatmap_cache_mb > 0:
+            self._reserve_heatmap_cache(language_map.features.shape[1])
+
+    def _reserve_heatmap_cache(self, dim: int) -> None:
+        """Touch the heatmap cache's memory in the background, sized by the newest view: the
+        first heatmap of a view then writes into memory already paged in (first-touched memory
+        costs as much as the rendering on a small VM)."""
+        from ..aggregate import load_views
+
+        views = load_views(self.params.views)
+        if not views:
+            return
+        camera = views[-1].camera
+        self.reservation = threading.Thread(
+            target=self.feature_images.reserve,
+            args=(camera.width * camera.height, dim),
+            name=f"{self.name}-reserve",
+            daemon=True,
+        )
+        self.reservation.start()
 
     def _answer(self, message):
         start = time.perf_counter()

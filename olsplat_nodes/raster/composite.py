@@ -96,12 +96,14 @@ def composite_tiles(
     offsets, slots, order, tile_order, records,
     features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
     topk_min, topk_max, topk_coverage, feature_eps, background, queries,
-    out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals,
+    out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals, out_unit,
 ):  # fmt: skip
     """Composite every tile; features [N, D] are the map's, indexed like records. With queries
     [Q, D] (Q > 0) out_features [H, W, Q] receives the
     cosine of each pixel's rendered feature with each query row instead of the feature itself
-    (a heatmap without the [H, W, D] feature image); else out_features is [H, W, D]."""
+    (a heatmap without the [H, W, D] feature image); else out_features is [H, W, D]. With
+    queries, out_unit [H * W, D] (when it has rows) also receives the unit rendered feature
+    F / |F| of each pixel (a row of 0 where nothing was rendered)."""
     tiles_x = (width + tile_size - 1) // tile_size
     n_feat = features.shape[1]
     n_pix = tile_size * tile_size
@@ -213,6 +215,10 @@ def composite_tiles(
                     for f in range(n_feat):
                         square += acc_feat[p, f] * acc_feat[p, f]
                     length = np.float32(math.sqrt(square))
+                    if out_unit.shape[0] > 0:
+                        scale = one / length if length > 0 else np.float32(0.0)
+                        for f in range(n_feat):
+                            out_unit[y * width + x, f] = acc_feat[p, f] * scale
                     for q in range(queries.shape[0]):
                         dot = np.float32(0.0)
                         for f in range(n_feat):

@@ -40,6 +40,7 @@ def rasterize(
     want_topk: bool = True,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     feature_queries: np.ndarray | None = None,  # [Q, D] unit rows: render cos(F(p), row) instead of F(p)
+    unit_features_out: np.ndarray | None = None,  # [H * W, D] float32, with feature_queries: receives F / |F|
 ) -> RenderResult:
     """Render ``gaussians`` into ``camera``'s ideal pinhole image (distortion not applied).
 
@@ -47,7 +48,9 @@ def rasterize(
     Top-K rules; ``_reference.rasterize_reference`` is the slow oracle with the same contract.
     With ``feature_queries`` the result's ``features`` are [H, W, Q] cosine heatmaps of the
     rendered features (0 where nothing was rendered), computed per pixel in the compositing
-    kernel: the [H, W, D] feature image is never made.
+    kernel: the [H, W, D] feature image is never made, unless ``unit_features_out`` is given:
+    then that caller's buffer (C-contiguous float32 [H * W, D], e.g. one reused view after view)
+    also receives each pixel's unit feature F / |F| (rows of 0 where nothing was rendered).
     """
     config = config or RasterConfig()
     n = len(gaussians)
@@ -63,6 +66,14 @@ def rasterize(
         if features is None or queries.ndim != 2 or queries.shape[1] != feats.shape[1] or not len(queries):
             raise ValueError(f"feature_queries must be [Q >= 1, D={feats.shape[1]}] with features, got {queries.shape}")
     width, height, tile = camera.width, camera.height, config.tile_size
+    unit = np.zeros((0, feats.shape[1]), np.float32)
+    if unit_features_out is not None:
+        shape = (height * width, feats.shape[1])
+        if feature_queries is None or unit_features_out.shape != shape or unit_features_out.dtype != np.float32:
+            raise ValueError(f"unit_features_out must be float32 {shape} with feature_queries")
+        if not unit_features_out.flags.c_contiguous:
+            raise ValueError("unit_features_out must be C-contiguous")
+        unit = unit_features_out
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     clock = [time.perf_counter()]
     projected: Projected = project(gaussians, camera, config)
@@ -85,7 +96,7 @@ def rasterize(
         width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
         want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
         np.asarray(background, np.float32), queries,
-        rgb, alpha, depth, out_features, topk_ids, topk_weights, evals,
+        rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit,
     )  # fmt: skip
     clock.append(time.perf_counter())
     return RenderResult(

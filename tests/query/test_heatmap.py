@@ -27,6 +27,15 @@ def test_heatmaps_in_the_rasterizer_equal_those_of_the_feature_image():
     np.testing.assert_allclose(got, expected, atol=2e-5)
     np.testing.assert_array_equal(got_alpha, alpha)
     assert (got[:, alpha == 0] == 0).all() and np.abs(got).max() <= 1 + 1e-5
+    # the same pass can also write the unit features F / |F| into the caller's buffer
+    unit = np.full((36 * 48, 24), np.nan, np.float32)
+    again, _ = render_heatmaps(gaussians, features, texts, camera, unit_out=unit)
+    np.testing.assert_array_equal(again, got)
+    flat = feature_map.reshape(-1, 24)
+    norm = np.linalg.norm(flat, axis=1, keepdims=True)
+    np.testing.assert_allclose(unit, np.where(norm > 0, flat / np.maximum(norm, 1e-30), 0.0), atol=2e-6)
+    with pytest.raises(ValueError, match="unit_features_out"):
+        render_heatmaps(gaussians, features, texts, camera, unit_out=np.zeros((36 * 48, 23), np.float32))
 
 
 def test_feature_queries_need_features_of_their_width():
@@ -70,3 +79,26 @@ def test_the_feature_image_cache_answers_as_rendering_and_keeps_to_its_budget():
     small = FeatureImages(budget_bytes=per_view - 1)
     small.heatmaps("x", gaussians, features, texts, cameras[0])
     assert small.entries == {} and small.bytes == 0
+
+
+def test_the_feature_image_cache_reuses_its_memory():
+    """Reserved buffers take the first views, evicted views' buffers the next ones: no new
+    memory once the budget is touched (first-touched memory costs as much as rendering)."""
+    from olsplat_nodes.query.heatmap import FeatureImages
+
+    rng = np.random.default_rng(4)
+    gaussians = random_gaussians(300, 0, seed=5)
+    features = rng.normal(size=(300, 16)).astype(np.float32)
+    texts = rng.normal(size=(3, 16)).astype(np.float32)
+    texts /= np.linalg.norm(texts, axis=1, keepdims=True)
+    cameras = [camera_for(kind, 40, 30) for kind in ("PINHOLE_CENTRED", "PINHOLE_SKEWED", "SIMPLE_RADIAL")]
+    per_view = 40 * 30 * (16 + 1) * 4
+    cache = FeatureImages(budget_bytes=2 * per_view + 100)
+    assert cache.reserve(40 * 30, 16) == 2 and cache.reserve(40 * 30, 16) == 0
+    buffers = {id(b) for b in cache.spare}
+    for i, camera in enumerate(cameras * 2):
+        got, _ = cache.heatmaps(i, gaussians, features, texts, camera)
+        np.testing.assert_allclose(got, render_heatmaps(gaussians, features, texts, camera)[0], atol=2e-5)
+        assert {id(unit) for unit, _ in cache.entries.values()} <= buffers and len(cache.entries) <= 2
+        assert cache.bytes <= cache.budget
+    assert cache.spare == [] and cache.misses == 6
