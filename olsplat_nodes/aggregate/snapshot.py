@@ -15,6 +15,7 @@ Version 1 files (float16 only, no ``form``) still load.
 from __future__ import annotations
 
 import json
+import time
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,7 +109,8 @@ KEEP_VERSIONS = 3  # older snapshots are deleted; a reader that still holds one 
 
 def latest_map(map_dir: str | Path) -> dict | None:
     """The record of the newest snapshot in ``map_dir`` ({version, path, file, views,
-    observed_gaussians, encoder, final}) or None when there is none yet. ``path`` is the
+    observed_gaussians, encoder, final, bytes, write_s; the refiner adds refine_s, its pass's
+    seconds before the write}) or None when there is none yet. ``path`` is the
     snapshot in *this* folder (from ``file``, its name), so a run folder that was copied or
     moved reads its own snapshots."""
     try:
@@ -122,11 +124,21 @@ def latest_map(map_dir: str | Path) -> dict | None:
 
 def write_snapshot(map_dir: Path, version: int, language_map: LanguageMap, record: dict, codebook: int | None) -> dict:
     """Write ``MAP_DIR/language_map_NNNNNN.npz`` for ``version`` and point ``latest.json`` at it
-    (both atomic); delete all but the newest ``KEEP_VERSIONS``. Returns the new record."""
+    (both atomic); delete all but the newest ``KEEP_VERSIONS``. Returns the new record, which
+    adds to ``record`` the version, file, path, ``bytes`` (the snapshot's size) and ``write_s``
+    (seconds to write it)."""
     map_dir.mkdir(parents=True, exist_ok=True)
     path = map_dir / f"language_map_{version:06d}.npz"
+    start = time.perf_counter()
     language_map.save(path, codebook)
-    record = {**record, "version": version, "file": path.name, "path": str(path.resolve())}
+    record = {
+        **record,
+        "version": version,
+        "file": path.name,
+        "path": str(path.resolve()),
+        "bytes": path.stat().st_size,
+        "write_s": round(time.perf_counter() - start, 3),
+    }
     write_atomic(map_dir / "latest.json", json.dumps(record).encode())  # after the snapshot it names
     for old in sorted(map_dir.glob("language_map_*.npz"))[:-KEEP_VERSIONS]:
         old.unlink(missing_ok=True)

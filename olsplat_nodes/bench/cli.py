@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import aggregate, compression, encode, frame, graph, query, raster, regions, robustness, structure, tune
+from . import aggregate, compression, encode, frame, graph, query, raster, regions, robustness, scale, structure, tune
 
 
 def add_parser(subparsers) -> None:
@@ -15,6 +15,7 @@ def add_parser(subparsers) -> None:
     frame.add_parser(targets)
     query.add_parser(targets)
     graph.add_parser(targets)
+    scale.add_parser(targets)
     compression.add_parser(targets)
     robustness.add_parser(targets)
     structure.add_parser(targets)

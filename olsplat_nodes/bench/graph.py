@@ -26,7 +26,6 @@ import json
 import shutil
 import tempfile
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -48,39 +47,15 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(run=run)
 
 
-def _percentiles(seconds: list[float]) -> str:
-    ms = 1000 * np.asarray(seconds)
-    return f"p50 {np.percentile(ms, 50):7.1f} ms  p95 {np.percentile(ms, 95):7.1f} ms  ({len(ms)} queries)"
-
-
-def _sample(client, samples: dict[str, list[dict]]):
-    """Ask the query server for the graph's status and keep every node's values in ``samples``;
-    the StatusReply, or None when it did not answer in time."""
-    from olsplat_msgs import StatusRequest
-
-    from ..transport import NoReply
-
-    try:
-        status = client.request(StatusRequest(request_id=uuid.uuid4().hex[:8]))
-    except NoReply:
-        return None
-    for node in status.nodes:
-        samples.setdefault(node["node"], []).append(node["values"])
-    return status
-
-
 def run(args: argparse.Namespace) -> int:
     import threading
 
     import zmq
 
-    from olsplat_msgs import QueryRequest
-
     from ..aggregate.snapshot import latest_map
-    from ..aggregate.views import load_views
-    from ..evaluate.scene_eval import label_texts, load_queries
     from ..launcher import Supervisor, load_launch
     from ..transport import QueryClient
+    from .ground_link import report_queries, sample_status, time_queries
 
     scene = args.scene.resolve()
     run_dir = args.work or Path(tempfile.mkdtemp(prefix="olsplat_bench_graph_"))
@@ -111,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         record = None
         while record is None or not record["final"]:
             time.sleep(2.0)
-            if _sample(client, samples) is not None:
+            if sample_status(client, samples) is not None:
                 record = latest_map(run_dir / "map")
         seconds = time.monotonic() - start
         # the ingest's counts are final in the heartbeat it sends after it saw the final map
@@ -119,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         final_at = (run_dir / "map" / "latest.json").stat().st_mtime
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
-            status = _sample(client, samples)
+            status = sample_status(client, samples)
             if status is None:
                 continue
             ingest = next((n for n in status.nodes if n["node"] == "ingest"), None)
@@ -162,45 +137,8 @@ def run(args: argparse.Namespace) -> int:
                 f"  {name:15s} handled {handled:4d}  peak rate {rate:5.2f} Hz  mean latency "
                 f"{latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}"
             )
-        labels, queries = load_queries(scene)
-        texts = label_texts(labels, queries)
-        # heatmaps: --heatmap-views views, the same number of queries on each in turn; the
-        # first query on a view renders it, the next ones find its features in the server's
-        # cache (query_server.heatmap_cache_mb), so both are reported
-        views = [v.camera.name for v in load_views(run_dir / "views")][: args.heatmap_views]
-        per_view = max(1, args.heatmap_queries // max(1, len(views)))
-        plan = [("relevance", "", i) for i in range(args.queries)]
-        plan += [("heatmap", view, i) for view in views for i in range(per_view)]
-        times: dict[str, list[float]] = {"relevance": [], "heatmap": [], "heatmap_first": [], "heatmap_repeat": []}
-        for kind, view, i in plan:
-            text = texts[i % len(texts)]
-            t0 = time.perf_counter()
-            reply = client.request(
-                QueryRequest(
-                    request_id=uuid.uuid4().hex[:8],
-                    text=text,
-                    view=view,
-                    heatmap=bool(view),
-                    threshold=float("nan"),
-                    negatives=[t for t in texts if t != text],
-                )
-            )
-            seconds_taken = time.perf_counter() - t0
-            if reply.status != "ok":
-                raise RuntimeError(f"query {text!r}: {reply.status}: {reply.message}")
-            times[kind].append(seconds_taken)
-            if kind == "heatmap":
-                times["heatmap_first" if i == 0 else "heatmap_repeat"].append(seconds_taken)
-        labels_of = {
-            "relevance": "relevance",
-            "heatmap": "heatmap",
-            "heatmap_first": "heatmap, first query on its view",
-            "heatmap_repeat": "heatmap, next queries on the view",
-        }
-        for kind, label in labels_of.items():
-            if times[kind]:
-                print(f"  query {label:34s} (round trip) {_percentiles(times[kind])}")
-                figures[f"query_{kind}_p95_ms"] = round(float(np.percentile(1000 * np.asarray(times[kind]), 95)), 1)
+        times = time_queries(client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views)
+        report_queries(times, figures)
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(figures, indent=1))

@@ -169,6 +169,7 @@ class RefinerNode(Node):
             "observed_gaussians": int(observed.sum()),
             "encoder": manifest.encoder,
             "final": final,
+            "refine_s": round(time.perf_counter() - start, 3),  # this pass, before the snapshot's write
         }
         self.record = write_snapshot(self.map_dir, self.version, language_map, record, self.params.codebook or None)
         log.info(

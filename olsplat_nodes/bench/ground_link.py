@@ -1,0 +1,92 @@
+"""The benchmarks' ground-station side: status samples and query latency over the real link.
+
+Shared by ``bench graph`` and ``bench scale``: both launch the replay graph, read the nodes'
+diagnostics through the query server, and end with the same ground-station queries on the
+final map (relevance of every Gaussian with 3D instances; heatmaps of views, the first query
+on a view rendering it and the next ones answered from the server's cache).
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+
+def percentiles(seconds: list[float]) -> str:
+    ms = 1000 * np.asarray(seconds)
+    return f"p50 {np.percentile(ms, 50):7.1f} ms  p95 {np.percentile(ms, 95):7.1f} ms  ({len(ms)} queries)"
+
+
+def sample_status(client, samples: dict[str, list[dict]]):
+    """Ask the query server for the graph's status and keep every node's values in ``samples``;
+    the StatusReply, or None when it did not answer in time."""
+    from olsplat_msgs import StatusRequest
+
+    from ..transport import NoReply
+
+    try:
+        status = client.request(StatusRequest(request_id=uuid.uuid4().hex[:8]))
+    except NoReply:
+        return None
+    for node in status.nodes:
+        samples.setdefault(node["node"], []).append(node["values"])
+    return status
+
+
+QUERY_KINDS = {
+    "relevance": "relevance",
+    "heatmap": "heatmap",
+    "heatmap_first": "heatmap, first query on its view",
+    "heatmap_repeat": "heatmap, next queries on the view",
+}
+
+
+def time_queries(
+    client, scene: Path, run_dir: Path, relevance: int, heatmaps: int, heatmap_views: int
+) -> dict[str, list[float]]:
+    """Round-trip seconds per kind (``QUERY_KINDS``) of ``relevance`` queries without a view and
+    ``heatmaps`` queries spread over the first ``heatmap_views`` views of the run, each text
+    one of the scene's labels with the others as negatives. Raises RuntimeError on a refusal."""
+    from olsplat_msgs import QueryRequest
+
+    from ..aggregate.views import load_views
+    from ..evaluate.scene_eval import label_texts, load_queries
+
+    labels, queries = load_queries(scene)
+    texts = label_texts(labels, queries)
+    views = [v.camera.name for v in load_views(run_dir / "views")][:heatmap_views]
+    per_view = max(1, heatmaps // max(1, len(views)))
+    plan = [("relevance", "", i) for i in range(relevance)]
+    plan += [("heatmap", view, i) for view in views for i in range(per_view)]
+    times: dict[str, list[float]] = {kind: [] for kind in QUERY_KINDS}
+    for kind, view, i in plan:
+        text = texts[i % len(texts)]
+        start = time.perf_counter()
+        reply = client.request(
+            QueryRequest(
+                request_id=uuid.uuid4().hex[:8],
+                text=text,
+                view=view,
+                heatmap=bool(view),
+                threshold=float("nan"),
+                negatives=[t for t in texts if t != text],
+            )
+        )
+        seconds = time.perf_counter() - start
+        if reply.status != "ok":
+            raise RuntimeError(f"query {text!r}: {reply.status}: {reply.message}")
+        times[kind].append(seconds)
+        if kind == "heatmap":
+            times["heatmap_first" if i == 0 else "heatmap_repeat"].append(seconds)
+    return times
+
+
+def report_queries(times: dict[str, list[float]], figures: dict) -> None:
+    """Print each kind's percentiles and put ``query_<kind>_p95_ms`` into ``figures``."""
+    for kind, label in QUERY_KINDS.items():
+        if times.get(kind):
+            print(f"  query {label:34s} (round trip) {percentiles(times[kind])}")
+            figures[f"query_{kind}_p95_ms"] = round(float(np.percentile(1000 * np.asarray(times[kind]), 95)), 1)
