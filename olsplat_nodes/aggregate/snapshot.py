@@ -31,6 +31,13 @@ FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 
 
+def unit_rows(features: np.ndarray) -> np.ndarray:
+    """[M, D] rows scaled to length 1, float32 (rows of 0 stay 0): what a map stores."""
+    features = np.asarray(features, np.float32)
+    norm = np.sqrt(np.einsum("md,md->m", features, features))[:, None]
+    return np.where(norm > 0, features / np.maximum(norm, np.float32(1e-12)), np.float32(0.0))
+
+
 @dataclass
 class LanguageMap:
     features: np.ndarray  # [N, D] float16 or float32, unit rows (0 for unobserved)
@@ -40,9 +47,7 @@ class LanguageMap:
 
     @staticmethod
     def from_features(features: np.ndarray, observed: np.ndarray, encoder: str) -> LanguageMap:
-        norm = np.linalg.norm(features, axis=1, keepdims=True)
-        unit = np.where(norm > 0, features / np.maximum(norm, 1e-12), 0.0)
-        return LanguageMap(unit.astype(np.float16), observed.astype(bool), encoder)
+        return LanguageMap(unit_rows(features).astype(np.float16), observed.astype(bool), encoder)
 
     def save(self, path: str | Path, codebook: int | None = None) -> None:
         """Write atomically and durably (``durable.write_atomic``); with ``codebook`` = K, in the
@@ -55,11 +60,11 @@ class LanguageMap:
         }
         arrays: dict[str, Any]
         if codebook:
-            unit = self.features.astype(np.float32)
+            unit = np.asarray(self.features, np.float32)
             centres = fit_codebook(unit, codebook)
             arrays = {"form": "codebook", "codes": compress(unit, centres), "centres": centres.astype(np.float16)}
         else:
-            arrays = {"form": "float16", "features": self.features.astype(np.float16)}
+            arrays = {"form": "float16", "features": np.asarray(self.features, np.float16)}  # no copy if float16
         content: dict[str, Any] = {**arrays, **common}
         write_atomic(path, lambda f: np.savez(f, **content))
 

@@ -27,6 +27,7 @@ from ..durable import fsync_dir, write_atomic
 from .config import AggregationConfig
 from .observe import ViewObservations
 from .refine import MixedObservations, refine_mixed
+from .snapshot import unit_rows
 
 log = logging.getLogger(__name__)
 _ARRAYS = ("gaussians", "strength", "offsets", "slots", "weights", "bank")
@@ -247,19 +248,22 @@ class ObservationStore:
         config: AggregationConfig,
         only_touched: bool = True,
         max_observations: int = 4_000_000,
+        unit_float16: bool = False,
     ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
-        rows of F. ``observed`` marks the Gaussians with at least one kept observation among
-        the recomputed ones. A pass costs the observations of the recomputed Gaussians (a
-        Gaussian is recomputed from all of its views) plus a scan of each view's id list.
-        Gaussians are processed in index ranges holding at most ``max_observations``
-        observations (~45 bytes each in mixture form), so memory does not grow with the map or
-        the flight; a Gaussian's result does not depend on the ranges."""
+        rows of F, which is updated in place and returned. ``observed`` marks the Gaussians
+        with at least one kept observation among the recomputed ones. A pass costs the
+        observations of the recomputed Gaussians (a Gaussian is recomputed from all of its
+        views) plus a scan of each view's id list. Gaussians are processed in index ranges
+        holding at most ``max_observations`` observations (~45 bytes each in mixture form), so
+        memory does not grow with the flight; a Gaussian's result does not depend on the ranges.
+        With ``unit_float16`` the features are kept as the snapshot stores them, unit rows in
+        float16 (2 bytes per value instead of 4: a live refiner of a large map holds N x D)."""
         selected = self.touched.copy() if (only_touched and F is not None) else np.ones(self.n_gaussians, bool)
         segments = self.segments()
         observed = np.zeros(self.n_gaussians, bool)
-        out = None if F is None else F.copy()
+        out = F
         cumulative = np.cumsum(self.observation_counts(segments) * selected)
         first = 0
         while first < self.n_gaussians:
@@ -274,11 +278,13 @@ class ObservationStore:
             if not len(observations):
                 continue
             if out is None:
-                out = np.zeros((self.n_gaussians, observations.bank.shape[1]), np.float32)
+                dtype = np.float16 if unit_float16 else np.float32
+                out = np.zeros((self.n_gaussians, observations.bank.shape[1]), dtype)
             local = replace(observations, owner=observations.owner - lo)  # this range's Gaussians only
             refined, count = refine_mixed(local, stop - lo, config)
             here = part[lo:stop]
-            out[lo:stop][here] = refined[here]  # recomputed; unobserved ones get 0
+            # recomputed; unobserved ones get 0
+            out[lo:stop][here] = unit_rows(refined[here]) if unit_float16 else refined[here]
             observed[lo:stop] = here & (count > 0)
         self.touched[:] = False
         return out, observed

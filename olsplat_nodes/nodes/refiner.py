@@ -155,7 +155,9 @@ class RefinerNode(Node):
             return
         start = time.perf_counter()
         only_touched = self.features is not None
-        self.features, observed = self.store.refine(self.features, manifest.method.aggregation, only_touched)
+        self.features, observed = self.store.refine(
+            self.features, manifest.method.aggregation, only_touched, unit_float16=True
+        )
         if self.features is None:
             return
         if self.observed is not None:
@@ -163,7 +165,7 @@ class RefinerNode(Node):
         self.observed = observed
         self.views_done = views
         self.version += 1
-        language_map = LanguageMap.from_features(self.features, observed, manifest.encoder)
+        language_map = LanguageMap(self.features, observed, manifest.encoder)  # unit float16 rows already
         record = {
             "views": views,
             "observed_gaussians": int(observed.sum()),

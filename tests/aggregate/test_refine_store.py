@@ -100,16 +100,25 @@ def test_streaming_views_equal_the_batch(tmp_path, min_retained):
     n = 150
     config = AggregationConfig(min_retained_views=min_retained)
     streaming = ObservationStore(tmp_path / "stream", n, writer=True)
-    F = None
+    compact = ObservationStore(tmp_path / "compact", n, writer=True)  # as the refiner node keeps it
+    F = F16 = None
     for name, obs, bank in _views(5, n):
         streaming.append(name, obs, bank)
+        compact.append(name, obs, bank)
         F, _ = streaming.refine(F, config)  # only the Gaussians this view touched
+        F16, _ = compact.refine(F16, config, unit_float16=True)
     batch = ObservationStore(tmp_path / "batch", n, writer=True)
     for name, obs, bank in _views(5, n):
         batch.append(name, obs, bank)
     F_batch, observed = batch.refine(None, config, max_observations=37)  # small ranges: the chunking is exercised
     assert observed.sum() > 50
     np.testing.assert_allclose(F, F_batch, rtol=1e-5, atol=1e-6)
+    # the float16 form: the unit rows of the same features, to float16's precision
+    assert F16.dtype == np.float16
+    norm = np.linalg.norm(F_batch, axis=1, keepdims=True)
+    unit = np.where(norm > 0, F_batch / np.maximum(norm, 1e-12), 0.0)
+    np.testing.assert_allclose(F16.astype(np.float32), unit, atol=1e-3)
+    assert ((F16 != 0).any(1) == observed).all()
 
 
 def test_store_survives_reopening_and_half_written_views(tmp_path):
