@@ -62,7 +62,7 @@ def compress(features: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """[N] uint16 codes; rows that are all zero (never observed) get code 65535."""
     if len(centres) >= 65_535:
         raise ValueError(f"a uint16 codebook holds at most 65,534 centres, got {len(centres)}")
-    codes = assign(features, centres).astype(np.uint16)
+    codes = assign(features, centres).astype(np.uint16) if len(features) else np.zeros(0, np.uint16)
     codes[~features.any(1)] = 65_535
     return codes
 
@@ -71,3 +71,43 @@ def decompress(codes: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """[N] codes -> [N, D] float32 features (zero rows for code 65535)."""
     padded = np.concatenate([centres.astype(np.float32), np.zeros((1, centres.shape[1]), np.float32)])
     return padded[np.minimum(codes.astype(np.int64), len(centres))]
+
+
+class LiveCodebook:
+    """A codebook kept across a live refiner's passes, so that a pass does not fit K centres and
+    assign every Gaussian again (minutes on a map of millions). Fitted on a sample of the
+    observed Gaussians at the first pass, and again (every Gaussian reassigned) whenever the
+    number of observed Gaussians has doubled since the last fit: the flight has reached enough
+    new ground that the centres may no longer cover its features. Between fits only the rows a
+    pass recomputed are assigned, against the same centres."""
+
+    def __init__(self, k: int, sample: int = 100_000, seed: int = 0):
+        self.k, self.sample, self.seed = k, sample, seed
+        self.centres: np.ndarray | None = None  # [K, D] float32 unit rows
+        self.codes: np.ndarray | None = None  # [N] uint16, 65535 = never observed
+        self.fitted_on = 0  # observed Gaussians at the last fit
+        self.fits = 0
+
+    def update(self, features: np.ndarray, observed: np.ndarray, changed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(codes [N] uint16, centres [K, D] float32) for ``features`` [N, D] (unit rows, zero
+        for the unobserved) after a pass that recomputed the rows ``changed`` [N] bool."""
+        count = int(observed.sum())
+        if self.centres is None or self.codes is None or count >= 2 * max(self.fitted_on, 1):
+            picked = np.flatnonzero(observed)
+            rng = np.random.default_rng(self.seed + self.fits)
+            picked = np.sort(rng.choice(picked, min(self.sample, len(picked)), replace=False))
+            self.centres = fit_codebook(np.asarray(features[picked], np.float32), self.k, sample=len(picked))
+            self.codes = _compress_chunked(features, self.centres)
+            self.fitted_on, self.fits = count, self.fits + 1
+        else:
+            rows = np.flatnonzero(changed)
+            self.codes[rows] = compress(np.asarray(features[rows]), self.centres)
+        return self.codes, self.centres
+
+
+def _compress_chunked(features: np.ndarray, centres: np.ndarray, chunk: int = 262_144) -> np.ndarray:
+    """``compress`` over row ranges: the float32 copy of the whole [N, D] never exists."""
+    codes = np.empty(len(features), np.uint16)
+    for start in range(0, len(features), chunk):
+        codes[start : start + chunk] = compress(np.asarray(features[start : start + chunk]), centres)
+    return codes

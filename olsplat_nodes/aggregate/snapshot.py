@@ -40,10 +40,16 @@ def unit_rows(features: np.ndarray) -> np.ndarray:
 
 @dataclass
 class LanguageMap:
-    features: np.ndarray  # [N, D] float16 or float32, unit rows (0 for unobserved)
+    features: np.ndarray  # [N, D] float16 or float32, unit rows (0 for unobserved); [0, D] when not decoded
     observed: np.ndarray  # [N] bool
     encoder: str  # e.g. "shipped:0.6,0.4" or "enc/remoteclip,enc/georsclip:0.6,0.4"
     form: str = "float16"  # how it was (or will be) stored: "float16" or "codebook"
+    codes: np.ndarray | None = None  # codebook form, as loaded: [N] uint16 (65535: never observed)
+    centres: np.ndarray | None = None  # codebook form, as loaded: [K, D] float16 unit rows
+
+    def __len__(self) -> int:
+        """The number of Gaussians (also when the features are kept as codes)."""
+        return len(self.observed)
 
     @staticmethod
     def from_features(features: np.ndarray, observed: np.ndarray, encoder: str) -> LanguageMap:
@@ -51,7 +57,8 @@ class LanguageMap:
 
     def save(self, path: str | Path, codebook: int | None = None) -> None:
         """Write atomically and durably (``durable.write_atomic``); with ``codebook`` = K, in the
-        codebook form with K centres."""
+        codebook form with K centres fitted now; without it, a map that holds ``codes`` and
+        ``centres`` (a live refiner's ``LiveCodebook``) in the codebook form they make."""
         path = Path(path)
         common: dict[str, Any] = {
             "observed": self.observed,
@@ -59,7 +66,9 @@ class LanguageMap:
             "version": FORMAT_VERSION,
         }
         arrays: dict[str, Any]
-        if codebook:
+        if not codebook and self.codes is not None and self.centres is not None:
+            arrays = {"form": "codebook", "codes": self.codes, "centres": np.asarray(self.centres, np.float16)}
+        elif codebook:
             unit = np.asarray(self.features, np.float32)
             centres = fit_codebook(unit, codebook)
             arrays = {"form": "codebook", "codes": compress(unit, centres), "centres": centres.astype(np.float16)}
@@ -69,7 +78,10 @@ class LanguageMap:
         write_atomic(path, lambda f: np.savez(f, **content))
 
     @staticmethod
-    def load(path: str | Path) -> LanguageMap:
+    def load(path: str | Path, decode: bool = True) -> LanguageMap:
+        """Read a snapshot. A codebook map also keeps ``codes`` and ``centres``; with ``decode``
+        False its ``features`` are left empty ([0, D]): a large map's N x D rows are never made
+        (the query server scores and renders the centres through the codes)."""
         path = Path(path)
         if path.is_dir():
             raise SceneFormatError(path, "is a folder; expected a language map (language_map.npz)")
@@ -79,7 +91,7 @@ class LanguageMap:
                 if not isinstance(data, np.lib.npyio.NpzFile):
                     raise SceneFormatError(path, "not a language map (a single array, not an .npz archive)")
                 with data:
-                    return LanguageMap._from_archive(path, data)
+                    return LanguageMap._from_archive(path, data, decode)
         except SceneFormatError:
             raise
         except FileNotFoundError:
@@ -91,21 +103,31 @@ class LanguageMap:
             raise SceneFormatError(path, "not a language map: truncated, damaged or not an .npz archive") from exc
 
     @staticmethod
-    def _from_archive(path: Path, data) -> LanguageMap:
+    def _from_archive(path: Path, data, decode: bool) -> LanguageMap:
         version = int(data["version"])
         if version not in READABLE_VERSIONS:
             raise SceneFormatError(path, f"language map version {version}, this olsplat reads {READABLE_VERSIONS}")
         form = str(data["form"]) if "form" in data else "float16"
+        observed = data["observed"]
+        codes = centres = None
         if form == "codebook":
-            features = decompress(data["codes"], data["centres"]).astype(np.float16)
+            codes, centres = data["codes"], data["centres"]
+            if len(codes) != len(observed) or centres.ndim != 2 or len(centres) >= 65_535:
+                raise SceneFormatError(
+                    path, f"{len(codes)} codes, {len(observed)} observed flags, centres {centres.shape}"
+                )
+            if len(codes) and int(codes[codes != 65_535].max(initial=0)) >= max(len(centres), 1):
+                raise SceneFormatError(path, f"codes beyond the {len(centres)} centres")
+            features = (
+                decompress(codes, centres).astype(np.float16) if decode else np.zeros((0, centres.shape[1]), np.float16)
+            )
         elif form == "float16":
             features = data["features"]
+            if len(features) != len(observed):
+                raise SceneFormatError(path, f"{len(features)} features but {len(observed)} observed flags")
         else:
             raise SceneFormatError(path, f"unknown language map form {form!r}")
-        observed = data["observed"]
-        if len(features) != len(observed):
-            raise SceneFormatError(path, f"{len(features)} features but {len(observed)} observed flags")
-        return LanguageMap(features, observed, str(data["encoder"]), form)
+        return LanguageMap(features, observed, str(data["encoder"]), form, codes, centres)
 
 
 # The run's map folder: versioned snapshots and latest.json, the late joiner's way in.

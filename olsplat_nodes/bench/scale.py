@@ -110,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
     from ..aggregate.snapshot import latest_map
     from ..launcher import Supervisor, load_launch
     from ..scene import read_cameras
+    from ..scene.ply import ply_vertex_count
     from ..transport import QueryClient
     from .ground_link import report_queries, sample_status, time_queries
 
@@ -117,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     run_dir = args.work or Path(tempfile.mkdtemp(prefix="olsplat_bench_scale_"))
     shutil.rmtree(run_dir, ignore_errors=True)
     ply = scene / "map" / "point_cloud.ply"
-    gaussians = _vertex_count(ply)
+    gaussians = ply_vertex_count(ply)
     cameras = read_cameras(scene)
     endpoint = f"tcp://127.0.0.1:{args.port}"
     overrides = [
@@ -228,16 +229,4 @@ def run(args: argparse.Namespace) -> int:
         thread.join(30)
         if not args.work:
             shutil.rmtree(run_dir, ignore_errors=True)
-    return 0
-
-
-def _vertex_count(ply: Path) -> int:
-    """The number of Gaussians a PLY file declares in its header (without reading the body)."""
-    with open(ply, "rb") as f:
-        for raw in f:
-            line = raw.decode("ascii", "replace").strip()
-            if line.startswith("element vertex"):
-                return int(line.split()[2])
-            if line == "end_header":
-                break
     return 0

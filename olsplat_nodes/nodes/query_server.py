@@ -30,6 +30,7 @@ from .convert import reply_for
 
 if TYPE_CHECKING:  # imported at run time inside methods: the launcher imports node classes
     from ..aggregate import LanguageMap
+    from ..query.answer import QueryFeatures
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +111,7 @@ class QueryServerNode(Node):
         # from the prior map's density once (~30 ms for 390k Gaussians): not again for every query
         self.cluster_radius = p.cluster_radius or default_cluster_radius(self.gaussians.means, p.cluster_min_points)
         self.language_map: LanguageMap | None = None
+        self.features: QueryFeatures | None = None  # the map's features as queries use them
         self.version = 0
         self.encoders: dict[str, Any] = {}  # encoder spec -> loaded encoder
         self.views: list = []  # aggregate.SavedView, re-read when the run's views folder grows
@@ -188,28 +190,30 @@ class QueryServerNode(Node):
 
     def _load_latest(self) -> None:
         from ..aggregate import LanguageMap, latest_map
+        from ..query.answer import QueryFeatures
 
         record = latest_map(self.params.map_dir)
         if record is None or record["version"] <= self.version:
             return
         try:
-            language_map = LanguageMap.load(record["path"])
+            language_map = LanguageMap.load(record["path"], decode=False)  # a codebook map stays codes
         except OlsplatInputError as exc:  # replaced between reading latest.json and the file: next time
             log.warning("map version %d not loaded: %s", record["version"], exc)
             return
-        if len(language_map.features) != len(self.gaussians):
+        if len(language_map) != len(self.gaussians):
             log.error(
                 "map version %d has %d Gaussians, the prior map %d: ignored",
                 record["version"],
-                len(language_map.features),
+                len(language_map),
                 len(self.gaussians),
             )
             return
-        language_map.features = language_map.features.astype(np.float32)  # once, not per query
+        self.features = QueryFeatures.of(language_map)  # float32 once, not per query
+        language_map.features = np.zeros((0, self.features.table.shape[1]), np.float32)  # held once, above
         self.language_map, self.version = language_map, record["version"]
         log.info("map version %d loaded (%d views)", self.version, record["views"])
         if self.reservation is None and self.params.heatmap_cache_mb > 0:
-            self._reserve_heatmap_cache(language_map.features.shape[1])
+            self._reserve_heatmap_cache(self.features.table.shape[1])
 
     def _reserve_heatmap_cache(self, dim: int) -> None:
         """Touch the heatmap cache's memory in the background, sized by the newest view: the
@@ -310,6 +314,7 @@ class QueryServerNode(Node):
                 image_key=(self.version, camera.name if camera is not None else ""),
                 cluster_radius=self.cluster_radius,
                 min_points=self.params.cluster_min_points,
+                features=self.features,
             )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))

@@ -22,6 +22,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
 from ..transport import CONTROL_MAX_BYTES, Diagnostics, Publisher, Subscriber
@@ -38,7 +40,11 @@ class RefinerNode(Node):
         map_dir: str = "{run_dir}/map"
         period_s: float = 15.0  # at least this long between passes ...
         max_duty: float = 0.25  # ... and long enough that passes take at most this share of the time
-        codebook: int = 0  # 0: float16 snapshot; K: codebook form with K centres
+        # snapshot form: K > 0 codebook of K centres; 0: float16 rows, or for a map of more than
+        # codebook_above Gaussians a codebook of 1024 (2.7 instead of 256 bytes per Gaussian
+        # and version; the query server scores the centres: fast queries on millions)
+        codebook: int = 0
+        codebook_above: int = 2_000_000
         exit_on_final: bool = True
         final_linger_s: float = 0.5  # after the final map: keep announcing it this long, then exit
         observations_in: str = "ipc://{run_dir}/observations.sock"
@@ -50,8 +56,10 @@ class RefinerNode(Node):
 
     def setup(self) -> None:
         from ..aggregate import ObservationStore, latest_map  # heavy imports here: the launcher imports node classes
+        from ..aggregate.codebook import LiveCodebook
         from ..errors import OlsplatInputError
         from ..scene import read_ply
+        from ..scene.ply import ply_vertex_count
 
         p = self.params
         if not 0.0 < p.max_duty <= 1.0 or p.codebook < 0 or p.codebook == 1 or p.codebook > 65_534:
@@ -59,7 +67,9 @@ class RefinerNode(Node):
                 f"node {self.name!r}: need 0 < max_duty <= 1 and codebook 0 or 2..65534, got {p.max_duty}, {p.codebook}"
             )
         self.limit_threads(p.threads)
-        self.store = ObservationStore(p.store, len(read_ply(p.map)))
+        self.store = ObservationStore(p.store, ply_vertex_count(p.map) or len(read_ply(p.map)))
+        k = p.codebook or (1024 if self.store.n_gaussians > p.codebook_above else 0)
+        self.codebook = LiveCodebook(k) if k else None
         self.map_dir = Path(p.map_dir)
         previous = latest_map(self.map_dir)
         self.version = previous["version"] if previous else 0
@@ -155,6 +165,7 @@ class RefinerNode(Node):
             return
         start = time.perf_counter()
         only_touched = self.features is not None
+        changed = self.store.touched.copy() if only_touched else None  # rows this pass recomputes
         self.features, observed = self.store.refine(
             self.features, manifest.method.aggregation, only_touched, unit_float16=True
         )
@@ -166,6 +177,10 @@ class RefinerNode(Node):
         self.views_done = views
         self.version += 1
         language_map = LanguageMap(self.features, observed, manifest.encoder)  # unit float16 rows already
+        if self.codebook is not None:
+            language_map.codes, language_map.centres = self.codebook.update(
+                self.features, observed, np.ones(len(observed), bool) if changed is None else changed
+            )
         record = {
             "views": views,
             "observed_gaussians": int(observed.sum()),
@@ -173,7 +188,7 @@ class RefinerNode(Node):
             "final": final,
             "refine_s": round(time.perf_counter() - start, 3),  # this pass, before the snapshot's write
         }
-        self.record = write_snapshot(self.map_dir, self.version, language_map, record, self.params.codebook or None)
+        self.record = write_snapshot(self.map_dir, self.version, language_map, record, None)
         log.info(
             "map version %d (%s): %d views, %d Gaussians observed, %.1f s%s",
             self.version,

@@ -36,6 +36,33 @@ class QueryAnswer:
     unknown_words: list[str] = field(default_factory=list)  # words of the text the encoder does not know
 
 
+@dataclass
+class QueryFeatures:
+    """A map's features as queries use them: float32 unit rows of a table and, for a codebook
+    map, each Gaussian's row in it. Relevance then scores the K centres, not the N Gaussians
+    (what keeps queries fast on a map of millions), and rendering reads the centres through
+    the rows, so the [N, D] features are never made."""
+
+    table: np.ndarray  # [M, D] float32: row g is Gaussian g (M = N), or the codebook's centres (M = K)
+    rows: np.ndarray | None = None  # [N] int32 row of ``table`` per Gaussian (-1: never observed)
+
+    @staticmethod
+    def of(language_map: LanguageMap) -> QueryFeatures:
+        if language_map.codes is not None and language_map.centres is not None:
+            rows = language_map.codes.astype(np.int32)
+            rows[rows == 65_535] = -1
+            return QueryFeatures(np.asarray(language_map.centres, np.float32), rows)
+        return QueryFeatures(np.asarray(language_map.features, np.float32))  # no copy when already float32
+
+    def winners(self, embeddings: np.ndarray) -> np.ndarray:
+        """[N] bool: the Gaussians whose feature is closer to embeddings[0] than to every other
+        row of embeddings [Q, D] (unit rows)."""
+        wins = (self.table @ embeddings.T).argmax(1) == 0
+        if self.rows is None:
+            return wins
+        return wins[self.rows] & (self.rows >= 0)
+
+
 class CachedTexts:
     """A text encoder that remembers its embeddings: a ground station sends the same negatives
     (and often the same queries) again and again. Bounded: the oldest ``size`` texts go first."""
@@ -81,21 +108,21 @@ def answer_query(
     image_key: Hashable = None,
     cluster_radius: float | None = None,
     min_points: int = 20,
+    features: QueryFeatures | None = None,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
     with ``threshold``, where its cosine heatmap exceeds that value. With ``images`` the view's
     rendered features are taken from (and kept in) that cache under ``image_key``. 3D instances:
     DBSCAN of the chosen Gaussians' centres with radius ``cluster_radius`` (metres; None: from
-    the map's density, ``localize.default_cluster_radius``) and ``min_points``. Raises
+    the map's density, ``localize.default_cluster_radius``) and ``min_points``. ``features``:
+    the map's ``QueryFeatures``, made once by a caller that asks many queries. Raises
     OlsplatInputError on an empty text or a map that does not match the Gaussians."""
     text = text.strip()
     if not text:
         raise OlsplatInputError("the query text is empty")
-    if len(gaussians) != len(language_map.features):
-        raise OlsplatInputError(
-            f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}"
-        )
+    if len(gaussians) != len(language_map):
+        raise OlsplatInputError(f"the language map has {len(language_map)} Gaussians, the scene's map {len(gaussians)}")
     negatives = [n for n in (t.strip() for t in negatives) if n and n != text]
     if not negatives:  # with nothing to beat, every observed Gaussian would be chosen
         raise OlsplatInputError(
@@ -103,17 +130,17 @@ def answer_query(
             'compare with (e.g. the other things you look for, or "object, things, stuff, texture")'
         )
     embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
-    features = np.asarray(language_map.features, dtype=np.float32)  # no copy when the caller keeps float32
-    relevance = features @ embeddings.T
-    chosen = (relevance.argmax(1) == 0) & language_map.observed
+    features = features if features is not None else QueryFeatures.of(language_map)
+    chosen = features.winners(embeddings) & language_map.observed
     radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
     answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen, radius, min_points))
     answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:
+        table, rows = features.table, features.rows
         if images is not None:
-            maps, alpha = images.heatmaps(image_key, gaussians, features, embeddings, camera)
+            maps, alpha = images.heatmaps(image_key, gaussians, table, embeddings, camera, rows=rows)
         else:
-            maps, alpha = render_heatmaps(gaussians, features, embeddings, camera)
+            maps, alpha = render_heatmaps(gaussians, table, embeddings, camera, rows=rows)
         answer.heatmap, answer.negative_heatmaps, answer.alpha = maps[0], maps[1:], alpha
         if threshold is None:
             answer.mask = relevancy_mask(maps[0], maps[1:], alpha)

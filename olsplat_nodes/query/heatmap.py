@@ -30,12 +30,20 @@ def render_feature_map(gaussians: Gaussians, features: np.ndarray, camera: Camer
 
 
 def render_heatmaps(
-    gaussians: Gaussians, features: np.ndarray, texts: np.ndarray, camera: Camera, config=None, unit_out=None
+    gaussians: Gaussians,
+    features: np.ndarray,
+    texts: np.ndarray,
+    camera: Camera,
+    config=None,
+    unit_out=None,
+    rows: np.ndarray | None = None,
 ):
     """([Q, H, W] cosine heatmaps H_q(v) of the unit text embeddings texts [Q, D], [H, W] alpha):
     ``heatmaps(render_feature_map(...))`` computed per pixel inside the rasterizer, without the
     [H, W, D] feature image (157 MB at 640x480 and D = 128). With ``unit_out`` (float32
-    [H * W, D]) the same pass also writes each pixel's unit feature F / |F| there."""
+    [H * W, D]) the same pass also writes each pixel's unit feature F / |F| there. With
+    ``rows`` ([N] int, -1: none) ``features`` is a table, e.g. a codebook's centres, and
+    Gaussian g's feature is its row ``rows[g]``."""
     result = rasterize(
         gaussians,
         camera,
@@ -44,6 +52,7 @@ def render_heatmaps(
         want_topk=False,
         feature_queries=np.asarray(texts, np.float32),
         unit_features_out=unit_out,
+        feature_rows=rows,
     )
     assert result.features is not None
     return np.moveaxis(result.features, -1, 0), result.alpha
@@ -100,7 +109,14 @@ class FeatureImages:
         return None
 
     def heatmaps(
-        self, key: Hashable, gaussians: Gaussians, features: np.ndarray, texts: np.ndarray, camera: Camera, config=None
+        self,
+        key: Hashable,
+        gaussians: Gaussians,
+        features: np.ndarray,
+        texts: np.ndarray,
+        camera: Camera,
+        config=None,
+        rows: np.ndarray | None = None,
     ):
         """([Q, H, W] cosine heatmaps of the unit texts [Q, D], [H, W] alpha), as ``render_heatmaps``."""
         with self.lock:
@@ -124,7 +140,7 @@ class FeatureImages:
                             unit = old
                     if unit is None:
                         unit = np.empty((pixels, dim), np.float32)
-            maps, alpha = render_heatmaps(gaussians, features, texts, camera, config, unit_out=unit)
+            maps, alpha = render_heatmaps(gaussians, features, texts, camera, config, unit_out=unit, rows=rows)
             if unit is not None:
                 with self.lock:
                     self.entries[key] = (unit, alpha)

@@ -97,8 +97,11 @@ def composite_tiles(
     features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
     topk_min, topk_max, topk_coverage, feature_eps, background, queries,
     out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals, out_unit,
+    feature_rows,
 ):  # fmt: skip
-    """Composite every tile; features [N, D] are the map's, indexed like records. With queries
+    """Composite every tile; features [N, D] are the map's, indexed like records, or with
+    feature_rows [N] (when it has entries) Gaussian g's feature is features[feature_rows[g]]
+    (a codebook's centres), zero where the row is -1. With queries
     [Q, D] (Q > 0) out_features [H, W, Q] receives the
     cosine of each pixel's rendered feature with each query row instead of the feature itself
     (a heatmap without the [H, W, D] feature image); else out_features is [H, W, D]. With
@@ -150,8 +153,13 @@ def composite_tiles(
                     g = order[slots[offsets[tile] + j + c]]
                     for f in range(RECORD):
                         chunk[c, f] = records[g, f]
-                    for f in range(n_feat):
-                        chunk_feat[c, f] = features[g, f]
+                    row = g if feature_rows.shape[0] == 0 else feature_rows[g]
+                    if row < 0:
+                        for f in range(n_feat):
+                            chunk_feat[c, f] = np.float32(0.0)
+                    else:
+                        for f in range(n_feat):
+                            chunk_feat[c, f] = features[row, f]
             s = slots[offsets[tile] + j]  # position in depth order
             rec = chunk[j % CHUNK]
             feat = chunk_feat[j % CHUNK]

@@ -41,11 +41,14 @@ def rasterize(
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     feature_queries: np.ndarray | None = None,  # [Q, D] unit rows: render cos(F(p), row) instead of F(p)
     unit_features_out: np.ndarray | None = None,  # [H * W, D] float32, with feature_queries: receives F / |F|
+    feature_rows: np.ndarray | None = None,  # [N] int: Gaussian g's feature is features[feature_rows[g]] (-1: 0)
 ) -> RenderResult:
     """Render ``gaussians`` into ``camera``'s ideal pinhole image (distortion not applied).
 
     See ``project`` for the projection conventions and ``composite`` for the compositing and
     Top-K rules; ``_reference.rasterize_reference`` is the slow oracle with the same contract.
+    With ``feature_rows`` the features are a table (e.g. a codebook's centres [K, D]) and
+    Gaussian g renders row ``feature_rows[g]`` (nothing where it is -1), without the [N, D] rows.
     With ``feature_queries`` the result's ``features`` are [H, W, Q] cosine heatmaps of the
     rendered features (0 where nothing was rendered), computed per pixel in the compositing
     kernel: the [H, W, D] feature image is never made, unless ``unit_features_out`` is given:
@@ -54,12 +57,17 @@ def rasterize(
     """
     config = config or RasterConfig()
     n = len(gaussians)
+    rows = np.zeros(0, np.int32)
     if features is None:
         feats = np.zeros((n, 0), np.float32)
     else:
         feats = np.ascontiguousarray(features, dtype=np.float32)  # no copy when it already is
-        if feats.ndim != 2 or feats.shape[0] != n:
+        if feats.ndim != 2 or (feature_rows is None and feats.shape[0] != n):
             raise ValueError(f"features must be [N={n}, D], got shape {feats.shape}")
+        if feature_rows is not None:
+            rows = np.ascontiguousarray(feature_rows, dtype=np.int32)
+            if rows.shape != (n,) or (n and (rows.min() < -1 or rows.max() >= len(feats))):
+                raise ValueError(f"feature_rows must be [N={n}] rows of features [{len(feats)}, D] or -1")
     queries = np.zeros((0, feats.shape[1]), np.float32)
     if feature_queries is not None:
         queries = np.ascontiguousarray(feature_queries, dtype=np.float32)
@@ -96,7 +104,7 @@ def rasterize(
         width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
         want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
         np.asarray(background, np.float32), queries,
-        rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit,
+        rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit, rows,
     )  # fmt: skip
     clock.append(time.perf_counter())
     return RenderResult(

@@ -102,6 +102,22 @@ def read_ply(path: str | Path, on_nonfinite: NonFinitePolicy = "error") -> Gauss
     return gaussians
 
 
+def ply_vertex_count(path: str | Path) -> int:
+    """The number of Gaussians a PLY file's header declares, without reading its body (what a
+    node that needs only the map's size reads); 0 when the header cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            for _ in range(1000):
+                line = f.readline().decode("ascii", "replace").strip()
+                if line.startswith("element vertex"):
+                    return int(line.split()[2])
+                if line == "end_header" or not line:
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
 def write_ply(path: str | Path, gaussians: Gaussians) -> None:
     """Write ``gaussians`` as a binary little-endian INRIA-layout PLY (atomically)."""
     path = Path(path)

@@ -29,3 +29,35 @@ def test_cached_embeddings_equal_the_encoders_and_stay_bounded():
     cached.encode_text(["lawn"])  # a fourth text: the least recently used one ("red roof buildings") goes
     assert list(cached.cache) == ["trees", "road", "lawn"]
     assert cached.name == encoder.name
+
+
+def test_a_codebook_map_answers_through_its_centres_as_its_decoded_rows(tmp_path):
+    """The query server keeps a codebook map as codes and centres (``decode=False``): the chosen
+    Gaussians and the heatmap equal those of the same map decoded to [N, D] rows."""
+    from olsplat_nodes.aggregate import LanguageMap
+    from olsplat_nodes.aggregate.codebook import compress, fit_codebook
+    from olsplat_nodes.query.answer import answer_query
+
+    from ..conftest import camera_for, random_gaussians
+
+    encoder = encoder_from_spec()
+    rng = np.random.default_rng(3)
+    gaussians = random_gaussians(500, 0, seed=8)
+    texts = encoder.encode_text(["road", "trees", "red roof buildings", "cars"])
+    features = texts[rng.integers(0, 4, 500)] + 0.2 * rng.normal(size=(500, texts.shape[1]))
+    features /= np.linalg.norm(features, axis=1, keepdims=True)
+    observed = rng.random(500) < 0.8
+    features[~observed] = 0
+    centres = fit_codebook(features.astype(np.float32), 16)
+    LanguageMap(
+        features.astype(np.float16), observed, encoder.name, codes=compress(features, centres), centres=centres
+    ).save(tmp_path / "map.npz")
+    compact = LanguageMap.load(tmp_path / "map.npz", decode=False)
+    dense = LanguageMap.load(tmp_path / "map.npz")
+    assert compact.features.shape == (0, texts.shape[1]) and len(compact) == 500 and dense.features.shape[0] == 500
+    camera = camera_for("PINHOLE_CENTRED", 40, 30)
+    a = answer_query(compact, gaussians, encoder, "road", ["trees", "cars"], camera)
+    b = answer_query(dense, gaussians, encoder, "road", ["trees", "cars"], camera)
+    assert a.chosen.sum() > 20 and np.array_equal(a.chosen, b.chosen)
+    np.testing.assert_allclose(a.heatmap, b.heatmap, atol=1e-5)
+    np.testing.assert_array_equal(a.mask, b.mask)

@@ -102,3 +102,24 @@ def test_the_feature_image_cache_reuses_its_memory():
         assert {id(unit) for unit, _ in cache.entries.values()} <= buffers and len(cache.entries) <= 2
         assert cache.bytes <= cache.budget
     assert cache.spare == [] and cache.misses == 6
+
+
+def test_codebook_features_render_as_their_rows():
+    """feature_rows: a table of centres and one row per Gaussian (-1: no feature) renders as the
+    dense [N, D] features it stands for, in the feature image and in the heatmaps."""
+    rng = np.random.default_rng(6)
+    gaussians = random_gaussians(300, 0, seed=7)
+    centres = rng.normal(size=(9, 12)).astype(np.float32)
+    rows = rng.integers(-1, 9, 300).astype(np.int32)
+    dense = np.where(rows[:, None] >= 0, centres[np.maximum(rows, 0)], 0.0).astype(np.float32)
+    texts = rng.normal(size=(3, 12)).astype(np.float32)
+    texts /= np.linalg.norm(texts, axis=1, keepdims=True)
+    camera = camera_for("PINHOLE_CENTRED", 40, 30)
+    expected = rasterize(gaussians, camera, features=dense, want_topk=False)
+    got = rasterize(gaussians, camera, features=centres, feature_rows=rows, want_topk=False)
+    np.testing.assert_array_equal(got.features, expected.features)
+    maps = rasterize(gaussians, camera, features=centres, feature_rows=rows, want_topk=False, feature_queries=texts)
+    dense_maps = rasterize(gaussians, camera, features=dense, want_topk=False, feature_queries=texts)
+    np.testing.assert_array_equal(maps.features, dense_maps.features)
+    with pytest.raises(ValueError, match="feature_rows"):
+        rasterize(gaussians, camera, features=centres, feature_rows=np.full(300, 9, np.int32))
