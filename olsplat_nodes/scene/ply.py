@@ -60,7 +60,16 @@ def read_ply(path: str | Path, on_nonfinite: NonFinitePolicy = "error") -> Gauss
     if n == 0:
         raise SceneFormatError(path, "the PLY holds no Gaussians (0 vertices)")
 
+    # INRIA files hold float32 fields only: the body is then one [N, fields] float32 matrix, and
+    # a column block is taken in one row-major pass (stacking the strided field views one by
+    # one took ~7 s for 5M Gaussians, this ~1 s)
+    matrix = None
+    if all(vertex.dtype[name] == np.dtype("<f4") for name in fields) and vertex.dtype.itemsize == 4 * len(fields):
+        matrix = np.asarray(vertex).view("<f4").reshape(len(vertex), len(fields))
+
     def stack(names: list[str]) -> np.ndarray:
+        if matrix is not None:
+            return np.ascontiguousarray(matrix[:, [fields.index(name) for name in names]])
         return np.stack([np.asarray(vertex[name], dtype=np.float32) for name in names], axis=1)
 
     rest_names = sorted((f for f in fields if f.startswith("f_rest_")), key=lambda f: int(f[7:]))
