@@ -108,4 +108,3 @@ class LiveCodebook:
             chunk = rows[start : start + 262_144]
             self.codes[chunk] = compress(np.asarray(features[chunk]), self.centres)
         return self.codes, self.centres
-
