@@ -31,7 +31,7 @@ _NAMESPACE = (
     "empty, or words of letters, digits, '_', '-' joined by '/' (no leading or trailing '/')",
 )
 _PATH = (re.compile(r".*\S"), "must not be empty")
-_TOP_KEYS = ("name", "run_dir", "namespace", "compose", "exit_when", "stop_timeout_s", "nodes")
+_TOP_KEYS = ("name", "run_dir", "namespace", "compose", "exit_when", "stop_timeout_s", "memory_budget_mb", "nodes")
 _NODE_KEYS = ("name", "exec", "params", "remap", "namespace", "restart", "max_restarts", "restart_delay_s")
 # `--set launch.KEY=...` sets a top-level key; a node may therefore not be called "launch".
 LAUNCH_TARGET = "launch"
@@ -67,6 +67,9 @@ class LaunchConfig:
     compose: bool = False  # True: one process, nodes as threads sharing a zmq.Context, ipc:// -> inproc://
     exit_when: tuple[str, ...] = ()  # empty: run until Ctrl-C (or until every node has ended)
     stop_timeout_s: float = 5.0  # grace period between SIGTERM and SIGKILL when stopping
+    # the launch refuses to start when its memory estimate (``_memory``) exceeds this;
+    # 0: what the machine has available at launch (MemAvailable)
+    memory_budget_mb: float = 0.0
     source: str = "<launch>"
 
     def node(self, name: str) -> NodeConfig:
@@ -131,6 +134,7 @@ def parse_launch(
         compose=_boolean(data.get("compose", False), "compose", where),
         exit_when=exit_when,
         stop_timeout_s=_number(data.get("stop_timeout_s", 5.0), "stop_timeout_s", where, minimum=0.0),
+        memory_budget_mb=_number(data.get("memory_budget_mb", 0.0), "memory_budget_mb", where, minimum=0.0),
         source=source,
     )
 

@@ -20,6 +20,7 @@ import zmq
 from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK  # the exit codes of Supervisor.run
 from ._children import NodeLog, ProcessChild, ThreadChild, describe_exit
 from ._config import LaunchConfig, NodeConfig
+from ._memory import check_memory
 from ._resolve import resolve_launch
 
 _TICK_S = 0.05
@@ -83,6 +84,7 @@ class Supervisor:
         if self._slots:
             raise RuntimeError("Supervisor.run() was already called; make a new Supervisor")
         params = resolve_launch(self.config, self.run_dir)  # every config error before any start
+        check_memory(self.config, params)  # a flight that will not fit is refused now, not killed later
         logs = self.run_dir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         self._launch_log = open(logs / "launch.log", "a", buffering=1, encoding="utf-8")

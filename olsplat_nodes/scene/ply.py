@@ -111,20 +111,42 @@ def read_ply(path: str | Path, on_nonfinite: NonFinitePolicy = "error") -> Gauss
     return gaussians
 
 
-def ply_vertex_count(path: str | Path) -> int:
-    """The number of Gaussians a PLY file's header declares, without reading its body (what a
-    node that needs only the map's size reads); 0 when the header cannot be read."""
+_SIZES = {  # bytes of a PLY scalar type
+    **dict.fromkeys(("char", "uchar", "int8", "uint8"), 1),
+    **dict.fromkeys(("short", "ushort", "int16", "uint16"), 2),
+    **dict.fromkeys(("int", "uint", "int32", "uint32", "float", "float32"), 4),
+    **dict.fromkeys(("double", "float64"), 8),
+}
+
+
+def ply_header(path: str | Path) -> tuple[int, int] | None:
+    """(vertices, bytes per vertex) that a PLY file's header declares, without reading its body
+    (what a node or a check that needs only the map's size reads); None when the header cannot
+    be read. List properties count as 0 bytes (a Gaussian map has none)."""
+    count = row = 0
+    in_vertex = False
     try:
         with open(path, "rb") as f:
             for _ in range(1000):
-                line = f.readline().decode("ascii", "replace").strip()
-                if line.startswith("element vertex"):
-                    return int(line.split()[2])
-                if line == "end_header" or not line:
-                    break
+                words = f.readline().decode("ascii", "replace").split()
+                if not words:
+                    return None
+                if words[0] == "element":
+                    in_vertex = words[1] == "vertex"
+                    count = int(words[2]) if in_vertex else count
+                elif words[0] == "property" and in_vertex and words[1] != "list":
+                    row += _SIZES.get(words[1], 4)
+                elif words[0] == "end_header":
+                    return (count, row) if count else None
     except (OSError, ValueError, IndexError):
-        pass
-    return 0
+        return None
+    return None
+
+
+def ply_vertex_count(path: str | Path) -> int:
+    """The number of Gaussians a PLY file's header declares (0 when unreadable)."""
+    header = ply_header(path)
+    return header[0] if header else 0
 
 
 def write_ply(path: str | Path, gaussians: Gaussians) -> None:
