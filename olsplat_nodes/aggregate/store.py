@@ -179,9 +179,13 @@ class ObservationStore:
         obs = ViewObservations(a["gaussians"], a["strength"], a["offsets"], a["slots"], a["weights"])
         return obs, a["bank"]
 
-    def gather(self, selected: np.ndarray, segments: list[Path] | None = None) -> MixedObservations:
+    def gather(
+        self, selected: np.ndarray, segments: list[Path] | None = None, span: tuple[int, int] | None = None
+    ) -> MixedObservations:
         """Every observation of the selected Gaussians [N] bool, view by view in store order, with
-        its features as mixtures of the views' banks stacked into one [S, D] float32 bank."""
+        its features as mixtures of the views' banks stacked into one [S, D] float32 bank. With
+        ``span`` = (lo, stop) only Gaussians lo <= g < stop: a view's ids are ascending, so its
+        part is found by bisection instead of a scan of all of them."""
         segments = self.segments() if segments is None else segments
         parts: list[tuple] = []
         banks: list[np.ndarray] = []
@@ -190,7 +194,9 @@ class ObservationStore:
             if not self.usable(index, segments):
                 continue
             obs, bank = self.load(index, segments)
-            rows = np.flatnonzero(selected[np.asarray(obs.gaussians)])
+            ids = np.asarray(obs.gaussians)
+            a, b = (0, len(ids)) if span is None else (int(i) for i in np.searchsorted(ids, span))
+            rows = a + np.flatnonzero(selected[ids[a:b]])
             if not len(rows):
                 continue
             entries = _take_entries(
@@ -249,6 +255,7 @@ class ObservationStore:
         only_touched: bool = True,
         max_observations: int = 4_000_000,
         unit_float16: bool = False,
+        max_gaussians: int = 262_144,
     ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
@@ -256,8 +263,9 @@ class ObservationStore:
         with at least one kept observation among the recomputed ones. A pass costs the
         observations of the recomputed Gaussians (a Gaussian is recomputed from all of its
         views) plus a scan of each view's id list. Gaussians are processed in index ranges
-        holding at most ``max_observations`` observations (~45 bytes each in mixture form), so
-        memory does not grow with the flight; a Gaussian's result does not depend on the ranges.
+        holding at most ``max_observations`` observations (~45 bytes each in mixture form) and
+        at most ``max_gaussians`` Gaussians (a range's [n, D] results are float32), so memory
+        does not grow with the flight; a Gaussian's result does not depend on the ranges.
         With ``unit_float16`` the features are kept as the snapshot stores them, unit rows in
         float16 (2 bytes per value instead of 4: a live refiner of a large map holds N x D)."""
         selected = self.touched.copy() if (only_touched and F is not None) else np.ones(self.n_gaussians, bool)
@@ -269,12 +277,12 @@ class ObservationStore:
         while first < self.n_gaussians:
             done_before = cumulative[first - 1] if first else 0
             stop = max(int(np.searchsorted(cumulative, done_before + max_observations, side="right")), first + 1)
+            stop = min(stop, first + max_gaussians)
             lo, first = first, stop
-            part = np.zeros(self.n_gaussians, bool)
-            part[lo:stop] = selected[lo:stop]
-            if not part.any():
+            here = selected[lo:stop]
+            if not here.any():
                 continue
-            observations = self.gather(part, segments)
+            observations = self.gather(selected, segments, span=(lo, stop))
             if not len(observations):
                 continue
             if out is None:
@@ -282,7 +290,6 @@ class ObservationStore:
                 out = np.zeros((self.n_gaussians, observations.bank.shape[1]), dtype)
             local = replace(observations, owner=observations.owner - lo)  # this range's Gaussians only
             refined, count = refine_mixed(local, stop - lo, config)
-            here = part[lo:stop]
             # recomputed; unobserved ones get 0
             out[lo:stop][here] = unit_rows(refined[here]) if unit_float16 else refined[here]
             observed[lo:stop] = here & (count > 0)

@@ -208,6 +208,7 @@ class QueryServerNode(Node):
                 len(self.gaussians),
             )
             return
+        self.features = None  # the old version's rows go before the new ones are made (peak memory)
         self.features = QueryFeatures.of(language_map)  # float32 once, not per query
         language_map.features = np.zeros((0, self.features.table.shape[1]), np.float32)  # held once, above
         self.language_map, self.version = language_map, record["version"]

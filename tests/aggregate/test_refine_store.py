@@ -111,6 +111,8 @@ def test_streaming_views_equal_the_batch(tmp_path, min_retained):
     for name, obs, bank in _views(5, n):
         batch.append(name, obs, bank)
     F_batch, observed = batch.refine(None, config, max_observations=37)  # small ranges: the chunking is exercised
+    F_narrow, _ = batch.refine(None, config, max_gaussians=7)  # ranges of 7 Gaussians: the same
+    np.testing.assert_array_equal(F_narrow, F_batch)
     assert observed.sum() > 50
     np.testing.assert_allclose(F, F_batch, rtol=1e-5, atol=1e-6)
     # the float16 form: the unit rows of the same features, to float16's precision
