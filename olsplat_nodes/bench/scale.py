@@ -5,8 +5,9 @@ flight (the ingest waits for each acknowledgement, as ``make demo`` does). Measu
 - ``startup_s``: from launch until every node of the launch file has reported in a status
   reply (a node reports once its set-up is done: its map read, its models loaded);
 - memory per node from ``/proc``: the peak resident set (``VmHWM``, the kernel's own peak, not
-  a sample), and the resident set sampled every ``--sample-s`` with the number of views stored
-  at that moment, to see whether a node grows with the flight;
+  a sample; the queries after the flight included), and the resident set sampled every
+  ``--sample-s`` until the final map with the number of views stored at that moment, to see
+  whether a node grows with the flight;
 - the refiner's passes in flight order (``refine_s`` + ``write_s`` of each snapshot record);
 - the store's bytes per view and the final snapshot's size;
 - then, on the final map, ground-station queries over the real link (``ground_link``).
@@ -18,7 +19,7 @@ several nodes) once per node, so the sum over-counts; ``private`` memory (anonym
 
 ``--json FILE`` writes ``gaussians``, ``views``, ``wall_s``, ``views_per_s``, ``startup_s``,
 ``peak_rss_mb`` {node: MB}, ``peak_rss_mb_sum``, ``rss_growth_mb`` {node: resident MB at the
-final view minus at the first stored view}, ``private_mb_max`` {node: MB},
+end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB},
 ``store_bytes_per_view``, ``snapshot_bytes``, ``refine_pass_s`` (list), ``refine_pass_views``
 (views in the map after each pass), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms``,
 ``query_heatmap_first_p95_ms``, ``query_heatmap_repeat_p95_ms``, and ``width``, ``height``.
@@ -83,6 +84,7 @@ class MemoryWatch:
         self.pids, self.views_stored, self.every_s = pids, views_stored, every_s
         self.peak: dict[str, float] = {}
         self.series: dict[str, list[tuple[int, float, float]]] = {}
+        self.flight_over = False  # after the final map: peaks still taken, the series stops
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._loop, name="memory-watch", daemon=True)
 
@@ -96,11 +98,14 @@ class MemoryWatch:
             values = process_memory(pid)
             if values:
                 self.peak[name] = max(self.peak.get(name, 0.0), values["peak_rss_mb"])
-                self.series.setdefault(name, []).append((views, values["rss_mb"], values["private_mb"]))
+                if not self.flight_over:
+                    self.series.setdefault(name, []).append((views, values["rss_mb"], values["private_mb"]))
 
-    def growth(self, name: str) -> float:
-        """Resident MB at the last sample minus at the first sample with a view stored."""
-        series = [s for s in self.series.get(name, []) if s[0] > 0]
+    def growth(self, name: str, views: int) -> float:
+        """Resident MB at the last sample minus at the first sample once a quarter of the
+        flight's ``views`` were stored (start-up, the first map and the first caches are
+        behind by then: what is left is growth with the flight)."""
+        series = [s for s in self.series.get(name, []) if s[0] >= max(1, views // 4)]
         return series[-1][1] - series[0][1] if series else 0.0
 
 
@@ -171,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"  {done}/{len(cameras)} views stored after {elapsed:.0f} s, ~{left:.0f} s left", flush=True)
         wall_s = time.monotonic() - start
         watch.sample()
+        watch.flight_over = True  # the queries below still count in the peaks
         views = int(record["views"])
         store_bytes = sum(f.stat().st_size for f in store_views.rglob("*") if f.is_file())
         ordered = [passes[v] for v in sorted(passes)]
@@ -186,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
             "startup_s": round(startup_s, 1) if startup_s is not None else None,
             "peak_rss_mb": {name: round(mb) for name, mb in sorted(watch.peak.items())},
             "peak_rss_mb_sum": round(sum(watch.peak.values())),
-            "rss_growth_mb": {name: round(watch.growth(name)) for name in sorted(watch.series)},
+            "rss_growth_mb": {name: round(watch.growth(name, views)) for name in sorted(watch.series)},
             "private_mb_max": {name: round(max(s[2] for s in ser)) for name, ser in sorted(watch.series.items())},
             "store_bytes_per_view": round(store_bytes / max(views, 1)),
             "snapshot_bytes": int(record.get("bytes", 0)),
@@ -201,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
             if name in watch.peak:
                 print(
                     f"  {name:15s} peak RSS {watch.peak[name]:8.0f} MB  private max "
-                    f"{figures['private_mb_max'][name]:7.0f} MB  growth first->last view "
+                    f"{figures['private_mb_max'][name]:7.0f} MB  growth from 1/4 of the views "
                     f"{figures['rss_growth_mb'][name]:+6.0f} MB"
                 )
         print(f"  sum of the nodes' peaks {figures['peak_rss_mb_sum']:,} MB")
