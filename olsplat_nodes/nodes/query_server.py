@@ -99,7 +99,7 @@ class QueryServerNode(Node):
 
     def setup(self) -> None:
         from ..query.heatmap import FeatureImages
-        from ..query.localize import default_cluster_radius
+        from ..query.localize import VoxelIndex, default_cluster_radius
         from ..scene import read_ply  # heavy imports here and below: the launcher imports node classes
 
         p = self.params
@@ -110,6 +110,8 @@ class QueryServerNode(Node):
         self.gaussians = read_ply(p.map)
         # from the prior map's density once (~30 ms for 390k Gaussians): not again for every query
         self.cluster_radius = p.cluster_radius or default_cluster_radius(self.gaussians.means, p.cluster_min_points)
+        # the map's centres sorted by voxel once (~1 s for 5M): a query's clustering skips its own sort
+        self.voxel_index = VoxelIndex.build(self.gaussians.means, self.cluster_radius)
         self.language_map: LanguageMap | None = None
         self.features: QueryFeatures | None = None  # the map's features as queries use them
         self.version = 0
@@ -316,6 +318,7 @@ class QueryServerNode(Node):
                 cluster_radius=self.cluster_radius,
                 min_points=self.params.cluster_min_points,
                 features=self.features,
+                voxel_index=self.voxel_index,
             )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))

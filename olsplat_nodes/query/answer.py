@@ -19,7 +19,7 @@ from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..scene import Camera, Gaussians
 from .heatmap import CANONICAL_NEGATIVES, FeatureImages, relevancy_mask, render_heatmaps, threshold_mask
-from .localize import Instance3D, Region2D, default_cluster_radius, instances_in_3d, regions_in_view
+from .localize import Instance3D, Region2D, VoxelIndex, default_cluster_radius, instances_in_3d, regions_in_view
 
 
 @dataclass
@@ -109,6 +109,7 @@ def answer_query(
     cluster_radius: float | None = None,
     min_points: int = 20,
     features: QueryFeatures | None = None,
+    voxel_index: VoxelIndex | None = None,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
@@ -116,7 +117,8 @@ def answer_query(
     rendered features are taken from (and kept in) that cache under ``image_key``. 3D instances:
     DBSCAN of the chosen Gaussians' centres with radius ``cluster_radius`` (metres; None: from
     the map's density, ``localize.default_cluster_radius``) and ``min_points``. ``features``:
-    the map's ``QueryFeatures``, made once by a caller that asks many queries. Raises
+    the map's ``QueryFeatures``, made once by a caller that asks many queries; ``voxel_index``:
+    the map's ``localize.VoxelIndex`` for the cluster radius, likewise. Raises
     OlsplatInputError on an empty text or a map that does not match the Gaussians."""
     text = text.strip()
     if not text:
@@ -133,7 +135,8 @@ def answer_query(
     features = features if features is not None else QueryFeatures.of(language_map)
     chosen = features.winners(embeddings) & language_map.observed
     radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
-    answer = QueryAnswer(text, negatives, chosen, instances_in_3d(gaussians.means, chosen, radius, min_points))
+    instances = instances_in_3d(gaussians.means, chosen, radius, min_points, index=voxel_index)
+    answer = QueryAnswer(text, negatives, chosen, instances)
     answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:
         table, rows = features.table, features.rows

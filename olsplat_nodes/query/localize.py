@@ -103,23 +103,65 @@ def default_cluster_radius(means: np.ndarray, min_points: int = 20) -> float:
     return max(1.5, 2.0 * spacing * math.sqrt(min_points / math.pi))
 
 
+@dataclass(frozen=True)
+class VoxelIndex:
+    """A map's Gaussians sorted once by their voxel of side ``eps`` on a grid anchored at the
+    map's lowest centre: a query then takes its selection in this order instead of sorting it
+    (the sort was half the clustering of 855k selected Gaussians of a 5M map). The instances are
+    DBSCAN's either way; the voxel grid only moves the two documented approximations (points of
+    one voxel, border ties), so an instance may differ by a few border points."""
+
+    eps: float
+    lowest: np.ndarray  # [3] the grid's origin, metres
+    dims: np.ndarray  # [3] int64 key radix
+    order: np.ndarray  # [N'] int64 Gaussians (finite centres only) by voxel key
+    keys: np.ndarray  # [N'] int64 their keys, ascending
+
+    @staticmethod
+    def build(means: np.ndarray, eps: float) -> VoxelIndex:
+        finite = np.flatnonzero(np.isfinite(means).all(1))
+        points = np.asarray(means, np.float64)[finite]
+        lowest, highest = _bounds(points) if len(points) else (np.zeros(3), np.zeros(3))
+        dims = np.floor((highest - lowest) / eps).astype(np.int64) + 3
+        keys = _voxel_keys(points, lowest, float(eps), dims)
+        order = np.argsort(keys, kind="stable")
+        return VoxelIndex(float(eps), lowest, dims, finite[order].astype(np.int64), keys[order])
+
+
 def instances_in_3d(
-    means: np.ndarray, selected: np.ndarray, eps: float = 1.5, min_points: int = 20
+    means: np.ndarray,
+    selected: np.ndarray,
+    eps: float = 1.5,
+    min_points: int = 20,
+    index: VoxelIndex | None = None,
 ) -> list[Instance3D]:
     """DBSCAN clusters of the selected Gaussians' centres, largest first (module docstring).
 
     means [N, 3] world metres; selected: [N] bool mask or integer indices; eps: DBSCAN radius
     and voxel side, metres; min_points: points within eps (itself included) that make a point
-    core, and the smallest instance.
+    core, and the smallest instance; index: the map's ``VoxelIndex`` for this ``eps``.
     """
     if not eps > 0:
         raise ValueError(f"eps must be a positive distance in metres, got eps={eps!r}")
-    points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
-    if not np.isfinite(points.sum()):  # rare: a NaN/inf centre is nowhere, noise as DBSCAN has it
-        points = points[np.isfinite(points).all(1)]
-    if len(points) == 0 or len(points) < min_points:
-        return []
-    points, keys, start, dims = _voxelise(points, eps)  # points now sorted by voxel
+    if index is not None and index.eps == float(eps):
+        mask = np.zeros(len(means), bool)
+        mask[selected] = True
+        take = mask[index.order]
+        if int(take.sum()) < max(min_points, 1):
+            return []
+        points = np.asarray(means)[index.order[take]].astype(np.float64)
+        point_keys = index.keys[take]
+        new = np.ones(len(point_keys), bool)
+        np.not_equal(point_keys[1:], point_keys[:-1], out=new[1:])
+        start = np.append(np.flatnonzero(new), len(point_keys))
+        keys, dims = point_keys[new], index.dims
+    else:
+        points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
+        if not np.isfinite(points.sum()):  # rare: a NaN/inf centre is nowhere, noise as DBSCAN has it
+            points = points[np.isfinite(points).all(1)]
+        if len(points) == 0 or len(points) < min_points:
+            return []
+        points, keys, start, dims = _voxelise(points, eps)  # points now sorted by voxel
     first, second = _touching_pairs(keys, dims)
     cluster = _cluster_points(points, start, first, second, float(eps), int(min_points))  # [M]
     count, low, high, total = _cluster_stats(points, cluster, len(keys))

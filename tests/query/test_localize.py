@@ -185,3 +185,41 @@ def test_four_planes_in_130k_points_with_noise():
     instances = instances_in_3d(means, selected)
     assert len(instances) == 4, "four planes; the noise forms nothing on its own"
     assert all(30000 <= i.gaussians < 30600 for i in instances), "each plane with the noise points right against it"
+
+
+@pytest.mark.parametrize("scene", [lattice, diagonal])
+@pytest.mark.parametrize("seed", range(3))
+def test_the_maps_voxel_index_gives_the_references_instances(scene, seed):
+    """With the map's VoxelIndex the selection is not sorted again; on the same grid (both pinned
+    at the origin point) the instances are the reference's exactly."""
+    from olsplat_nodes.query.localize import VoxelIndex
+
+    points, eps, min_points = scene(np.random.default_rng(seed))
+    rng = np.random.default_rng(200 + seed)
+    means = np.vstack([points, rng.uniform(150, 300, (500, 3))])  # unselected, above the origin
+    selected = np.zeros(len(means), bool)
+    selected[: len(points)] = True
+    index = VoxelIndex.build(means, eps)
+    fast = instances_in_3d(means, selected, eps, min_points, index=index)
+    assert [i.gaussians for i in fast] == sorted((i.gaussians for i in fast), reverse=True)
+    assert_same_instances(fast, instances_in_3d_bfs(means, selected, eps, min_points))
+    assert_same_instances(instances_in_3d(means, np.flatnonzero(selected), eps, min_points, index=index), fast)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_on_another_grid_the_index_moves_only_border_points(seed):
+    """Anchored at the map's lowest centre instead of the selection's, the grid changes only the
+    documented approximations: the same instances, each within a few border points."""
+    from olsplat_nodes.query.localize import VoxelIndex
+
+    points, eps, min_points = road(np.random.default_rng(seed))
+    means = np.vstack([points, [[-7.3, -4.1, -2.2]], np.full((3, 3), np.nan)])  # another origin; NaN is noise
+    selected = np.ones(len(means), bool)
+    selected[len(points)] = False
+    plain = instances_in_3d(means, selected, eps, min_points)
+    indexed = instances_in_3d(means, selected, eps, min_points, index=VoxelIndex.build(means, eps))
+    assert len(indexed) == len(plain) > 5
+    for a in plain:  # each instance has its counterpart: nearest centre, nearly the same size
+        b = min(indexed, key=lambda i: float(np.linalg.norm(np.subtract(i.centre, a.centre))))
+        assert np.linalg.norm(np.subtract(a.centre, b.centre)) < 0.5
+        assert abs(a.gaussians - b.gaussians) <= max(10, 0.03 * a.gaussians)
