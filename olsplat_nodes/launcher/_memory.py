@@ -36,8 +36,8 @@ def estimate_graph(nodes: list[tuple[str, str, dict[str, Any]]], pixels: int = 1
     for name, kind, params in nodes:
         gaussians, row_bytes = _map_size(params.get("map", ""))
         if kind == "accumulator":  # the map, its projection (64 B records + sort keys), Top-K buffers
-            mb = 250 + gaussians * (row_bytes + 96) / MB + pixels * 360 / MB
-            why = f"{gaussians:,} Gaussians x {row_bytes + 96} B + {pixels:,} px x 360 B + 250 MB"
+            mb = 300 + gaussians * (row_bytes + 96) / MB + pixels * 400 / MB
+            why = f"{gaussians:,} Gaussians x {row_bytes + 96} B + {pixels:,} px x 400 B + 300 MB"
         elif kind == "query_server":
             codebook = int(refiner.get("codebook", 0)) > 0 or gaussians > int(refiner.get("codebook_above", 2_000_000))
             feature_bytes = 0 if codebook else FEATURE_DIM * 4 * 2 + FEATURE_DIM * 2  # old + new rows while loading
@@ -47,11 +47,13 @@ def estimate_graph(nodes: list[tuple[str, str, dict[str, Any]]], pixels: int = 1
                 f"{gaussians:,} Gaussians x {row_bytes + 96 + feature_bytes} B + {pixels:,} px x 400 B "
                 f"+ heatmap cache {cache:g} MB + 300 MB"
             )
-        elif kind == "refiner":  # float16 unit rows of every Gaussian, and one range's observations
-            mb = 450 + gaussians * FEATURE_DIM * 2 * 1.2 / MB
-            why = f"{gaussians:,} Gaussians x {int(FEATURE_DIM * 2 * 1.2)} B + 450 MB"
+        elif kind == "refiner":  # float16 unit rows + per-Gaussian bookkeeping; a range's work; codebook
+            codebook = int(params.get("codebook", 0)) > 0 or gaussians > int(params.get("codebook_above", 2_000_000))
+            per = FEATURE_DIM * 2 + 44
+            mb = 1000 + gaussians * per / MB + (500 if codebook else 0)
+            why = f"{gaussians:,} Gaussians x {per} B + 1000 MB" + (" + codebook 500 MB" if codebook else "")
         elif kind == "region_encoder":
-            mb, why = 600.0, "encoders and regions, 600 MB"
+            mb, why = 700.0, "encoders and regions, 700 MB"
         else:
             mb, why = 150.0, "150 MB"
         estimates.append(NodeEstimate(name, mb, why))
