@@ -31,6 +31,7 @@ from .convert import reply_for
 if TYPE_CHECKING:  # imported at run time inside methods: the launcher imports node classes
     from ..aggregate import LanguageMap
     from ..query.answer import QueryFeatures
+    from ..query.localize import VoxelIndex
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +100,7 @@ class QueryServerNode(Node):
 
     def setup(self) -> None:
         from ..query.heatmap import FeatureImages
-        from ..query.localize import VoxelIndex, default_cluster_radius
+        from ..query.localize import default_cluster_radius
         from ..scene import read_ply  # heavy imports here and below: the launcher imports node classes
 
         p = self.params
@@ -110,8 +111,9 @@ class QueryServerNode(Node):
         self.gaussians = read_ply(p.map)
         # from the prior map's density once (~30 ms for 390k Gaussians): not again for every query
         self.cluster_radius = p.cluster_radius or default_cluster_radius(self.gaussians.means, p.cluster_min_points)
-        # the map's centres sorted by voxel once (~1 s for 5M): a query's clustering skips its own sort
-        self.voxel_index = VoxelIndex.build(self.gaussians.means, self.cluster_radius)
+        # the map's centres sorted by voxel once (~1.5 s for 5M, in the warm-up thread, not delaying
+        # start-up): a query's clustering then skips its own sort; until then it sorts
+        self.voxel_index: VoxelIndex | None = None
         self.language_map: LanguageMap | None = None
         self.features: QueryFeatures | None = None  # the map's features as queries use them
         self.version = 0
@@ -170,7 +172,7 @@ class QueryServerNode(Node):
         while the node already serves: on a fresh install the first real query would
         otherwise pay 10-40 s of compilation and time out at the ground station."""
         from ..query.heatmap import render_feature_map
-        from ..query.localize import instances_in_3d
+        from ..query.localize import VoxelIndex, instances_in_3d
         from ..scene import Camera, intrinsics, look_at
 
         try:
@@ -186,7 +188,8 @@ class QueryServerNode(Node):
                 look_at(centre + np.array([0.0, 0.0, 100.0]), centre, (0.0, 1.0, 0.0)),
             )
             render_feature_map(self.gaussians, np.zeros((len(self.gaussians), 1), np.float32), camera)
-            log.info("query kernels ready in %.1f s", time.perf_counter() - start)
+            self.voxel_index = VoxelIndex.build(self.gaussians.means, self.cluster_radius)
+            log.info("query kernels and the voxel index ready in %.1f s", time.perf_counter() - start)
         except Exception:  # a warm-up failure must not take the server down; the query will say more
             log.exception("warm-up failed")
 
