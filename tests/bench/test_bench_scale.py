@@ -1,0 +1,48 @@
+"""``olsplat bench scale --json`` on the tiny flight: the real graph over ZeroMQ, every frame
+aggregated, and every key the issue names in the JSON with values that must hold whatever the
+load (the figures themselves are benchmarks, not asserted against targets)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from olsplat_nodes.cli import main
+
+from ..helpers import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+NODES = {"query_server", "ingest", "region_encoder", "accumulator", "refiner"}
+
+
+@pytest.mark.timeout(600)
+def test_bench_scale_writes_the_documented_figures(tiny, tmp_path, capsys):
+    scene, _ = tiny
+    out = tmp_path / "scale.json"
+    args = ["bench", "scale", "--scene", str(scene), "--queries", "3", "--heatmap-queries", "2"]
+    args += ["--heatmap-views", "1", "--sample-s", "0.2", "--work", str(tmp_path / "run")]
+    args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port()), "--json", str(out)]
+    assert main(args) == 0
+    figures = json.loads(out.read_text())
+    assert figures["views"] == 12  # lossless: every frame of the tiny flight
+    assert figures["gaussians"] > 1000 and figures["width"] > 0 and figures["height"] > 0
+    assert figures["views_per_s"] == pytest.approx(12 / figures["wall_s"], rel=0.02)
+    assert 0 < figures["startup_s"] < figures["wall_s"]
+    assert set(figures["peak_rss_mb"]) == NODES and all(mb > 10 for mb in figures["peak_rss_mb"].values())
+    assert figures["peak_rss_mb_sum"] == pytest.approx(sum(figures["peak_rss_mb"].values()), abs=len(NODES))
+    assert set(figures["rss_growth_mb"]) == NODES and set(figures["private_mb_max"]) == NODES
+    store = tmp_path / "run" / "store" / "views"
+    stored = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
+    assert figures["store_bytes_per_view"] == pytest.approx(stored / 12, abs=1)
+    final = json.loads((tmp_path / "run" / "map" / "latest.json").read_text())
+    assert figures["snapshot_bytes"] == final["bytes"] == (tmp_path / "run" / "map" / final["file"]).stat().st_size
+    passes = figures["refine_pass_s"]
+    assert passes and all(s > 0 for s in passes) and len(passes) == len(figures["refine_pass_views"])
+    assert figures["refine_pass_views"][-1] == 12 and figures["refine_pass_views"] == sorted(
+        figures["refine_pass_views"]
+    )
+    for key in ("query_relevance_p95_ms", "query_heatmap_p95_ms", "query_heatmap_first_p95_ms"):
+        assert figures[key] > 0
+    assert "12 views of" in capsys.readouterr().out
