@@ -16,7 +16,9 @@ import numpy as np
 
 from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
-from ..query import argmax_masks, heatmaps, render_feature_map
+from ..query import argmax_masks
+from ..query.answer import QueryFeatures
+from ..query.heatmap import render_heatmaps
 from ..scene import read_ply
 from .annotations import read_annotation
 from .metrics import QueryScore, summarize
@@ -39,12 +41,14 @@ def label_texts(labels: list[str], queries: list[dict]) -> list[str]:
 
 
 def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = None) -> dict:
+    """Scores of ``language_map`` (dense or codebook form) on the scene's annotated views (the
+    first ``views`` of them, or all). One view at a time, and each view's heatmaps are taken in
+    the compositing kernel (``render_heatmaps``): neither the [H, W, D] feature image nor a
+    codebook map's [N, D] rows are ever made, so memory does not grow with views or D."""
     labels, queries = load_queries(scene.folder)
     gaussians = read_ply(scene.ply)
-    if len(language_map.features) != len(gaussians):
-        raise OlsplatInputError(
-            f"the language map has {len(language_map.features)} Gaussians, the scene's map {len(gaussians)}"
-        )
+    if len(language_map) != len(gaussians):
+        raise OlsplatInputError(f"the language map has {len(language_map)} Gaussians, the scene's map {len(gaussians)}")
     texts = encoder.encode_text(label_texts(labels, queries))
     scores = {q["text"]: QueryScore() for q in queries}
     label_index = {name: i for i, name in enumerate(labels)}
@@ -53,11 +57,11 @@ def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = 
     ]
     if not cameras:
         raise OlsplatInputError(f"{scene.folder / 'annotations'}: no annotation for any view of sparse/0")
-    features = language_map.features.astype(np.float32)
+    features = QueryFeatures.of(language_map)
     for camera in cameras:
         truth, instances = read_annotation(scene.folder / "annotations" / f"{Path(camera.name).stem}.json", labels)
-        feature_map, alpha = render_feature_map(gaussians, features, camera)
-        winners = argmax_masks(heatmaps(feature_map, texts), alpha)
+        maps, alpha = render_heatmaps(gaussians, features.table, texts, camera, rows=features.rows)
+        winners = argmax_masks(maps, alpha)
         labelled = truth >= 0
         for q in queries:
             ids = [label_index[name] for name in q["labels"]]

@@ -30,7 +30,8 @@ def overall(results: dict[str, dict[str, dict]]) -> dict[str, dict]:
         runs = [scene[name] for scene in results.values() if name in scene]
         merged: dict[str, Any] = {
             key: float(np.mean([r[key] for r in runs]))
-            for key in ("mIoU", "mAcc", "loc40", "loc50", "loc60", "seconds", "peak_rss_mb")
+            for key in ("mIoU", "mAcc", "loc40", "loc50", "loc60", "seconds", "score_seconds", "peak_rss_mb")
+            if all(key in r for r in runs)  # result files of older versions have no scoring time
         }
         queries = dict.fromkeys(q for r in runs for q in r["per_query"])
         merged["per_query"] = {
@@ -102,6 +103,9 @@ def strategy_table(results: dict, methods: list[str], title: str) -> list[str]:
     for key, label in (("mIoU", "mIoU ↑"), ("mAcc", "mAcc ↑"), ("loc50", "Loc@50 ↑")):
         lines.append(_row([label, *_bold_best([runs[m][key] for m in methods])]))
     lines.append(_row(["seconds", *(f"{runs[m]['seconds']:.0f}" for m in methods)]))
+    if all("score_seconds" in runs[m] for m in methods):  # older result files have no scoring time
+        lines.append(_row(["seconds to score", *(f"{runs[m]['score_seconds']:.0f}" for m in methods)]))
+    lines.append(_row(["peak RSS, MB", *(f"{runs[m]['peak_rss_mb']:,.0f}" for m in methods)]))
     return lines
 
 

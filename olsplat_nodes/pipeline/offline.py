@@ -5,7 +5,6 @@ cameras, the frames and one region/feature cache."""
 
 from __future__ import annotations
 
-import resource
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -18,6 +17,7 @@ from ..method import Method, add_view
 from ..scene import Camera, Gaussians, read_ply
 from ..structure.branch import StructuralBranch, StructureConfig
 from ..structure.points import StructuralPoints
+from .peak_memory import peak_rss_mb
 from .scene_folder import Scene, view_features
 
 # (scene folder, map file state, what shapes the points) -> (points, features): the 3D branch's
@@ -71,6 +71,6 @@ def aggregate_scene(
     return {
         "seconds": seconds,
         "views_per_second": len(scene.cameras) / seconds,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "peak_rss_mb": peak_rss_mb(),
         "observed_gaussians": int(observed.sum()),
     }

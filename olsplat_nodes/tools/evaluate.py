@@ -73,6 +73,7 @@ def _folder_name(label: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     import shutil
+    import time
 
     from tqdm import tqdm
 
@@ -86,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from ..method import MethodParams
     from ..params import parse_assignments, parse_params
     from ..pipeline import Scene, aggregate_scene
+    from ..pipeline.peak_memory import peak_rss_mb, reset_peak_rss
     from ..structure.branch import StructureConfig, minkunet_path
 
     scenes = [Scene.open(folder) for folder in args.scene]  # every folder is checked before any work
@@ -127,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
             if key not in done:
                 out = work / _folder_name(r.label)
                 shutil.rmtree(out, ignore_errors=True)
+                reset_peak_rss()  # each method's own peak (aggregation and scoring), not the process's
                 stats = aggregate_scene(
                     scene,
                     methods[r.method],
@@ -135,13 +138,20 @@ def run(args: argparse.Namespace) -> int:
                     functools.partial(tqdm, desc=r.label, unit="view"),
                     structure=r.structure,
                 )
+                started = time.perf_counter()
                 language_map = LanguageMap.load(out / "language_map.npz")
                 scores = evaluate_map(scene, language_map, encoder)
-                done[key] = ({**scores, "seconds": stats["seconds"], "peak_rss_mb": stats["peak_rss_mb"]}, language_map)
-            scores, language_map = done[key]
+                scored_s = time.perf_counter() - started
+                # the figures need every method's map at the end; otherwise a map goes once
+                # scored, so memory does not grow with the number of methods (large scenes)
+                kept = language_map if args.figures and r.kind == "method" else None
+                del language_map
+                timing = {"seconds": stats["seconds"], "score_seconds": scored_s, "peak_rss_mb": peak_rss_mb()}
+                done[key] = ({**scores, **timing}, kept)
+            scores, kept = done[key]
             results[title][r.label] = {**scores, "run": {**r.describe(), "settings": settings}}
-            if r.kind == "method":
-                maps[r.label] = language_map
+            if kept is not None:
+                maps[r.label] = kept
             print(f"{title}: {r.label:28s} mIoU {scores['mIoU']:5.1f}  mAcc {scores['mAcc']:5.1f}  Loc@40/50/60 "
                   f"{scores['loc40']:5.1f} {scores['loc50']:5.1f} {scores['loc60']:5.1f}  ({scores['seconds']:.0f} "
                   "s)")  # fmt: skip

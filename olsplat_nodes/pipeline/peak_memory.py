@@ -1,0 +1,32 @@
+"""The process's peak resident set, resettable: ``olsplat eval`` reports each method's own peak
+(its aggregation and scoring), not the highest of every method run before it in the process.
+
+Linux keeps the peak as ``VmHWM`` in /proc/self/status; writing "5" to /proc/self/clear_refs
+resets it to the current resident set. Elsewhere (or where /proc is not writable) the reset does
+nothing and the peak is ``getrusage``'s, the process's peak since it started.
+"""
+
+from __future__ import annotations
+
+import resource
+from pathlib import Path
+
+
+def reset_peak_rss() -> bool:
+    """Start a new peak from the current resident set; False where that is not possible."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set in MB since the last ``reset_peak_rss`` (or since the process started)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
