@@ -60,7 +60,8 @@ class QueryFeatures:
         wins = (self.table @ embeddings.T).argmax(1) == 0
         if self.rows is None:
             return wins
-        return wins[self.rows] & (self.rows >= 0)
+        # one gather over the N rows: row -1 (never observed) reads the appended False
+        return np.append(wins, False)[self.rows]
 
 
 class CachedTexts:

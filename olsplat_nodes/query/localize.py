@@ -116,6 +116,9 @@ class VoxelIndex:
     dims: np.ndarray  # [3] int64 key radix
     order: np.ndarray  # [N'] int64 Gaussians (finite centres only) by voxel key
     keys: np.ndarray  # [N'] int64 their keys, ascending
+    points: np.ndarray  # [N', 3] float64 their centres in this order: a selection is then a
+    # sequential compress of these rows, not a random gather of means (a third of a query's
+    # clustering time on a 5M map); 24 bytes per Gaussian
 
     @staticmethod
     def build(means: np.ndarray, eps: float) -> VoxelIndex:
@@ -125,7 +128,7 @@ class VoxelIndex:
         dims = np.floor((highest - lowest) / eps).astype(np.int64) + 3
         keys = _voxel_keys(points, lowest, float(eps), dims)
         order = np.argsort(keys, kind="stable")
-        return VoxelIndex(float(eps), lowest, dims, finite[order].astype(np.int64), keys[order])
+        return VoxelIndex(float(eps), lowest, dims, finite[order].astype(np.int64), keys[order], points[order])
 
 
 def instances_in_3d(
@@ -144,30 +147,63 @@ def instances_in_3d(
     if not eps > 0:
         raise ValueError(f"eps must be a positive distance in metres, got eps={eps!r}")
     if index is not None and index.eps == float(eps):
-        mask = np.zeros(len(means), bool)
-        mask[selected] = True
-        take = mask[index.order]
-        if int(take.sum()) < max(min_points, 1):
+        selected = np.asarray(selected)
+        if selected.dtype != np.bool_:
+            mask = np.zeros(len(means), bool)
+            mask[selected] = True
+            selected = mask
+        take, count = _in_order(selected, index.order)
+        if count < max(min_points, 1):
             return []
-        points = np.asarray(means)[index.order[take]].astype(np.float64)
-        point_keys = index.keys[take]
-        new = np.ones(len(point_keys), bool)
-        np.not_equal(point_keys[1:], point_keys[:-1], out=new[1:])
-        start = np.append(np.flatnonzero(new), len(point_keys))
-        keys, dims = point_keys[new], index.dims
+        # a copy (the clustering reorders it in place), grouped by voxel
+        points, keys, start = _grouped(take, count, index.points, index.keys)
+        dims, lowest = index.dims, index.lowest
     else:
         points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
         if not np.isfinite(points.sum()):  # rare: a NaN/inf centre is nowhere, noise as DBSCAN has it
             points = points[np.isfinite(points).all(1)]
         if len(points) == 0 or len(points) < min_points:
             return []
-        points, keys, start, dims = _voxelise(points, eps)  # points now sorted by voxel
+        points, keys, start, dims, lowest = _voxelise(points, eps)  # points now sorted by voxel
     first, second = _touching_pairs(keys, dims)
-    cluster = _cluster_points(points, start, first, second, float(eps), int(min_points))  # [M]
+    cluster = _cluster_points(points, start, first, second, float(eps), int(min_points), lowest)  # [M]
     count, low, high, total = _cluster_stats(points, cluster, len(keys))
     order = np.flatnonzero(count >= max(min_points, 1))
     order = order[np.argsort(-count[order], kind="stable")]  # largest first; ties by lowest voxel
     return [Instance3D(_floats(low[c]), _floats(high[c]), _floats(total[c] / count[c]), int(count[c])) for c in order]
+
+
+@njit(cache=True)
+def _in_order(selected, order):
+    """([N'] bool: selected[order], how many are True), in one pass."""
+    take = np.empty(order.shape[0], np.bool_)
+    count = 0
+    for i in range(order.shape[0]):
+        take[i] = selected[order[i]]
+        count += take[i]
+    return take, count
+
+
+@njit(cache=True)
+def _grouped(take, count, points, keys):
+    """The taken rows of (points [N', 3], keys [N'] ascending): (points [count, 3], distinct
+    keys [V], start [V + 1] with voxel v's points at start[v]:start[v + 1])."""
+    out = np.empty((count, 3))
+    distinct = np.empty(count, np.int64)
+    start = np.empty(count + 1, np.int64)
+    m = 0
+    v = 0
+    for i in range(take.shape[0]):
+        if not take[i]:
+            continue
+        if v == 0 or keys[i] != distinct[v - 1]:
+            distinct[v] = keys[i]
+            start[v] = m
+            v += 1
+        out[m, 0], out[m, 1], out[m, 2] = points[i, 0], points[i, 1], points[i, 2]
+        m += 1
+    start[v] = m
+    return out, distinct[:v].copy(), start[: v + 1].copy()
 
 
 def _floats(row: np.ndarray) -> tuple[float, float, float]:
@@ -176,7 +212,7 @@ def _floats(row: np.ndarray) -> tuple[float, float, float]:
 
 def _voxelise(points: np.ndarray, eps: float):
     """(the points sorted by voxel [M, 3], distinct voxel keys [V] int64 ascending, start [V + 1]
-    with voxel v's points at start[v]:start[v + 1], dims [3]).
+    with voxel v's points at start[v]:start[v + 1], dims [3], the grid's origin lowest [3]).
 
     A key is the voxel's (i, j, k) + 1 in mixed radix ``dims``, so key order is (i, j, k) order;
     the one-voxel margin on each side means key + offset of a neighbour never wraps into
@@ -195,7 +231,7 @@ def _voxelise(points: np.ndarray, eps: float):
     new = np.ones(len(point_keys), bool)
     np.not_equal(point_keys[1:], point_keys[:-1], out=new[1:])
     start = np.append(np.flatnonzero(new), len(point_keys))
-    return np.take(points, order, axis=0), point_keys[new], start, dims
+    return np.take(points, order, axis=0), point_keys[new], start, dims, lowest
 
 
 @njit(cache=True)
@@ -300,17 +336,34 @@ def _count_near(points, p, lo, hi, low, high, reach2, enough) -> int:
 
 
 @njit(cache=True)
-def _core(points, start, begin, around, low, high, reach2, min_points):
+def _core(points, start, begin, around, low, high, reach2, min_points, lowest, eps):
     """[M] bool: DBSCAN's core test, at least min_points points (itself included) within eps,
-    counted over the point's own and touching voxels (its whole eps-ball)."""
+    counted over the point's own and touching voxels (its whole eps-ball).
+
+    Shortcut, exact: a voxel's eight half-side cells have a diagonal of sqrt(3)/2 eps < eps, so
+    every point of a cell holding min_points points is core without a distance (on the dense
+    roofs and roads of a survey map, most points; a third of a 700k-point query's time)."""
     core = np.zeros(points.shape[0], np.bool_)
+    cell = np.zeros(8, np.int64)
+    half = 0.5 * eps
     for v in range(start.shape[0] - 1):
         block = 0
         for i in range(begin[v], begin[v + 1]):
             block += start[around[i] + 1] - start[around[i]]
         if block < min_points:
             continue  # no point here can have min_points within eps
+        if start[v + 1] - start[v] >= min_points:
+            # the voxel's corner: its points share floor((p - lowest) / eps) (``_voxel_keys``)
+            corner = np.floor((points[start[v]] - lowest) / eps) * eps + lowest
+            cell[:] = 0
+            for p in range(start[v], start[v + 1]):
+                cell[_half_cell(points[p], corner, half)] += 1
+            for p in range(start[v], start[v + 1]):
+                if cell[_half_cell(points[p], corner, half)] >= min_points:
+                    core[p] = True
         for p in range(start[v], start[v + 1]):
+            if core[p]:
+                continue
             found = 0
             for i in range(begin[v], begin[v + 1]):  # its own voxel first: the likeliest
                 w = around[i]
@@ -322,7 +375,19 @@ def _core(points, start, begin, around, low, high, reach2, min_points):
 
 
 @njit(cache=True)
-def _cluster_points(points, start, first, second, eps, min_points):
+def _half_cell(point, corner, half) -> int:
+    """Which of its voxel's eight half-side cells (0..7) a point lies in; a point on the far
+    face (rounding) counts in the outer cell, so two points of one cell are never more than
+    sqrt(3) * half apart."""
+    cell = 0
+    for d in range(3):
+        if point[d] - corner[d] >= half:
+            cell |= 1 << d
+    return cell
+
+
+@njit(cache=True)
+def _cluster_points(points, start, first, second, eps, min_points, lowest):
     """[M] int64 cluster of each point, named by its cluster's lowest voxel index; -1 for noise.
 
     points [M, 3] sorted by voxel, voxel v's at start[v]:start[v + 1]; this reorders each
@@ -335,7 +400,7 @@ def _cluster_points(points, start, first, second, eps, min_points):
     high = np.empty((n, 3))
     for v in range(n):
         low[v], high[v] = _box(points, start[v], start[v + 1])
-    core = _core(points, start, begin, around, low, high, reach2, min_points)
+    core = _core(points, start, begin, around, low, high, reach2, min_points, lowest, eps)
     # core points first in each voxel: voxel v's are then points[start[v]:start[v] + cores[v]]
     cores = np.zeros(n, np.int64)
     for v in range(n):

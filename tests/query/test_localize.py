@@ -50,7 +50,21 @@ def noise(rng) -> tuple[np.ndarray, float, int]:
     return np.vstack([scatter, *blobs]), 1.5, 20
 
 
-@pytest.mark.parametrize("scene", [lattice, diagonal, road, noise])
+def roofs(rng) -> tuple[np.ndarray, float, int]:
+    """Dense roofs (40-70 centres per m^2, as a survey map's) with sparse fringes: many half-side
+    cells of a voxel hold min_points centres (all core at once), many hold a few less."""
+    parts = []
+    for _ in range(4):
+        corner, size = rng.uniform(0, 30, 2), rng.uniform(4, 9, 2)
+        n = int(rng.uniform(40, 70) * size.prod())
+        xy = corner + rng.uniform(0, 1, (n, 2)) * size
+        parts.append(np.c_[xy, rng.uniform(5, 10) + rng.normal(0, 0.1, n)])
+        fringe = corner + rng.uniform(-1, 1, (n // 10, 2)) * size
+        parts.append(np.c_[fringe, rng.uniform(0, 12, n // 10)])
+    return np.vstack(parts), 1.5, 20
+
+
+@pytest.mark.parametrize("scene", [lattice, diagonal, road, noise, roofs])
 @pytest.mark.parametrize("seed", range(5))
 def test_matches_the_reference(scene, seed):
     points, eps, min_points = scene(np.random.default_rng(seed))
@@ -223,3 +237,19 @@ def test_on_another_grid_the_index_moves_only_border_points(seed):
         b = min(indexed, key=lambda i: float(np.linalg.norm(np.subtract(i.centre, a.centre))))
         assert np.linalg.norm(np.subtract(a.centre, b.centre)) < 0.5
         assert abs(a.gaussians - b.gaussians) <= max(10, 0.03 * a.gaussians)
+
+
+def test_a_crowded_half_cell_makes_core_points_and_a_spread_voxel_does_not():
+    """The core shortcut (every point of a half-side cell holding min_points is core) holds
+    only because such a cell is less than eps across: 20 points split between opposite corners
+    of one voxel, more than eps apart, are not core; 20 points in one half-side cell are."""
+    rng = np.random.default_rng(3)
+    eps = 1.0
+    low_corner = rng.uniform(0.0, 0.05, (10, 3))
+    far_corner = rng.uniform(0.66, 0.7, (10, 3))  # more than eps from every low-corner point
+    spread = np.vstack([low_corner, far_corner])
+    assert instances_in_3d(spread, np.arange(20), eps, 20) == []
+    assert instances_in_3d_bfs(spread, np.arange(20), eps, 20) == []
+    crowded = np.vstack([[0.0, 0.0, 0.0], rng.uniform(0.0, 0.49, (19, 3))])
+    (one,) = instances_in_3d(crowded, np.arange(20), eps, 20)
+    assert one.gaussians == 20
