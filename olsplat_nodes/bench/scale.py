@@ -2,8 +2,11 @@
 
 The replay graph (``launch/replay.yaml``, one process per node) aggregates every frame of the
 flight (the ingest waits for each acknowledgement, as ``make demo`` does). Measured:
-- ``startup_s``: from launch until every node of the launch file has reported in a status
-  reply (a node reports once its set-up is done: its map read, its models loaded);
+- start-up: ``node_ready_s`` {node: seconds from its process's start (imports included) to the
+  end of its set-up (its map read, its models loaded)}, from the "ready" line every node logs;
+  ``startup_s`` is the slowest node's. ``all_reporting_s``: from launch until every node has
+  reported in a status reply; that also holds the first view a node takes on before its first
+  heartbeat, and a heartbeat or two lost while its publisher joins;
 - memory per node from ``/proc``: the peak resident set (``VmHWM``, the kernel's own peak, not
   a sample; the queries after the flight included), and the resident set sampled every
   ``--sample-s`` until the final map with the number of views stored at that moment, to see
@@ -18,6 +21,7 @@ several nodes) once per node, so the sum over-counts; ``private`` memory (anonym
 ``/proc/PID/smaps_rollup``) is reported beside it at the samples.
 
 ``--json FILE`` writes ``gaussians``, ``views``, ``wall_s``, ``views_per_s``, ``startup_s``,
+``node_ready_s`` {node: s}, ``all_reporting_s``,
 ``peak_rss_mb`` {node: MB}, ``peak_rss_mb_sum``, ``rss_growth_mb`` {node: resident MB at the
 end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB},
 ``store_bytes_per_view``, ``snapshot_bytes``, ``refine_pass_s`` (list), ``refine_pass_views``
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import tempfile
 import threading
@@ -55,6 +60,21 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
     parser.add_argument("--json", type=Path, help="also write the figures here (keys: see the module docstring)")
     parser.set_defaults(run=run)
+
+
+_READY = re.compile(r" (\S+) ready: ([0-9.]+) s after its process started")
+
+
+def node_ready_s(logs: Path) -> dict[str, float]:
+    """{node: seconds from its process's start to the end of its set-up}, each node's first
+    start, from the "ready" lines of the launch's node logs (``nodes.base.Node.run``)."""
+    ready: dict[str, float] = {}
+    for log_file in sorted(logs.glob("*.log")):
+        for line in log_file.read_text(errors="replace").splitlines():
+            found = _READY.search(line)
+            if found and found[1] not in ready:
+                ready[found[1]] = float(found[2])
+    return ready
 
 
 def process_memory(pid: int) -> dict[str, float]:
@@ -182,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
         ordered = [passes[v] for v in sorted(passes)]
         refine_pass_s = [round(p["refine_s"] + p.get("write_s", 0.0), 3) for p in ordered]
         width, height = cameras[0].width, cameras[0].height
+        ready = node_ready_s(run_dir / "logs")
         figures: dict = {
             "gaussians": gaussians,
             "views": views,
@@ -189,7 +210,9 @@ def run(args: argparse.Namespace) -> int:
             "height": height,
             "wall_s": round(wall_s, 1),
             "views_per_s": round(views / wall_s, 3),
-            "startup_s": round(startup_s, 1) if startup_s is not None else None,
+            "startup_s": round(max(ready.values()), 1) if ready else None,
+            "node_ready_s": {name: round(s, 1) for name, s in sorted(ready.items())},
+            "all_reporting_s": round(startup_s, 1) if startup_s is not None else None,
             "peak_rss_mb": {name: round(mb) for name, mb in sorted(watch.peak.items())},
             "peak_rss_mb_sum": round(sum(watch.peak.values())),
             "rss_growth_mb": {name: round(watch.growth(name, views)) for name in sorted(watch.series)},
@@ -201,7 +224,12 @@ def run(args: argparse.Namespace) -> int:
         }
         print(
             f"scale on {scene.name}: {gaussians:,} Gaussians, {views} views of {width}x{height} aggregated "
-            f"in {wall_s:.0f} s ({figures['views_per_s']:.2f} views/s), every node up after {figures['startup_s']} s"
+            f"in {wall_s:.0f} s ({figures['views_per_s']:.2f} views/s)"
+        )
+        print(
+            f"  start-up: slowest node ready {figures['startup_s']} s after its process started ("
+            + ", ".join(f"{name} {s:.1f}" for name, s in figures["node_ready_s"].items())
+            + f"); every node reporting {figures['all_reporting_s']} s after launch"
         )
         for name in NODES:
             if name in watch.peak:

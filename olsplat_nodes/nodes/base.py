@@ -17,6 +17,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -27,6 +28,19 @@ from ..params import field_defaults, parse_params
 from . import NODES
 
 log = logging.getLogger(__name__)
+
+
+def process_age_s() -> float:
+    """Seconds since this process started (Linux: /proc/self/stat's start time against
+    /proc/uptime, 10 ms steps); NaN where that cannot be read."""
+    import os
+
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        started = int(fields[19]) / os.sysconf("SC_CLK_TCK")  # field 22 of proc(5): starttime
+        return float(Path("/proc/uptime").read_text().split()[0]) - started
+    except (OSError, ValueError, IndexError):
+        return float("nan")
 
 
 @dataclass(frozen=True)
@@ -77,7 +91,16 @@ class Node:
     def run(self, stop: threading.Event) -> int:
         self.stop = stop
         try:
+            began = time.monotonic()
             self.setup()
+            # what start-up costs, in every node's log (``olsplat bench scale`` reports it):
+            # from the process's start (imports included) and of the node's own setup
+            log.info(
+                "%s ready: %.1f s after its process started, setup %.1f s",
+                self.name,
+                process_age_s(),
+                time.monotonic() - began,
+            )
             while not stop.is_set():
                 code = self.spin()
                 if code is not None:

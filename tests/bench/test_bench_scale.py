@@ -29,7 +29,10 @@ def test_bench_scale_writes_the_documented_figures(tiny, tmp_path, capsys):
     assert figures["views"] == 12  # lossless: every frame of the tiny flight
     assert figures["gaussians"] > 1000 and figures["width"] > 0 and figures["height"] > 0
     assert figures["views_per_s"] == pytest.approx(12 / figures["wall_s"], rel=0.02)
-    assert 0 < figures["startup_s"] < figures["wall_s"]
+    assert set(figures["node_ready_s"]) == NODES  # every node's own "ready" line, read from its log
+    assert figures["startup_s"] == max(figures["node_ready_s"].values())
+    assert all(0 < s < figures["wall_s"] for s in figures["node_ready_s"].values())
+    assert 0 < figures["all_reporting_s"] < figures["wall_s"]
     assert set(figures["peak_rss_mb"]) == NODES and all(mb > 10 for mb in figures["peak_rss_mb"].values())
     assert figures["peak_rss_mb_sum"] == pytest.approx(sum(figures["peak_rss_mb"].values()), abs=len(NODES))
     assert set(figures["rss_growth_mb"]) == NODES and set(figures["private_mb_max"]) == NODES
