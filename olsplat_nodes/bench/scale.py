@@ -25,7 +25,8 @@ several nodes) once per node, so the sum over-counts; ``private`` memory (anonym
 ``peak_rss_mb`` {node: MB}, ``peak_rss_mb_sum``, ``rss_growth_mb`` {node: resident MB at the
 end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB},
 ``store_bytes_per_view``, ``snapshot_bytes``, ``refine_pass_s`` (list), ``refine_pass_views``
-(views in the map after each pass), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms``,
+(views in the map after each pass), ``refine_s_per_added_view`` (each pass over the views it
+added), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms``,
 ``query_heatmap_first_p95_ms``, ``query_heatmap_repeat_p95_ms``, and ``width``, ``height``.
 """
 
@@ -39,6 +40,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 NODES = ("query_server", "ingest", "region_encoder", "accumulator", "refiner")
 
@@ -222,6 +225,11 @@ def run(args: argparse.Namespace) -> int:
             "refine_pass_s": refine_pass_s,
             "refine_pass_views": [int(p["views"]) for p in ordered],
         }
+        # a pass's cost over the views it added: flat when passes grow with the views since the
+        # last pass (which refiner.max_duty lets grow as passes lengthen), not with the flight
+        added = np.diff([0, *figures["refine_pass_views"]])
+        per_view = [round(s / max(int(a), 1), 3) for s, a in zip(refine_pass_s, added, strict=True)]
+        figures["refine_s_per_added_view"] = per_view
         print(
             f"scale on {scene.name}: {gaussians:,} Gaussians, {views} views of {width}x{height} aggregated "
             f"in {wall_s:.0f} s ({figures['views_per_s']:.2f} views/s)"
@@ -247,6 +255,7 @@ def run(args: argparse.Namespace) -> int:
             "  refinement passes (s, views in the map): "
             + ", ".join(f"{s:.1f} ({v})" for s, v in zip(refine_pass_s, figures["refine_pass_views"], strict=True))
         )
+        print("  per view added by the pass (s): " + ", ".join(f"{s:.2f}" for s in figures["refine_s_per_added_view"]))
         times = time_queries(client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views)
         report_queries(times, figures)
         figures["memory_series"] = {
