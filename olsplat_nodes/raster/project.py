@@ -68,7 +68,7 @@ class Projected:
 @njit(parallel=True, cache=True)
 def _project_kernel(
     means, quats, log_scales, opacity_logits, sh, viewmat, fx, fy, cx, cy, campos,
-    width, height, tile_size, eps2d, near, far, radius_sigmas, alpha_min, records, radii, tile_rects,
+    width, height, tile_size, eps2d, near, far, radius_sigmas, alpha_min, records, radii, tile_rects, w_norm2,
 ):  # fmt: skip
     n = means.shape[0]
     tiles_x = (width + tile_size - 1) // tile_size
@@ -95,6 +95,20 @@ def _project_kernel(
             continue
         opacity = 1.0 / (1.0 + math.exp(-float(opacity_logits[i])))
         if opacity < alpha_min:  # can never reach alpha_min anywhere
+            continue
+        # Off-screen early, before the covariance and the colour (most of a large map's
+        # Gaussians are outside any one view): lambda_max <= trace(cov2d) <= |J|_F^2 |M|_F^2 +
+        # 2 eps2d (+ 0.1 from the 0.01 floor below) bounds the radius from above, so a Gaussian
+        # that fails the screen test with the bound fails it with its radius too (same output).
+        # |M|_F^2 <= |W|_2^2 * 3 s_max^2 (w_norm2: the view rotation's squared spectral norm, 1).
+        s_max = math.exp(float(max(log_scales[i, 0], log_scales[i, 1], log_scales[i, 2])))
+        cx_clamped = min(lim_x_pos, max(-lim_x_neg, px / pz))
+        cy_clamped = min(lim_y_pos, max(-lim_y_neg, py / pz))
+        jacobian2 = (fx * fx * (1.0 + cx_clamped * cx_clamped) + fy * fy * (1.0 + cy_clamped * cy_clamped)) / (pz * pz)
+        bound = radius_sigmas * math.sqrt(jacobian2 * w_norm2 * 3.0 * s_max * s_max + 2.0 * eps2d + 0.2) + 1.0
+        u_early = fx * px / pz + cx
+        v_early = fy * py / pz + cy
+        if not (u_early + bound > 0 and u_early - bound < width and v_early + bound > 0 and v_early - bound < height):
             continue
         # world covariance M M^T with M = R(q) diag(s)
         qw, qx, qy, qz = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
@@ -186,5 +200,6 @@ def project(gaussians: Gaussians, camera: Camera, config: RasterConfig) -> Proje
         camera.camera_from_world, camera.fx, camera.fy, camera.cx, camera.cy, camera.center,
         camera.width, camera.height, config.tile_size, config.eps2d, config.near_plane, config.far_plane,
         config.radius_sigmas, config.alpha_min, out.records, out.radii, out.tile_rects,
+        float(np.linalg.norm(camera.camera_from_world[:3, :3], 2)) ** 2 * (1.0 + 1e-6),
     )  # fmt: skip
     return out

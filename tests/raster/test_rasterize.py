@@ -205,3 +205,27 @@ def test_the_unrolled_network_is_the_generated_one_and_sorts():
         got = keys.copy()
         sort_descending(got)
         np.testing.assert_array_equal(got, np.sort(keys)[::-1])
+
+
+@pytest.mark.parametrize("kind,spread", [("PINHOLE_CENTRED", 3.0), ("PINHOLE_SKEWED", 3.0), ("OPENCV_WIDE", 12.0)])
+def test_the_early_off_screen_test_keeps_every_gaussian_that_reaches_the_image(kind, spread):
+    """Projection drops a Gaussian whose bounded radius cannot reach the image before computing
+    its covariance: over Gaussians around the image's borders, long and thin in every
+    direction (a centre off-screen, an end on it), the kept set and every kept radius are the
+    reference's."""
+    from olsplat_nodes.raster._reference import project_reference
+    from olsplat_nodes.raster.project import project
+
+    gaussians = random_gaussians(4000, 1, seed=11, spread=spread)
+    rng = np.random.default_rng(12)
+    gaussians.log_scales[:] = np.log(rng.uniform(0.01, 0.05, (4000, 3)))
+    gaussians.log_scales[np.arange(4000), rng.integers(0, 3, 4000)] = np.log(rng.uniform(0.2, 2.0, 4000))
+    gaussians.opacity_logits[:] = 3.0
+    camera, config = camera_for(kind, 64, 48), RasterConfig()
+    fast, ref = project(gaussians, camera, config), project_reference(gaussians, camera, config)
+    centre_off = ~((ref["mean2d"] >= 0) & (ref["mean2d"] < [64, 48])).all(1)
+    assert (ref["valid"] & centre_off).sum() > 100, "the case needs Gaussians that reach in from off-screen"
+    assert (~ref["valid"]).sum() > 100, "and Gaussians that do not"
+    np.testing.assert_array_equal(fast.radii > 0, ref["valid"])
+    radius = np.ceil(config.radius_sigmas * np.sqrt(1 / np.linalg.eigvalsh(ref["conic"])[:, 0]))
+    assert (np.abs(fast.radii[ref["valid"]] - radius[ref["valid"]]) <= 1).all()
