@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from ..durable import write_atomic
 from ..errors import SceneFormatError
@@ -29,6 +30,21 @@ from .codebook import compress, decompress, fit_codebook
 
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
+
+
+@njit(cache=True)
+def normalise_rows(rows: np.ndarray) -> None:
+    """Scale the rows of ``rows`` [M, D] float32 to length 1 in place (rows of 0 stay 0): what
+    ``unit_rows`` returns, without its three [M, D] temporaries (on this VM the first touch of
+    fresh memory cost a live refiner 0.5 s per 262k x 128 range, a fifth of a pass)."""
+    for i in range(rows.shape[0]):
+        square = np.float32(0.0)
+        for d in range(rows.shape[1]):
+            square += rows[i, d] * rows[i, d]
+        norm = np.float32(np.sqrt(square))
+        scale = np.float32(1.0) / max(norm, np.float32(1e-12)) if norm > 0 else np.float32(0.0)
+        for d in range(rows.shape[1]):
+            rows[i, d] *= scale
 
 
 def unit_rows(features: np.ndarray) -> np.ndarray:

@@ -27,7 +27,7 @@ from ..durable import fsync_dir, write_atomic
 from .config import AggregationConfig
 from .observe import ViewObservations
 from .refine import MixedObservations, refine_mixed
-from .snapshot import unit_rows
+from .snapshot import normalise_rows
 
 log = logging.getLogger(__name__)
 _ARRAYS = ("gaussians", "strength", "offsets", "slots", "weights", "bank")
@@ -268,11 +268,19 @@ class ObservationStore:
         does not grow with the flight; a Gaussian's result does not depend on the ranges.
         With ``unit_float16`` the features are kept as the snapshot stores them, unit rows in
         float16 (2 bytes per value instead of 4: a live refiner of a large map holds N x D)."""
-        selected = self.touched.copy() if (only_touched and F is not None) else np.ones(self.n_gaussians, bool)
         segments = self.segments()
+        counts = self.observation_counts(segments)
+        if only_touched and F is not None:
+            selected = self.touched.copy()
+        else:
+            # every Gaussian, but one that no view observed is 0 without being computed: at the
+            # first pass of a large flight that is most of the map (10 s of a 15 s pass at 5M)
+            selected = counts > 0
+            if F is not None:
+                F[~selected] = 0
         observed = np.zeros(self.n_gaussians, bool)
         out = F
-        cumulative = np.cumsum(self.observation_counts(segments) * selected)
+        cumulative = np.cumsum(counts * selected)
         first = 0
         while first < self.n_gaussians:
             done_before = cumulative[first - 1] if first else 0
@@ -291,7 +299,12 @@ class ObservationStore:
             local = replace(observations, owner=observations.owner - lo)  # this range's Gaussians only
             refined, count = refine_mixed(local, stop - lo, config)
             # recomputed; unobserved ones get 0
-            out[lo:stop][here] = unit_rows(refined[here]) if unit_float16 else refined[here]
+            if unit_float16:
+                normalise_rows(refined)  # in place: ``unit_rows`` without its temporaries
+            if here.all():  # a full pass, or a range wholly touched: one contiguous copy
+                out[lo:stop] = refined
+            else:
+                out[lo:stop][here] = refined[here]
             observed[lo:stop] = here & (count > 0)
         self.touched[:] = False
         return out, observed

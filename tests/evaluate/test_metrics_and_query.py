@@ -87,3 +87,17 @@ def test_language_map_codebook_form(tmp_path):
     np.savez(tmp_path / "bad.npz", form="zip", observed=[True], encoder="x", version=2)
     with pytest.raises(SceneFormatError, match="unknown language map form 'zip'"):
         LanguageMap.load(tmp_path / "bad.npz")
+
+
+def test_rows_normalised_in_place_are_unit_rows():
+    from olsplat_nodes.aggregate.snapshot import normalise_rows, unit_rows
+
+    rng = np.random.default_rng(4)
+    rows = rng.normal(0, 3, (500, 37)).astype(np.float32)
+    rows[::7] = 0.0  # never observed: stays 0
+    rows[3] *= 1e-6  # short but not 0: still scaled to length 1
+    expected = unit_rows(rows)
+    normalise_rows(rows)
+    np.testing.assert_allclose(rows, expected, rtol=2e-6, atol=1e-7)
+    assert not rows[::7].any()
+    np.testing.assert_allclose(np.linalg.norm(rows[1:7], axis=1), 1.0, rtol=1e-6)
