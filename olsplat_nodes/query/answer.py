@@ -45,12 +45,14 @@ class QueryFeatures:
 
     table: np.ndarray  # [M, D] float32: row g is Gaussian g (M = N), or the codebook's centres (M = K)
     rows: np.ndarray | None = None  # [N] int32 row of ``table`` per Gaussian (-1: never observed)
+    # codebook maps: rows in a VoxelIndex's order, made at the first query that clusters
+    _ordered: dict[int, tuple[VoxelIndex, np.ndarray]] = field(default_factory=dict, repr=False)
 
     @staticmethod
     def of(language_map: LanguageMap) -> QueryFeatures:
         if language_map.codes is not None and language_map.centres is not None:
             rows = language_map.codes.astype(np.int32)
-            rows[rows == 65_535] = -1
+            rows[(rows == 65_535) | ~language_map.observed] = -1  # no feature: as a dense map's 0 row
             return QueryFeatures(np.asarray(language_map.centres, np.float32), rows)
         return QueryFeatures(np.asarray(language_map.features, np.float32))  # no copy when already float32
 
@@ -62,6 +64,18 @@ class QueryFeatures:
             return wins
         # one gather over the N rows: row -1 (never observed) reads the appended False
         return np.append(wins, False)[self.rows]
+
+    def winners_in_order(self, embeddings: np.ndarray, index: VoxelIndex) -> np.ndarray | None:
+        """``winners`` in ``index.order`` ([N'] bool), for a codebook map: a sequential gather
+        from the K centres' verdicts instead of a random one from N (what a query's clustering
+        takes). None for a dense map."""
+        if self.rows is None:
+            return None
+        cached = self._ordered.get(id(index))
+        if cached is None or cached[0] is not index:
+            cached = self._ordered[id(index)] = (index, self.rows[index.order])
+        wins = (self.table @ embeddings.T).argmax(1) == 0
+        return np.append(wins, False)[cached[1]]
 
 
 class CachedTexts:
@@ -136,7 +150,10 @@ def answer_query(
     features = features if features is not None else QueryFeatures.of(language_map)
     chosen = features.winners(embeddings) & language_map.observed
     radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
-    instances = instances_in_3d(gaussians.means, chosen, radius, min_points, index=voxel_index)
+    in_order = None
+    if voxel_index is not None and voxel_index.eps == float(radius):
+        in_order = features.winners_in_order(embeddings, voxel_index)  # observed: rows -1 otherwise
+    instances = instances_in_3d(gaussians.means, chosen, radius, min_points, index=voxel_index, in_order=in_order)
     answer = QueryAnswer(text, negatives, chosen, instances)
     answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:

@@ -137,22 +137,27 @@ def instances_in_3d(
     eps: float = 1.5,
     min_points: int = 20,
     index: VoxelIndex | None = None,
+    in_order: np.ndarray | None = None,
 ) -> list[Instance3D]:
     """DBSCAN clusters of the selected Gaussians' centres, largest first (module docstring).
 
     means [N, 3] world metres; selected: [N] bool mask or integer indices; eps: DBSCAN radius
     and voxel side, metres; min_points: points within eps (itself included) that make a point
-    core, and the smallest instance; index: the map's ``VoxelIndex`` for this ``eps``.
+    core, and the smallest instance; index: the map's ``VoxelIndex`` for this ``eps``;
+    in_order: ``selected`` already in the index's order ([N'] bool), when the caller has it.
     """
     if not eps > 0:
         raise ValueError(f"eps must be a positive distance in metres, got eps={eps!r}")
     if index is not None and index.eps == float(eps):
-        selected = np.asarray(selected)
-        if selected.dtype != np.bool_:
-            mask = np.zeros(len(means), bool)
-            mask[selected] = True
-            selected = mask
-        take, count = _in_order(selected, index.order)
+        if in_order is not None:
+            take, count = in_order, int(np.count_nonzero(in_order))
+        else:
+            selected = np.asarray(selected)
+            if selected.dtype != np.bool_:
+                mask = np.zeros(len(means), bool)
+                mask[selected] = True
+                selected = mask
+            take, count = _in_order(selected, index.order)
         if count < max(min_points, 1):
             return []
         # a copy (the clustering reorders it in place), grouped by voxel

@@ -61,3 +61,17 @@ def test_a_codebook_map_answers_through_its_centres_as_its_decoded_rows(tmp_path
     assert a.chosen.sum() > 20 and np.array_equal(a.chosen, b.chosen)
     np.testing.assert_allclose(a.heatmap, b.heatmap, atol=1e-5)
     np.testing.assert_array_equal(a.mask, b.mask)
+    # with the map's voxel index, a codebook map's clustering takes its choice in the index's
+    # order from the centres' verdicts: the same instances as from the chosen mask
+    from olsplat_nodes.query.answer import QueryFeatures
+    from olsplat_nodes.query.localize import VoxelIndex, instances_in_3d
+
+    index = VoxelIndex.build(gaussians.means, 0.3)
+    features_of_map = QueryFeatures.of(compact)
+    for text in ("road", "trees", "cars"):
+        with_index = answer_query(
+            compact, gaussians, encoder, text, ["road", "trees", "cars", "red roof buildings"],
+            cluster_radius=0.3, min_points=3, features=features_of_map, voxel_index=index,
+        )  # fmt: skip
+        expected = instances_in_3d(gaussians.means, with_index.chosen, 0.3, 3, index=index)
+        assert with_index.instances == expected and len(expected) > 0
