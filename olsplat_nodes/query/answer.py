@@ -69,13 +69,22 @@ class QueryFeatures:
         """``winners`` in ``index.order`` ([N'] bool), for a codebook map: a sequential gather
         from the K centres' verdicts instead of a random one from N (what a query's clustering
         takes). None for a dense map."""
+        rows = self.rows_in_order(index)
+        if rows is None:
+            return None
+        wins = (self.table @ embeddings.T).argmax(1) == 0
+        return np.append(wins, False)[rows]
+
+    def rows_in_order(self, index: VoxelIndex) -> np.ndarray | None:
+        """[N'] int32 ``rows`` in ``index.order``, made once per index (~50 ms for 5M: a
+        query server makes them when a map version arrives, not at its first query); None
+        for a dense map."""
         if self.rows is None:
             return None
         cached = self._ordered.get(id(index))
         if cached is None or cached[0] is not index:
             cached = self._ordered[id(index)] = (index, self.rows[index.order])
-        wins = (self.table @ embeddings.T).argmax(1) == 0
-        return np.append(wins, False)[cached[1]]
+        return cached[1]
 
 
 class CachedTexts:
