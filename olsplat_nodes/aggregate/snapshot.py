@@ -48,10 +48,12 @@ def normalise_rows(rows: np.ndarray) -> None:
 
 
 def unit_rows(features: np.ndarray) -> np.ndarray:
-    """[M, D] rows scaled to length 1, float32 (rows of 0 stay 0): what a map stores."""
-    features = np.asarray(features, np.float32)
-    norm = np.sqrt(np.einsum("md,md->m", features, features))[:, None]
-    return np.where(norm > 0, features / np.maximum(norm, np.float32(1e-12)), np.float32(0.0))
+    """[M, D] rows scaled to length 1, float32 (rows of 0 stay 0): what a map stores. The same
+    kernel as ``normalise_rows`` on a copy, so that a live refiner (in place) and an offline run
+    (through this) store bit-identical float16 maps; numpy's pairwise sums round differently."""
+    rows = np.array(features, np.float32, order="C", ndmin=2)
+    normalise_rows(rows)
+    return rows
 
 
 @dataclass

@@ -10,6 +10,7 @@ SfM cameras, the poses the map was built with.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -40,11 +41,14 @@ def label_texts(labels: list[str], queries: list[dict]) -> list[str]:
     return [own.get(label, label) for label in labels]
 
 
-def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = None) -> dict:
+def evaluate_map(
+    scene, language_map: LanguageMap, encoder, views: int | None = None, progress: Callable | None = None
+) -> dict:
     """Scores of ``language_map`` (dense or codebook form) on the scene's annotated views (the
     first ``views`` of them, or all). One view at a time, and each view's heatmaps are taken in
     the compositing kernel (``render_heatmaps``): neither the [H, W, D] feature image nor a
-    codebook map's [N, D] rows are ever made, so memory does not grow with views or D."""
+    codebook map's [N, D] rows are ever made, so memory does not grow with views or D.
+    ``progress`` wraps the list of views (e.g. tqdm: views done and time left)."""
     labels, queries = load_queries(scene.folder)
     gaussians = read_ply(scene.ply)
     if len(language_map) != len(gaussians):
@@ -58,7 +62,7 @@ def evaluate_map(scene, language_map: LanguageMap, encoder, views: int | None = 
     if not cameras:
         raise OlsplatInputError(f"{scene.folder / 'annotations'}: no annotation for any view of sparse/0")
     features = QueryFeatures.of(language_map)
-    for camera in cameras:
+    for camera in progress(cameras) if progress else cameras:
         truth, instances = read_annotation(scene.folder / "annotations" / f"{Path(camera.name).stem}.json", labels)
         maps, alpha = render_heatmaps(gaussians, features.table, texts, camera, rows=features.rows)
         winners = argmax_masks(maps, alpha)

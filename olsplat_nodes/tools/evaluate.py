@@ -140,7 +140,8 @@ def run(args: argparse.Namespace) -> int:
                 )
                 started = time.perf_counter()
                 language_map = LanguageMap.load(out / "language_map.npz")
-                scores = evaluate_map(scene, language_map, encoder)
+                scoring = functools.partial(tqdm, desc=f"{r.label} scoring", unit="view")
+                scores = evaluate_map(scene, language_map, encoder, progress=scoring)
                 scored_s = time.perf_counter() - started
                 # the figures need every method's map at the end; otherwise a map goes once
                 # scored, so memory does not grow with the number of methods (large scenes)

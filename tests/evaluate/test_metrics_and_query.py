@@ -89,15 +89,19 @@ def test_language_map_codebook_form(tmp_path):
         LanguageMap.load(tmp_path / "bad.npz")
 
 
-def test_rows_normalised_in_place_are_unit_rows():
+def test_rows_normalised_in_place_are_unit_rows_of_the_definition():
     from olsplat_nodes.aggregate.snapshot import normalise_rows, unit_rows
 
     rng = np.random.default_rng(4)
     rows = rng.normal(0, 3, (500, 37)).astype(np.float32)
     rows[::7] = 0.0  # never observed: stays 0
     rows[3] *= 1e-6  # short but not 0: still scaled to length 1
-    expected = unit_rows(rows)
+    # the plain definition: each row over its Euclidean length
+    norm = np.linalg.norm(rows.astype(np.float64), axis=1, keepdims=True)
+    expected = np.where(norm > 0, rows / np.maximum(norm, 1e-300), 0.0)
+    copy = unit_rows(rows)
     normalise_rows(rows)
+    np.testing.assert_array_equal(copy, rows)  # the offline and live maps are bit-identical
     np.testing.assert_allclose(rows, expected, rtol=2e-6, atol=1e-7)
     assert not rows[::7].any()
     np.testing.assert_allclose(np.linalg.norm(rows[1:7], axis=1), 1.0, rtol=1e-6)
