@@ -10,6 +10,7 @@ STAMP  := $(VENV)/.installed
 setup: $(STAMP)
 
 # open3d links against libusb-1.0 at import time; install it when missing (root only).
+# Debian's chromium runs the ground page's browser tests; without root and without it they skip.
 system-deps:
 	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then :; \
 	elif [ "$$(id -u)" = "0" ]; then \
@@ -20,6 +21,14 @@ system-deps:
 		echo "       ask an administrator to run: sudo apt-get install libusb-1.0-0"; \
 		exit 1; \
 	fi
+	@if command -v chromium >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = "0" ]; then \
+		echo "installing Debian's chromium (the browser tests of olsplat ground web)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	else \
+		echo "note: chromium is missing and we are not root: the browser tests will be skipped"; \
+		echo "      (sudo apt-get install chromium runs them)"; \
+	fi
 
 $(STAMP): pyproject.toml | system-deps
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "olsplat needs Python >= 3.11, got " + sys.version.split()[0])'
@@ -27,7 +36,7 @@ $(STAMP): pyproject.toml | system-deps
 	$(PY) -m pip install -q --upgrade pip
 	# torch first and pinned: 2.13.0 is the local CPU build, anything else drags in CUDA.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[test,lint]'
+	$(PY) -m pip install -q -e '.[test,lint,ground]'
 	# Two files of open_clip (not installed: it needs torchvision): CLIP's BPE vocabulary and
 	# open_clip's tokenizer, the reference the tokenizer tests compare with.
 	$(PY) -m pip download -q --no-deps open_clip_torch==3.3.0 -d $(VENV)/reference

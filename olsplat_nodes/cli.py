@@ -43,6 +43,8 @@ EXAMPLES = {
     "ground query": 'olsplat ground query "red roof buildings" --view 3 --out pictures/\n'
     "olsplat ground query road --connect tcp://DRONE:5600 --client-key ground.key_secret --server-key drone.key",
     "ground status": "olsplat ground status\nolsplat ground status --connect tcp://DRONE:5600 --json",
+    "ground web": "olsplat ground web --run out/run\nolsplat ground web --run out/run --map flight/map/point_cloud.ply "
+    "--port 8090",
     "keys generate": "olsplat keys generate --out keys --name drone",
     "export-clip": "olsplat export-clip --checkpoint RemoteCLIP-ViT-B-32.pt --vocab bpe_simple_vocab_16e6.txt.gz "
     "--out enc/remoteclip",

@@ -41,6 +41,53 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--client-key", type=Path, help="CURVE: this client's secret key file (olsplat keys generate)")
         sub.add_argument("--server-key", type=Path, help="CURVE: the server's public key file")
         sub.set_defaults(run=run)
+    web = commands.add_parser(
+        "web",
+        help="a browser page: the map in 3D, the flight, queries, heatmaps, status (viser)",
+        description="Serve the ground station's page. With --run DIR it reads a run folder on this "
+        "machine: a finished flight for a post-flight review, or one a graph is still writing.",
+    )
+    web.add_argument(
+        "--run", dest="run_dir", type=Path, required=True, help="the run folder (the launch file's run_dir)"
+    )
+    web.add_argument(
+        "--map",
+        type=Path,
+        help="the prior map PLY the run was made with (default: RUN/../flight/map/point_cloud.ply, the demo's)",
+    )
+    web.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    web.add_argument("--port", type=int, default=8080, help="TCP port of the page (default 8080)")
+    web.add_argument(
+        "--max-splats", type=int, default=300_000, help="splats drawn in the browser (default 300,000; <= 500,000)"
+    )
+    web.add_argument("--seconds", type=float, help="stop after this many seconds (default: until Ctrl-C)")
+    web.set_defaults(run=run_web)
+
+
+def run_web(args: argparse.Namespace) -> int:
+    from ..errors import OlsplatInputError
+
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise OlsplatInputError("the browser page needs viser: pip install 'olsplat[ground]'") from None
+    from ..ground.page import GroundPage, serve
+    from ..ground.review import RunReview
+
+    prior = args.map or args.run_dir / ".." / "flight" / "map" / "point_cloud.ply"
+    if not args.run_dir.is_dir():
+        raise OlsplatInputError(f"{args.run_dir}: no such run folder")
+    if not prior.exists():
+        raise OlsplatInputError(f"{prior}: prior map not found: give the PLY the run was made with (--map)")
+    if not 1 <= args.max_splats <= 500_000:
+        raise OlsplatInputError(
+            f"--max-splats must be 1..500,000 (what a browser draws smoothly), got {args.max_splats}"
+        )
+    source = RunReview(args.run_dir, prior, args.max_splats)
+    page = GroundPage(source, args.host, args.port, title=f"olsplat ground station - {args.run_dir}")
+    print(f"ground station: http://{args.host}:{page.port} ({source.splats.caption}); Ctrl-C stops", flush=True)
+    serve(page, args.seconds)
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:

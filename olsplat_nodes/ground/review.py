@@ -1,0 +1,210 @@
+"""What the ground page shows, read from a run folder: the prior map, the views aggregated so
+far, the newest language map, and the answers to the operator's queries (computed here, with
+the same core functions as the query server). A finished run gives a post-flight review; a run
+folder a graph is still writing gives a live page on the machine that holds it.
+
+Nothing here touches a socket or the browser (``page`` draws what this returns).
+"""
+
+from __future__ import annotations
+
+import time
+import unicodedata
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..aggregate.snapshot import LanguageMap
+from ..errors import OlsplatInputError
+from ..query.answer import QueryFeatures
+from ..query.localize import Instance3D
+from ..scene import Camera
+from .splats import BrowserSplats, browser_splats
+
+MAX_TEXT_CHARS = 200  # as the query server's max_text_chars
+MAX_NEGATIVES = 32  # as the query server's max_negatives
+DEFAULT_NEGATIVES = ("object", "things", "stuff", "texture")  # as the query server's
+
+
+def query_text_problem(text: str, negatives: list[str]) -> str | None:
+    """Why the page cannot ask this query (one sentence for the operator), or None."""
+    if not text.strip():
+        return "the query is empty: type what to look for, e.g. red roof buildings"
+    for label, value in [("the query", text), *(("a negative", n) for n in negatives)]:
+        if len(value) > MAX_TEXT_CHARS:
+            return f"{label} is {len(value):,} characters long; at most {MAX_TEXT_CHARS}"
+        if any(unicodedata.category(c) in ("Cc", "Cf") for c in value):
+            return f"{label} contains control characters; type plain text"
+    if len(negatives) > MAX_NEGATIVES:
+        return f"{len(negatives)} negatives; at most {MAX_NEGATIVES}"
+    return None
+
+
+def split_negatives(text: str) -> list[str]:
+    """The negatives box's comma-separated texts, empty ones dropped."""
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
+@dataclass
+class MapState:
+    version: int  # 0: no map yet
+    views_in_map: int  # views the newest map was refined from
+    final: bool  # the refiner wrote its last map (the flight ended)
+    observed: int  # Gaussians some view observed
+
+
+@dataclass
+class WebAnswer:
+    """One query as the page shows it."""
+
+    status: str  # "ok", "bad_request" (the operator's input), "no_map"
+    message: str
+    text: str = ""
+    map_version: int = 0
+    margin: np.ndarray | None = None  # [M] per browser splat: cos(query) - max cos(negatives)
+    observed: np.ndarray | None = None  # [M] bool per browser splat
+    instances: list[Instance3D] = field(default_factory=list)  # world metres, largest first
+    view: str = ""
+    heatmap_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + heatmap + legend
+    mask_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + mask + legend
+    seconds: float = 0.0
+
+
+class RunReview:
+    """A run folder (``map/``, ``views/``) and its prior map, as the page reads them."""
+
+    def __init__(self, run_dir: str | Path, prior_map: str | Path, max_splats: int, heatmap_cache_mb: int = 320):
+        from ..query.heatmap import FeatureImages
+        from ..scene import read_ply
+
+        self.run_dir = Path(run_dir)
+        if not self.run_dir.is_dir():
+            raise OlsplatInputError(f"{self.run_dir}: no such run folder")
+        self.gaussians = read_ply(prior_map)
+        self.splats: BrowserSplats = browser_splats(self.gaussians, max_splats)
+        self.images = FeatureImages(heatmap_cache_mb * 2**20)
+        self.language_map: LanguageMap | None = None
+        self.features: QueryFeatures | None = None
+        self.state = MapState(0, 0, False, 0)
+        self.encoders: dict = {}
+        self._views: list = []
+
+    def refresh(self) -> bool:
+        """Read a newer map and new views if the run wrote any; True when something changed."""
+        from ..aggregate import latest_map, load_views
+
+        changed = False
+        views_dir = self.run_dir / "views"
+        if views_dir.is_dir() and sum(1 for _ in views_dir.glob("*.json")) != len(self._views):
+            self._views = load_views(views_dir)
+            changed = True
+        record = latest_map(self.run_dir / "map")
+        if record is not None and record["version"] > self.state.version:
+            try:
+                language_map = LanguageMap.load(record["path"], decode=False)
+            except OlsplatInputError:  # replaced between latest.json and the file: next time
+                return changed
+            if len(language_map) != len(self.gaussians):
+                raise OlsplatInputError(
+                    f"{record['path']}: the map has {len(language_map)} Gaussians, the prior map "
+                    f"{len(self.gaussians)}: give the prior map this run was made with (--map)"
+                )
+            self.features = QueryFeatures.of(language_map)
+            self.language_map = language_map
+            self.state = MapState(
+                int(record["version"]),
+                int(record.get("views", 0)),
+                bool(record.get("final", False)),
+                int(language_map.observed.sum()),
+            )
+            changed = True
+        return changed
+
+    def cameras(self) -> list[Camera]:
+        return [v.camera for v in self._views]
+
+    def ask(self, text: str, negatives: list[str], view: str = "") -> WebAnswer:
+        """The query's relevance on the browser splats, its 3D instances and, with ``view``, the
+        view's heatmap and mask pictures. Bad input and a missing map come back as a status."""
+        from ..query.answer import CachedTexts, answer_query, encoder_for_map
+        from ..viz import query_pictures
+
+        start = time.perf_counter()
+        text = text.strip()
+        negatives = [n for n in negatives if n != text] or list(DEFAULT_NEGATIVES)
+        problem = query_text_problem(text, negatives)
+        if problem:
+            return WebAnswer("bad_request", problem, text)
+        if self.language_map is None or self.features is None:
+            return WebAnswer("no_map", "no map yet: no view has been aggregated and refined", text)
+        name = self.language_map.encoder
+        if name not in self.encoders:
+            self.encoders[name] = CachedTexts(encoder_for_map(self.language_map))
+        encoder = self.encoders[name]
+        cameras = self.cameras()
+        camera = next((c for c in cameras if c.name == view), None) if view else None
+        try:
+            answer = answer_query(
+                self.language_map,
+                self.gaussians,
+                encoder,
+                text,
+                negatives,
+                camera,
+                images=self.images,
+                image_key=(self.state.version, view),
+                features=self.features,
+            )
+        except OlsplatInputError as exc:
+            return WebAnswer("bad_request", str(exc), text)
+        embeddings = encoder.encode_text([text, *answer.negatives])
+        margin = self._margin(embeddings)
+        result = WebAnswer(
+            "ok",
+            f"{int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; "
+            f"{len(answer.instances)} instances in 3D",
+            text,
+            self.state.version,
+            margin,
+            self.language_map.observed[self.splats.ids],
+            answer.instances,
+        )
+        if camera is not None and answer.heatmap is not None and answer.mask is not None and answer.alpha is not None:
+            photo = next(v for v in self._views if v.camera.name == view).image()
+            caption = f'"{text}" on {Path(view).name}, map v{self.state.version}; mask: beats every negative'
+            boxes = [r.box for r in answer.regions]
+            heat, masked = query_pictures(
+                photo, answer.heatmap, np.asarray(answer.alpha > 0.5), answer.mask, boxes, caption
+            )
+            result.view = view
+            result.heatmap_picture = np.ascontiguousarray(heat[..., ::-1])  # BGR -> RGB
+            result.mask_picture = np.ascontiguousarray(masked[..., ::-1])
+        result.seconds = time.perf_counter() - start
+        return result
+
+    def _margin(self, embeddings: np.ndarray) -> np.ndarray:
+        """[M] cos(query) - max cos(negatives) of the browser splats (0 where never observed)."""
+        assert self.features is not None
+        ids = self.splats.ids
+        if self.features.rows is None:
+            cos = self.features.table[ids] @ embeddings.T
+        else:  # a codebook map: the K centres scored once, then gathered
+            rows = self.features.rows[ids]
+            cos = np.append(self.features.table @ embeddings.T, np.zeros((1, len(embeddings)), np.float32), 0)[rows]
+        return (cos[:, 0] - cos[:, 1:].max(1)).astype(np.float32)
+
+    def status_rows(self) -> list[tuple[str, str, str]]:
+        """(what, level, text) rows of the status panel: OK / WARN / ERROR / STALE levels."""
+        s = self.state
+        if s.version == 0:
+            map_row = ("map", "WARN", f"no map yet: waiting for the first refinement in {self.run_dir / 'map'}")
+        else:
+            ended = "final (the flight ended)" if s.final else "the flight goes on"
+            text = f"version {s.version}, {s.views_in_map} views, {s.observed:,} Gaussians observed; {ended}"
+            map_row = ("map", "OK", text)
+        return [
+            map_row,
+            ("views", "OK" if self._views else "WARN", f"{len(self._views)} aggregated"),
+            ("nodes", "OK", f"reading the run folder {self.run_dir} (no node link: node health is not shown)"),
+        ]

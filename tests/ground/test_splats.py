@@ -1,0 +1,71 @@
+"""The page's pure parts: decimation, splat covariances and colours, query text checks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from olsplat_nodes.ground.review import query_text_problem, split_negatives
+from olsplat_nodes.ground.splats import RAMP, UNOBSERVED, browser_splats, decimate, relevance_colours
+from olsplat_nodes.scene import Gaussians
+from olsplat_nodes.scene.rotations import quat_to_rotmat
+
+
+def random_gaussians(n: int, seed: int = 0) -> Gaussians:
+    rng = np.random.default_rng(seed)
+    return Gaussians(
+        means=rng.normal(0, 10, (n, 3)),
+        quats=rng.normal(size=(n, 4)),
+        log_scales=rng.normal(-1, 0.7, (n, 3)),
+        opacity_logits=rng.normal(0, 2, n),
+        sh=rng.normal(0, 0.5, (n, 1, 3)),
+    )
+
+
+def test_decimation_keeps_the_most_opaque_and_largest():
+    g = random_gaussians(2000)
+    keep = decimate(g, 300)
+    assert len(keep) == 300 and np.all(np.diff(keep) > 0)
+    # the plain definition, one Gaussian at a time
+    importance = []
+    for i in range(len(g)):
+        opacity = 1 / (1 + np.exp(-float(g.opacity_logits[i])))
+        s = sorted(np.exp(g.log_scales[i].astype(np.float64)))
+        importance.append(opacity * s[1] * s[2])
+    threshold = sorted(importance, reverse=True)[299]
+    assert all(importance[i] >= threshold for i in keep)
+    assert np.array_equal(decimate(g, 300), keep)  # the same choice every time
+    assert np.array_equal(decimate(g, 5000), np.arange(2000))
+    assert len(decimate(g, 0)) == 0
+
+
+def test_splat_covariances_are_r_s_s_r():
+    g = random_gaussians(50, seed=3)
+    s = browser_splats(g, 20)
+    for row, i in enumerate(s.ids):
+        r = quat_to_rotmat(g.quats[i])
+        scale = np.diag(np.exp(g.log_scales[i].astype(np.float64)))
+        np.testing.assert_allclose(s.covariances[row], r @ scale @ scale @ r.T, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(s.centers[row], g.means[i])
+    assert s.rgbs.min() >= 0 and s.rgbs.max() <= 1 and s.opacities.shape == (20, 1)
+    assert "20 of 50 Gaussians drawn" in s.caption
+    assert "all 50" in browser_splats(g, 50).caption
+
+
+def test_relevance_colours_span_the_ramp_and_grey_the_unobserved():
+    colours = relevance_colours(np.array([-1.0, -0.2, 0.0, 0.2, 5.0, 0.1]), np.array([1, 1, 1, 1, 1, 0], bool))
+    np.testing.assert_allclose(colours[0], RAMP[0])
+    np.testing.assert_allclose(colours[1], RAMP[0])
+    np.testing.assert_allclose(colours[2], RAMP[2])
+    np.testing.assert_allclose(colours[3], RAMP[-1])
+    np.testing.assert_allclose(colours[4], RAMP[-1])
+    np.testing.assert_allclose(colours[5], UNOBSERVED)
+
+
+def test_query_texts_the_page_refuses_with_a_sentence():
+    assert query_text_problem("red roof buildings", ["road"]) is None
+    assert "empty" in query_text_problem("   ", ["road"])
+    assert "10,000 characters" in query_text_problem("x" * 10_000, ["road"])
+    assert "control characters" in query_text_problem("roof\x00\x1b[31m", ["road"])
+    assert "a negative" in query_text_problem("roof", ["road\x07"])
+    assert "33 negatives" in query_text_problem("roof", [f"n{i}" for i in range(33)])
+    assert split_negatives(" road, ,trees ,") == ["road", "trees"]

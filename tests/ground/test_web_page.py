@@ -1,0 +1,173 @@
+"""``olsplat ground web`` in a real browser: Debian's headless Chromium, driven by playwright.
+
+The page is served by the real command (a subprocess) over a run folder the real graph wrote
+(the tiny replay). Screenshots go to build/test-artifacts/ground_web/ (kept after the run).
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.launcher import Supervisor
+from tests.helpers import free_port
+from tests.nodes.conftest import launch_tiny
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+ARTIFACTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts" / "ground_web"
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None, reason="Debian's chromium is not installed (make setup installs it when run as root)"
+)
+OLSPLAT = str(Path(sys.executable).parent / "olsplat")
+LABELS = ["red roof buildings", "blue roof buildings", "white roof buildings", "grey roof buildings", "road", "tree"]
+
+
+def serve_page(run_dir: Path, ply: Path, log: Path) -> tuple[subprocess.Popen, str]:
+    """The page's command (its output in ``log``) and its address, once it says it serves."""
+    port = free_port()
+    with log.open("w") as out:
+        process = subprocess.Popen(
+            [OLSPLAT, "ground", "web", "--run", str(run_dir), "--map", str(ply), "--port", str(port)],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and process.poll() is None:
+        if "ground station: http://" in log.read_text():
+            return process, f"http://127.0.0.1:{port}"
+        time.sleep(0.2)
+    process.kill()
+    raise AssertionError(f"olsplat ground web did not serve: {log.read_text()[-2000:]}")
+
+
+def browser(playwright):
+    return playwright.chromium.launch(
+        executable_path=CHROMIUM,
+        args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
+    )
+
+
+def field(page, label: str):
+    """The input of the page's row labelled ``label`` (viser's labels do not point at their inputs)."""
+    return page.locator(f"xpath=//label[normalize-space()='{label}']/ancestor::div[1]/parent::*//input").first
+
+
+def canvas_pixels(page, name: str) -> np.ndarray:
+    """A screenshot of the 3D view (left of the control panel) as [H, W, 3] uint8, kept as an artefact."""
+    import cv2
+
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    path = ARTIFACTS / f"{name}.png"
+    page.screenshot(path=str(path), clip={"x": 0, "y": 160, "width": 860, "height": 620})
+    return cv2.imread(str(path))[..., ::-1]
+
+
+def map_version(page) -> int:
+    return int(page.locator("#olsplat-status").get_attribute("data-map-version") or 0)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tiny, tmp_path_factory):
+    scene, _ = tiny
+    run_dir = tmp_path_factory.mktemp("web") / "run"
+    assert Supervisor(launch_tiny(scene, run_dir, free_port(), "launch.compose=true")).run() == 0
+    return scene, run_dir
+
+
+def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finished_run):
+    from playwright.sync_api import sync_playwright
+
+    scene, run_dir = finished_run
+    process, address = serve_page(run_dir, scene / "map" / "point_cloud.ply", run_dir.parent / "web.log")
+    try:
+        with sync_playwright() as playwright:
+            page = browser(playwright).new_page(viewport={"width": 1280, "height": 800})
+            page.goto(address)
+            page.wait_for_selector("#olsplat-status", timeout=60_000)
+            page.wait_for_function(
+                "() => Number(document.querySelector('#olsplat-status').dataset.mapVersion) >= 1", timeout=60_000
+            )
+            time.sleep(5)  # the splats arrive and are sorted in the browser
+            before = canvas_pixels(page, "1_map")
+            assert before.std() > 10, "the 3D view is blank"
+            # splats drawn: most of the view is the map's colours, not viser's white background
+            assert (before.min(axis=2) < 200).mean() > 0.2, "no splats in the 3D view"
+
+            field(page, "negatives").fill(", ".join(LABELS[1:]))
+            field(page, "query").fill(LABELS[0])
+            page.get_by_role("button", name="Ask").click()
+            page.get_by_text("Gaussians pick it").wait_for(timeout=60_000)
+            page.get_by_role("button", name=f"#0 {LABELS[0]}").wait_for(timeout=30_000)
+            time.sleep(3)
+            after = canvas_pixels(page, "2_query")
+            changed = np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40
+            assert changed.mean() > 0.05, f"the splats' colours did not change ({changed.mean():.3f} of the view)"
+
+            # bad input: a sentence on the page, the page keeps answering
+            field(page, "query").fill("roof\u0007")
+            page.get_by_role("button", name="Ask").click()
+            page.get_by_text("control characters").wait_for(timeout=30_000)
+
+            field(page, "query").fill(LABELS[0])
+            view = field(page, "view")
+            view.click()
+            page.get_by_role("option").nth(1).click()  # the first view ("(none)" is option 0)
+            page.wait_for_function(
+                "() => [...document.querySelectorAll('img')].filter(i => i.naturalWidth >= 64).length >= 2",
+                timeout=60_000,
+            )
+            page.screenshot(path=str(ARTIFACTS / "3_view.png"), full_page=True)
+            assert map_version(page) >= 1
+    finally:
+        process.terminate()
+        process.wait(timeout=30)
+
+
+def test_the_page_follows_a_live_graph_without_a_reload(tiny, tmp_path):
+    """The page is open before the flight starts ("no map yet"), then shows each new map version
+    the graph writes, up to the final one, without being reloaded."""
+    from playwright.sync_api import sync_playwright
+
+    from olsplat_nodes.aggregate import latest_map
+
+    scene, _ = tiny
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    process, address = serve_page(run_dir, scene / "map" / "point_cloud.ply", tmp_path / "web.log")
+    seen: list[int] = []
+    try:
+        with sync_playwright() as playwright:
+            page = browser(playwright).new_page(viewport={"width": 1280, "height": 800})
+            page.goto(address)
+            page.wait_for_selector("#olsplat-status", timeout=60_000)
+            page.get_by_text("no map yet").wait_for(timeout=30_000)
+            seen.append(map_version(page))
+            graph = threading.Thread(
+                target=lambda: Supervisor(launch_tiny(scene, run_dir, free_port(), "refiner.period_s=1")).run()
+            )
+            graph.start()
+            while graph.is_alive():
+                seen.append(map_version(page))
+                time.sleep(0.2)
+            final = latest_map(run_dir / "map")
+            assert final is not None and final["final"]
+            page.wait_for_function(
+                f"() => Number(document.querySelector('#olsplat-status').dataset.mapVersion) === {final['version']}",
+                timeout=30_000,
+            )
+            page.get_by_text("final (the flight ended)").wait_for(timeout=10_000)
+            seen.append(map_version(page))
+            canvas_pixels(page, "4_live_final")
+    finally:
+        process.terminate()
+        process.wait(timeout=30)
+    versions = sorted(set(seen))
+    assert seen[0] == 0 and seen == sorted(seen), seen  # never goes back
+    assert versions[-1] == final["version"] and len(versions) >= 2, versions
