@@ -32,7 +32,14 @@ def camera_pose(camera) -> tuple[np.ndarray, np.ndarray]:
 
 
 class GroundPage:
-    def __init__(self, source, host: str = "127.0.0.1", port: int = 8080, title: str = "olsplat ground station"):
+    def __init__(
+        self,
+        source,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        title: str = "olsplat ground station",
+        negatives: str = ", ".join(DEFAULT_NEGATIVES),
+    ):
         import viser
 
         self.source = source
@@ -50,19 +57,19 @@ class GroundPage:
         self.shown_views = 0
         self.instance_buttons: list = []
         self.answer: WebAnswer | None = None
-        self._build_gui()
+        self._build_gui(negatives)
         self._draw_map()
         self.stop = threading.Event()
         self.poller = threading.Thread(target=self._poll, name="ground-web-poll", daemon=True)
 
     # -- layout -------------------------------------------------------------------------------
-    def _build_gui(self) -> None:
+    def _build_gui(self, negatives: str) -> None:
         gui = self.server.gui
         with gui.add_folder("Status"):
             self.status = gui.add_html("<div>no map yet</div>")
         with gui.add_folder("Query"):
             self.query_text = gui.add_text("query", "", hint="what to look for, e.g. red roof buildings")
-            self.negatives_text = gui.add_text("negatives", ", ".join(DEFAULT_NEGATIVES), hint="comma-separated")
+            self.negatives_text = gui.add_text("negatives", negatives, hint="comma-separated")
             self.ask_button = gui.add_button("Ask")
             self.query_message = gui.add_markdown("Type a query and press Ask.")
             self.colour_bar = gui.add_html(colour_bar_html(), visible=False)
@@ -74,7 +81,8 @@ class GroundPage:
         with gui.add_folder("Map"):
             gui.add_markdown(self.source.splats.caption)
         self.ask_button.on_click(lambda _event: self._ask())
-        self.view_choice.on_update(lambda _event: self._ask() if self.last_query else None)
+        # a view chosen with a query typed: its heatmap at once
+        self.view_choice.on_update(lambda _event: self._ask() if self.query_text.value.strip() else None)
 
     def _draw_map(self) -> None:
         s = self.source.splats

@@ -60,6 +60,11 @@ def add_parser(subparsers) -> None:
     web.add_argument(
         "--max-splats", type=int, default=300_000, help="splats drawn in the browser (default 300,000; <= 500,000)"
     )
+    web.add_argument(
+        "--negatives",
+        default="object, things, stuff, texture",
+        help="the page's first negatives, comma-separated (default: the query server's; editable on the page)",
+    )
     web.add_argument("--seconds", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     web.set_defaults(run=run_web)
 
@@ -84,7 +89,9 @@ def run_web(args: argparse.Namespace) -> int:
             f"--max-splats must be 1..500,000 (what a browser draws smoothly), got {args.max_splats}"
         )
     source = RunReview(args.run_dir, prior, args.max_splats)
-    page = GroundPage(source, args.host, args.port, title=f"olsplat ground station - {args.run_dir}")
+    page = GroundPage(
+        source, args.host, args.port, title=f"olsplat ground station - {args.run_dir}", negatives=args.negatives
+    )
     print(f"ground station: http://{args.host}:{page.port} ({source.splats.caption}); Ctrl-C stops", flush=True)
     serve(page, args.seconds)
     return 0

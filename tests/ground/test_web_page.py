@@ -6,6 +6,7 @@ The page is served by the real command (a subprocess) over a run folder the real
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -116,13 +117,15 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
             page.get_by_text("control characters").wait_for(timeout=30_000)
 
             field(page, "query").fill(LABELS[0])
-            view = field(page, "view")
-            view.click()
-            page.get_by_role("option").nth(1).click()  # the first view ("(none)" is option 0)
-            page.wait_for_function(
-                "() => [...document.querySelectorAll('img')].filter(i => i.naturalWidth >= 64).length >= 2",
-                timeout=60_000,
+            width = json.loads(sorted((run_dir / "views").glob("*.json"))[0].read_text())["width"]
+            # the heatmap and mask pictures are the view's width (viser's logos are not)
+            pictures = (
+                f"[...document.querySelectorAll('img')].filter(i => i.naturalWidth === {width} && i.offsetParent)"
             )
+            assert page.evaluate(f"() => {pictures}.length") == 0  # no view chosen yet: no heatmap, no mask
+            field(page, "view").click()
+            page.get_by_role("option").nth(1).click()  # the first view ("(none)" is option 0)
+            page.wait_for_function(f"() => {pictures}.length >= 2", timeout=60_000)
             page.screenshot(path=str(ARTIFACTS / "3_view.png"), full_page=True)
             assert map_version(page) >= 1
     finally:
