@@ -53,6 +53,16 @@ class Instance2D(TypedDict):
 Instance = Instance3D | Instance2D
 
 
+class ViewPose(TypedDict):
+    """Record ``ViewPose``: one aggregated view's camera."""
+
+    name: str
+    width: int  # pixels
+    height: int  # pixels
+    K: list[float]  # 9: row-major 3x3 intrinsics, pixels
+    world_from_camera: list[float]  # 16: row-major 4x4 pose, OpenCV axes, world metres
+
+
 @dataclass
 class ImageFrame:
     stamp_ns: int = 0
@@ -135,6 +145,7 @@ class QueryRequest:
     heatmap: bool = True
     threshold: float = math.nan  # NaN = the server's default rule
     negatives: list[str] = field(default_factory=list)
+    splats: int = 0  # 0 = no splat_margin; else the max_splats of the client's SplatsReply
 
 
 @dataclass
@@ -152,7 +163,52 @@ class QueryReply:
     heatmap: np.ndarray | None = None  # [H, W] float32 in [0, 1]
     mask: np.ndarray | None = None  # [H, W] uint8, 0 | 1
     image: np.ndarray | None = None  # [H, W, 3] uint8 RGB overlay
+    splat_margin: np.ndarray | None = None  # [M] float16 per browser splat; NaN = never observed
     seconds: float = 0.0
+
+
+@dataclass
+class SplatsRequest:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+    max_splats: int = 300000
+
+
+@dataclass
+class SplatsReply:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+    status: str = "ok"  # "ok" | "bad_request" | "busy" | "error"
+    message: str = ""
+    total: int = 0  # Gaussians in the prior map
+    centers: np.ndarray | None = None  # [M, 3] float32 world metres
+    covariances: np.ndarray | None = None  # [M, 6] float32 upper triangle, m^2
+    rgbs: np.ndarray | None = None  # [M, 3] uint8
+    opacities: np.ndarray | None = None  # [M] uint8, 255 = 1
+
+
+@dataclass
+class ViewsRequest:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+    start: int = 0
+
+
+@dataclass
+class ViewsReply:
+    stamp_ns: int = 0
+    seq: int = 0
+    frame_id: str = ""
+    request_id: str = ""
+    start: int = 0
+    total: int = 0
+    views: list[ViewPose] = field(default_factory=list)
 
 
 @dataclass
@@ -197,13 +253,20 @@ MESSAGE_CLASSES = (
     MapUpdated,
     QueryRequest,
     QueryReply,
+    SplatsRequest,
+    SplatsReply,
+    ViewsRequest,
+    ViewsReply,
     StatusRequest,
     StatusReply,
     DiagnosticStatus,
 )
 MESSAGES: dict[str, type] = {f"olsplat_msgs/{cls.__name__}": cls for cls in MESSAGE_CLASSES}
 # record name -> {kind: TypedDict class} (a record without a tag: {None: class})
-RECORDS: dict[str, dict[str | None, Any]] = {"Instance": {"3d": Instance3D, "2d": Instance2D}}
+RECORDS: dict[str, dict[str | None, Any]] = {
+    "Instance": {"3d": Instance3D, "2d": Instance2D},
+    "ViewPose": {None: ViewPose},
+}
 
 _ANNOTATIONS = {
     "str": "str",

@@ -1,6 +1,7 @@
 """The ground station's page on viser: the map as splats, the flight, queries, pictures, status.
 
-Thin: every figure comes from a source (``review.RunReview``) and every colour from ``splats``.
+Thin: every figure comes from a source (``review.RunReview`` for a run folder, ``link.LinkSource``
+for a running graph over the ground link) and every colour from ``splats``.
 One background thread polls the source once a second; a new map version re-colours the splats
 with the last query, so the page never needs a reload. viser serves its own web client from the
 Python wheel, so the page works without internet.
@@ -11,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -57,6 +59,7 @@ class GroundPage:
         self.shown_views = 0
         self.instance_buttons: list = []
         self.answer: WebAnswer | None = None
+        self.splats: Any = None  # viser's GaussianSplatHandle, once the source has the prior map
         self._build_gui(negatives)
         self._draw_map()
         self.stop = threading.Event()
@@ -79,23 +82,32 @@ class GroundPage:
             self.heatmap_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="heatmap", visible=False)
             self.mask_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="mask", visible=False)
         with gui.add_folder("Map"):
-            gui.add_markdown(self.source.splats.caption)
+            self.map_caption = gui.add_markdown("waiting for the prior map ...")
         self.ask_button.on_click(lambda _event: self._ask())
         # a view chosen with a query typed: its heatmap at once
         self.view_choice.on_update(lambda _event: self._ask() if self.query_text.value.strip() else None)
 
     def _draw_map(self) -> None:
+        """The prior map's splats, once the source has them (over a link: when they came)."""
         s = self.source.splats
-        # the whole map in view at start: from the south, as high as the map is wide (z up)
+        if s is None or self.splats is not None:
+            return
+        # the whole map in view: from the south, as high as the map is wide (z up)
         self.server.scene.set_up_direction("+z")
         if len(s.centers):
             low, high = np.percentile(s.centers, [2, 98], axis=0)
             centre, width = (low + high) / 2, float(np.max(high - low))
+            position = centre + np.array([0.0, -0.8 * width, 0.9 * width])
             self.server.initial_camera.look_at = centre
-            self.server.initial_camera.position = centre + np.array([0.0, -0.8 * width, 0.9 * width])
+            self.server.initial_camera.position = position
+            for client in self.server.get_clients().values():  # pages opened before the map came
+                with client.atomic():
+                    client.camera.position = position
+                    client.camera.look_at = centre
         self.splats = self.server.scene.add_gaussian_splats(
             "/map/splats", centers=s.centers, covariances=s.covariances, rgbs=s.rgbs, opacities=s.opacities
         )
+        self.map_caption.content = s.caption
 
     # -- updates ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -121,6 +133,7 @@ class GroundPage:
             self._draw_status()
             if not changed:
                 return
+            self._draw_map()
             self._draw_views()
             if self.last_query is not None:  # a new map version: the same question again
                 self._ask(*self.last_query)
@@ -177,8 +190,8 @@ class GroundPage:
                 return
             self.last_query = (answer.text, negatives)
             self.answer = answer
-            assert answer.margin is not None and answer.observed is not None
-            self.splats.rgbs = relevance_colours(answer.margin, answer.observed)
+            assert answer.margin is not None and self.splats is not None
+            self.splats.rgbs = relevance_colours(answer.margin)
             self.colour_bar.visible = True
             self._draw_instances(answer)
             shown = answer.heatmap_picture is not None

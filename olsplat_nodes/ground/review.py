@@ -20,7 +20,7 @@ from ..errors import OlsplatInputError
 from ..query.answer import QueryFeatures
 from ..query.localize import Instance3D, VoxelIndex, default_cluster_radius
 from ..scene import Camera
-from .splats import BrowserSplats, browser_splats
+from .splats import BrowserSplats, browser_splats, relevance_margin
 
 MAX_TEXT_CHARS = 200  # as the query server's max_text_chars
 MAX_NEGATIVES = 32  # as the query server's max_negatives
@@ -47,12 +47,32 @@ def split_negatives(text: str) -> list[str]:
     return [n.strip() for n in text.split(",") if n.strip()]
 
 
+def view_pictures(photo, heatmap, valid, mask, boxes, text: str, view: str, version: int):
+    """(heatmap picture, mask picture) as [H', W, 3] uint8 RGB: the pictures ``olsplat ground
+    query --out`` writes, for the page (photo [H, W, 3] RGB, heatmap [H, W] cosine, valid and
+    mask [H, W] bool, boxes (x0, y0, x1, y1) end exclusive)."""
+    from ..viz import query_pictures
+
+    caption = f'"{text}" on {Path(view).name}, map v{version}; mask: beats every negative'
+    heat, masked = query_pictures(photo, heatmap, valid, np.asarray(mask, bool), boxes, caption)
+    return np.ascontiguousarray(heat[..., ::-1]), np.ascontiguousarray(masked[..., ::-1])  # BGR -> RGB
+
+
 @dataclass
 class MapState:
     version: int  # 0: no map yet
     views_in_map: int  # views the newest map was refined from
     final: bool  # the refiner wrote its last map (the flight ended)
     observed: int  # Gaussians some view observed
+
+
+def map_row(state: MapState, where: str) -> tuple[str, str, str]:
+    """The status panel's map row; ``where`` says where the first map is awaited."""
+    if state.version == 0:
+        return ("map", "WARN", f"no map yet: waiting for the first refinement {where}")
+    ended = "final (the flight ended)" if state.final else "the flight goes on"
+    text = f"version {state.version}, {state.views_in_map} views, {state.observed:,} Gaussians observed; {ended}"
+    return ("map", "OK", text)
 
 
 @dataclass
@@ -63,8 +83,7 @@ class WebAnswer:
     message: str
     text: str = ""
     map_version: int = 0
-    margin: np.ndarray | None = None  # [M] per browser splat: cos(query) - max cos(negatives)
-    observed: np.ndarray | None = None  # [M] bool per browser splat
+    margin: np.ndarray | None = None  # [M] per browser splat: cos(query) - max cos(negatives); NaN: unobserved
     instances: list[Instance3D] = field(default_factory=list)  # world metres, largest first
     view: str = ""
     heatmap_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + heatmap + legend
@@ -132,7 +151,6 @@ class RunReview:
         """The query's relevance on the browser splats, its 3D instances and, with ``view``, the
         view's heatmap and mask pictures. Bad input and a missing map come back as a status."""
         from ..query.answer import CachedTexts, answer_query, encoder_for_map
-        from ..viz import query_pictures
 
         start = time.perf_counter()
         text = text.strip()
@@ -166,7 +184,7 @@ class RunReview:
         except OlsplatInputError as exc:
             return WebAnswer("bad_request", str(exc), text)
         embeddings = encoder.encode_text([text, *answer.negatives])
-        margin = self._margin(embeddings)
+        margin = relevance_margin(self.features, self.language_map.observed, self.splats.ids, embeddings)
         result = WebAnswer(
             "ok",
             f"{int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; "
@@ -174,45 +192,29 @@ class RunReview:
             text,
             self.state.version,
             margin,
-            self.language_map.observed[self.splats.ids],
             answer.instances,
         )
         if camera is not None and answer.heatmap is not None and answer.mask is not None and answer.alpha is not None:
             photo = next(v for v in self._views if v.camera.name == view).image()
-            caption = f'"{text}" on {Path(view).name}, map v{self.state.version}; mask: beats every negative'
             boxes = [r.box for r in answer.regions]
-            heat, masked = query_pictures(
-                photo, answer.heatmap, np.asarray(answer.alpha > 0.5), answer.mask, boxes, caption
-            )
             result.view = view
-            result.heatmap_picture = np.ascontiguousarray(heat[..., ::-1])  # BGR -> RGB
-            result.mask_picture = np.ascontiguousarray(masked[..., ::-1])
+            result.heatmap_picture, result.mask_picture = view_pictures(
+                photo,
+                answer.heatmap,
+                np.asarray(answer.alpha > 0.5),
+                answer.mask,
+                boxes,
+                text,
+                view,
+                self.state.version,
+            )
         result.seconds = time.perf_counter() - start
         return result
 
-    def _margin(self, embeddings: np.ndarray) -> np.ndarray:
-        """[M] cos(query) - max cos(negatives) of the browser splats (0 where never observed)."""
-        assert self.features is not None
-        # the [rows, Q] product first, then a gather of Q columns (a gather of the splats' D-wide
-        # rows first copies 150 MB for 300k splats at D = 128)
-        cos = self.features.table @ embeddings.T
-        if self.features.rows is None:
-            cos = cos[self.splats.ids]
-        else:  # a codebook map: the K centres scored, then gathered through the splats' codes
-            cos = np.append(cos, np.zeros((1, len(embeddings)), np.float32), 0)[self.features.rows[self.splats.ids]]
-        return (cos[:, 0] - cos[:, 1:].max(1)).astype(np.float32)
-
     def status_rows(self) -> list[tuple[str, str, str]]:
         """(what, level, text) rows of the status panel: OK / WARN / ERROR / STALE levels."""
-        s = self.state
-        if s.version == 0:
-            map_row = ("map", "WARN", f"no map yet: waiting for the first refinement in {self.run_dir / 'map'}")
-        else:
-            ended = "final (the flight ended)" if s.final else "the flight goes on"
-            text = f"version {s.version}, {s.views_in_map} views, {s.observed:,} Gaussians observed; {ended}"
-            map_row = ("map", "OK", text)
         return [
-            map_row,
+            map_row(self.state, f"in {self.run_dir / 'map'}"),
             ("views", "OK" if self._views else "WARN", f"{len(self._views)} aggregated"),
             ("nodes", "OK", f"reading the run folder {self.run_dir} (no node link: node health is not shown)"),
         ]

@@ -73,6 +73,62 @@ def browser_splats(gaussians: Gaussians, limit: int) -> BrowserSplats:
     )
 
 
+# (row, column) of the upper triangle of a 3x3 covariance, in the wire's order (xx, xy, xz, yy, yz, zz)
+UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+MAX_SPLATS = 500_000  # what a browser draws smoothly; a SplatsReply is then at most 20 MB
+
+
+def pack_splats(splats: BrowserSplats) -> dict[str, np.ndarray]:
+    """The splats as the wire carries them (``SplatsReply``): centres float32 [M, 3], the
+    covariances' upper triangles float32 [M, 6], colours uint8 [M, 3] and opacities uint8 [M]
+    (40 bytes a splat; a colour's or an opacity's 1/255 steps are below what a screen shows)."""
+    return {
+        "centers": np.ascontiguousarray(splats.centers, np.float32),
+        "covariances": np.ascontiguousarray(splats.covariances[:, UPPER[0], UPPER[1]], np.float32),
+        "rgbs": np.round(np.clip(splats.rgbs, 0.0, 1.0) * 255.0).astype(np.uint8),
+        "opacities": np.round(np.clip(splats.opacities[:, 0], 0.0, 1.0) * 255.0).astype(np.uint8),
+    }
+
+
+def unpack_splats(centers, covariances, rgbs, opacities, total: int) -> BrowserSplats:
+    """``pack_splats``'s arrays back as ``BrowserSplats`` (``ids``: 0..M-1, the wire's order)."""
+    m = len(centers)
+    for name, array, shape in [
+        ("covariances", covariances, (m, 6)),
+        ("rgbs", rgbs, (m, 3)),
+        ("opacities", opacities, (m,)),
+    ]:
+        if array is None or np.shape(array) != shape:
+            raise ValueError(f"{name}: shape {np.shape(array)}, expected {shape} for {m} centres")
+    full = np.zeros((m, 3, 3), np.float32)
+    full[:, UPPER[0], UPPER[1]] = covariances
+    full[:, UPPER[1], UPPER[0]] = covariances  # symmetric
+    return BrowserSplats(
+        np.arange(m, dtype=np.int64),
+        np.array(centers, np.float32),
+        full,
+        np.asarray(rgbs, np.float32) / 255.0,
+        (np.asarray(opacities, np.float32) / 255.0)[:, None],
+        int(total),
+    )
+
+
+def relevance_margin(features, observed: np.ndarray, ids: np.ndarray, embeddings: np.ndarray) -> np.ndarray:
+    """[M] float32 cos(query) - max cos(negatives) of the splats ``ids`` of the prior map, from a
+    map's ``query.QueryFeatures``, its ``observed`` [N] bool and the L2-normalised text
+    embeddings [1 + n, D] (the query first); NaN where no view observed the Gaussian."""
+    # the [rows, Q] product first, then a gather of Q columns (gathering the splats' D-wide rows
+    # first would copy 150 MB for 300k splats at D = 128)
+    cos = features.table @ np.asarray(embeddings, np.float32).T
+    if features.rows is None:  # a dense map: one row per Gaussian, zeros where unobserved
+        cos = cos[ids]
+    else:  # a codebook map: the K centres scored, then gathered through the splats' codes
+        cos = np.append(cos, np.zeros((1, cos.shape[1]), np.float32), 0)[features.rows[ids]]
+    margin = (cos[:, 0] - cos[:, 1:].max(1)).astype(np.float32)
+    margin[~np.asarray(observed, bool)[ids]] = np.nan
+    return margin
+
+
 # A perceptual ramp for relevance (low: dark blue, high: yellow), sampled at 5 stops.
 RAMP = np.array(
     [[0.05, 0.03, 0.35], [0.23, 0.32, 0.55], [0.13, 0.57, 0.55], [0.37, 0.79, 0.38], [0.99, 0.91, 0.14]], np.float32
@@ -88,12 +144,13 @@ def ramp(values: np.ndarray) -> np.ndarray:
     return RAMP[low] * (1.0 - frac) + RAMP[low + 1] * frac
 
 
-def relevance_colours(margin: np.ndarray, observed: np.ndarray, span: float = 0.2) -> np.ndarray:
+def relevance_colours(margin: np.ndarray, span: float = 0.2) -> np.ndarray:
     """[M, 3] colours of splats by their relevance margin [M] (the query's cosine minus the best
     negative's): -span and below at the bottom of the ramp, +span and above at the top, 0 (a tie
-    with the best negative) in the middle. Gaussians no view observed are grey."""
-    colours = ramp((np.asarray(margin, np.float32) + span) / (2 * span))
-    colours[~np.asarray(observed, bool)] = UNOBSERVED
+    with the best negative) in the middle. NaN (a Gaussian no view observed) is grey."""
+    margin = np.asarray(margin, np.float32)
+    colours = ramp((np.nan_to_num(margin) + span) / (2 * span))
+    colours[np.isnan(margin)] = UNOBSERVED
     return colours.astype(np.float32)
 
 

@@ -9,7 +9,16 @@ import time
 
 import numpy as np
 
-from olsplat_msgs import ImageFrame, Instance, Instance2D, Instance3D, QueryReply, QueryRequest, RegionFeatures
+from olsplat_msgs import (
+    ImageFrame,
+    Instance,
+    Instance2D,
+    Instance3D,
+    QueryReply,
+    QueryRequest,
+    RegionFeatures,
+    ViewPose,
+)
 
 from ..scene import Camera
 
@@ -164,3 +173,20 @@ def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray
         image=image,
         seconds=seconds,
     )
+
+
+def view_pose(camera: Camera) -> ViewPose:
+    """The ``ViewPose`` record of a view's camera (row-major K and pose)."""
+    return ViewPose(
+        name=camera.name,
+        width=int(camera.width),
+        height=int(camera.height),
+        K=[float(x) for x in camera.K.reshape(-1)],
+        world_from_camera=[float(x) for x in camera.world_from_camera.reshape(-1)],
+    )
+
+
+def camera_of_pose(record: ViewPose) -> Camera:
+    """The ``scene.Camera`` of a ``ViewPose`` record; ValueError when it is not a camera."""
+    K, pose = np.asarray(record["K"], np.float64), np.asarray(record["world_from_camera"], np.float64)
+    return Camera(record["name"], record["width"], record["height"], K, pose)

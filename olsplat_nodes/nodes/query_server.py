@@ -1,5 +1,8 @@
 """query_server: the ground station's endpoint. ``QueryRequest`` -> ``QueryReply``; ``StatusRequest``
--> ``StatusReply`` with every node's latest ``DiagnosticStatus``.
+-> ``StatusReply`` with every node's latest ``DiagnosticStatus``; for a browser ground station,
+``SplatsRequest`` -> ``SplatsReply`` (the prior map decimated to what a browser draws) and
+``ViewsRequest`` -> ``ViewsReply`` (the aggregated views' cameras), and a query's per-splat
+relevance when it asks for it (``QueryRequest.splats``).
 
 It loads the newest language map snapshot at start (late joiner: from ``MAP_DIR/latest.json``)
 and again whenever the refiner announces a newer version. Before any map exists a query gets
@@ -21,19 +24,31 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest
+from olsplat_msgs import (
+    MapUpdated,
+    QueryReply,
+    QueryRequest,
+    SplatsReply,
+    SplatsRequest,
+    StatusReply,
+    StatusRequest,
+    ViewsReply,
+    ViewsRequest,
+)
 
 from ..errors import OlsplatInputError
 from ..transport import CONTROL_MAX_BYTES, REQUEST_MAX_BYTES, DiagnosticsCollector, QueryServer, Subscriber, curve
 from .base import Node
-from .convert import reply_for
+from .convert import reply_for, view_pose
 
 if TYPE_CHECKING:  # imported at run time inside methods: the launcher imports node classes
     from ..aggregate import LanguageMap
+    from ..ground.splats import BrowserSplats
     from ..query.answer import QueryFeatures
     from ..query.localize import VoxelIndex
 
 log = logging.getLogger(__name__)
+VIEWS_PER_REPLY = 500  # ViewPose records per ViewsReply (~150 kB): a long flight comes in pages
 
 
 def is_public(endpoint: str) -> bool:
@@ -119,6 +134,10 @@ class QueryServerNode(Node):
         self.version = 0
         self.encoders: dict[str, Any] = {}  # encoder spec -> loaded encoder
         self.views: list = []  # aggregate.SavedView, re-read when the run's views folder grows
+        self.browser_splats: BrowserSplats | None = None  # the last SplatsRequest's decimation
+        self.browser_splats_max = 0  # ... and its max_splats
+        self.map_record: dict = {}  # latest.json's record of the loaded map (views, final)
+        self.map_observed = 0  # Gaussians the loaded map observed
         self.feature_images = FeatureImages(p.heatmap_cache_mb * 2**20)
         keys = curve.ServerKeys(p.server_secret, p.allow_dir) if p.server_secret else None
         self.server = self.own(
@@ -219,6 +238,7 @@ class QueryServerNode(Node):
             self.features.rows_in_order(self.voxel_index)
         language_map.features = np.zeros((0, self.features.table.shape[1]), np.float32)  # held once, above
         self.language_map, self.version = language_map, record["version"]
+        self.map_record, self.map_observed = record, int(np.count_nonzero(language_map.observed))
         log.info("map version %d loaded (%d views)", self.version, record["views"])
         if self.reservation is None and self.params.heatmap_cache_mb > 0:
             self._reserve_heatmap_cache(self.features.table.shape[1])
@@ -248,6 +268,10 @@ class QueryServerNode(Node):
             return StatusReply(
                 stamp_ns=time.time_ns(), request_id=message.request_id, nodes=self._statuses(), map_version=self.version
             )
+        if isinstance(message, SplatsRequest):
+            return self._splats(message)
+        if isinstance(message, ViewsRequest):
+            return self._view_poses(message)
         if not isinstance(message, QueryRequest):  # a well-formed message of another kind
             self.stats.count("bad_messages")
             return QueryReply(
@@ -261,8 +285,58 @@ class QueryServerNode(Node):
         self.stats.handled(0, reply.seconds)
         return reply
 
-    def _query(self, request: QueryRequest) -> QueryReply:
+    def _decimation(self, max_splats: int) -> BrowserSplats:
+        """The prior map decimated to ``max_splats`` (the last one kept: a ground station asks
+        for one size, then queries for it)."""
+        from ..ground.splats import browser_splats
+
+        if self.browser_splats is None or self.browser_splats_max != max_splats:
+            self.browser_splats = browser_splats(self.gaussians, max_splats)
+            self.browser_splats_max = max_splats
+        return self.browser_splats
+
+    def _splats(self, request: SplatsRequest) -> SplatsReply:
+        from ..ground.splats import MAX_SPLATS, pack_splats
+
+        if not 1 <= request.max_splats <= MAX_SPLATS:
+            return SplatsReply(
+                stamp_ns=time.time_ns(),
+                request_id=request.request_id,
+                status="bad_request",
+                message=f"max_splats must be 1..{MAX_SPLATS:,}, got {request.max_splats:,}",
+                total=len(self.gaussians),
+            )
+        splats = self._decimation(request.max_splats)
+        return SplatsReply(
+            stamp_ns=time.time_ns(),
+            frame_id="map",
+            request_id=request.request_id,
+            message=splats.caption,
+            total=len(self.gaussians),
+            **pack_splats(splats),  # type: ignore[arg-type]  # array fields only
+        )
+
+    def _current_views(self) -> list:
         from ..aggregate import load_views
+
+        if len(self.views) != sum(1 for _ in Path(self.params.views).glob("*.json")):
+            self.views = load_views(self.params.views)  # views are only ever added
+        return self.views
+
+    def _view_poses(self, request: ViewsRequest) -> ViewsReply:
+        views = self._current_views()
+        start = max(0, request.start)
+        return ViewsReply(
+            stamp_ns=time.time_ns(),
+            frame_id="map",
+            request_id=request.request_id,
+            start=start,
+            total=len(views),
+            views=[view_pose(v.camera) for v in views[start : start + VIEWS_PER_REPLY]],
+        )
+
+    def _query(self, request: QueryRequest) -> QueryReply:
+        from ..ground.splats import MAX_SPLATS, relevance_margin
         from ..query.answer import CachedTexts, answer_query, encoder_for_map
         from ..scene import select_view
 
@@ -288,12 +362,12 @@ class QueryServerNode(Node):
             )
         if any(len(n) > self.params.max_text_chars for n in request.negatives):
             return refuse("bad_request", f"a negative is longer than {self.params.max_text_chars} characters")
+        if not 0 <= request.splats <= MAX_SPLATS:
+            return refuse("bad_request", f"splats must be 0..{MAX_SPLATS:,}, got {request.splats:,}")
         if self.language_map is None:
             return refuse("no_map", "no map yet: no view has been aggregated and refined")
         try:
-            if len(self.views) != sum(1 for _ in Path(self.params.views).glob("*.json")):
-                self.views = load_views(self.params.views)  # views are only ever added
-            views = self.views
+            views = self._current_views()
             camera = select_view([v.camera for v in views], request.view) if request.view else None
             if camera is not None and request.heatmap:
                 reply_mb = camera.width * camera.height * 8 / 2**20
@@ -330,7 +404,13 @@ class QueryServerNode(Node):
         if not request.heatmap:
             answer.heatmap = answer.mask = None
             image = None
-        return reply_for(answer, request, self.version, image, 0.0)
+        reply = reply_for(answer, request, self.version, image, 0.0)
+        if request.splats:  # the page's colours: per splat of its decimation, in its order
+            splats = self._decimation(request.splats)
+            embeddings = encoder.encode_text([answer.text, *answer.negatives])
+            margin = relevance_margin(self.features, self.language_map.observed, splats.ids, embeddings)
+            reply.splat_margin = margin.astype(np.float16)
+        return reply
 
     def _values(self) -> dict:
         """This node's own status values: its counters and those of its three sockets;
@@ -343,6 +423,11 @@ class QueryServerNode(Node):
             heatmap_cache_hits=self.feature_images.hits,
             heatmap_cache_misses=self.feature_images.misses,
             heatmap_cache_mb=round(self.feature_images.bytes / 2**20, 1),
+            # the loaded map, for a ground station's status panel
+            map_version=self.version,
+            map_views=int(self.map_record.get("views", 0)),
+            map_observed=self.map_observed,
+            map_final=int(bool(self.map_record.get("final", False))),
         )
         values["bad_messages"] = (
             self.stats.counts["bad_messages"]

@@ -44,16 +44,22 @@ def add_parser(subparsers) -> None:
     web = commands.add_parser(
         "web",
         help="a browser page: the map in 3D, the flight, queries, heatmaps, status (viser)",
-        description="Serve the ground station's page. With --run DIR it reads a run folder on this "
-        "machine: a finished flight for a post-flight review, or one a graph is still writing.",
+        description="Serve the ground station's page. With --connect it asks a running graph over the "
+        "ground link (the query server's endpoint; CURVE with --client-key/--server-key): live during a "
+        "flight. With --run DIR it reads a run folder on this machine: a post-flight review.",
     )
-    web.add_argument(
-        "--run", dest="run_dir", type=Path, required=True, help="the run folder (the launch file's run_dir)"
-    )
+    source = web.add_mutually_exclusive_group(required=True)
+    source.add_argument("--connect", help="the drone's query server, e.g. tcp://DRONE:5600 (a live flight)")
+    source.add_argument("--run", dest="run_dir", type=Path, help="a run folder (the launch file's run_dir)")
     web.add_argument(
         "--map",
         type=Path,
-        help="the prior map PLY the run was made with (default: RUN/../flight/map/point_cloud.ply, the demo's)",
+        help="with --run: the prior map PLY the run was made with (default: RUN/../flight/map/point_cloud.ply)",
+    )
+    web.add_argument("--client-key", type=Path, help="with --connect: CURVE secret key file of this ground station")
+    web.add_argument("--server-key", type=Path, help="with --connect: CURVE public key file of the drone's server")
+    web.add_argument(
+        "--timeout", type=_positive_seconds, default=10.0, help="with --connect: seconds to wait for an answer (10)"
     )
     web.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     web.add_argument("--port", type=int, default=8080, help="TCP port of the page (default 8080)")
@@ -77,24 +83,53 @@ def run_web(args: argparse.Namespace) -> int:
     except ImportError:
         raise OlsplatInputError("the browser page needs viser: pip install 'olsplat[ground]'") from None
     from ..ground.page import GroundPage, serve
+    from ..ground.splats import MAX_SPLATS
+
+    if not 1 <= args.max_splats <= MAX_SPLATS:
+        raise OlsplatInputError(
+            f"--max-splats must be 1..{MAX_SPLATS:,} (what a browser draws smoothly), got {args.max_splats}"
+        )
+    if args.connect:
+        source, where = _link_source(args), args.connect
+    else:
+        source, where = _run_source(args), str(args.run_dir)
+    page = GroundPage(source, args.host, args.port, title=f"olsplat ground station - {where}", negatives=args.negatives)
+    print(f"ground station: http://{args.host}:{page.port} (of {where}); Ctrl-C stops", flush=True)
+    serve(page, args.seconds)
+    return 0
+
+
+def _run_source(args: argparse.Namespace):
+    from ..errors import OlsplatInputError
     from ..ground.review import RunReview
 
+    if args.client_key or args.server_key:
+        raise OlsplatInputError("--client-key and --server-key go with --connect, not --run")
     prior = args.map or args.run_dir / ".." / "flight" / "map" / "point_cloud.ply"
     if not args.run_dir.is_dir():
         raise OlsplatInputError(f"{args.run_dir}: no such run folder")
     if not prior.exists():
         raise OlsplatInputError(f"{prior}: prior map not found: give the PLY the run was made with (--map)")
-    if not 1 <= args.max_splats <= 500_000:
-        raise OlsplatInputError(
-            f"--max-splats must be 1..500,000 (what a browser draws smoothly), got {args.max_splats}"
-        )
-    source = RunReview(args.run_dir, prior, args.max_splats)
-    page = GroundPage(
-        source, args.host, args.port, title=f"olsplat ground station - {args.run_dir}", negatives=args.negatives
-    )
-    print(f"ground station: http://{args.host}:{page.port} ({source.splats.caption}); Ctrl-C stops", flush=True)
-    serve(page, args.seconds)
-    return 0
+    return RunReview(args.run_dir, prior, args.max_splats)
+
+
+def _link_source(args: argparse.Namespace):
+    import zmq
+
+    from ..errors import OlsplatInputError
+    from ..ground.link import LinkSource
+    from ..transport import QueryClient, curve
+
+    if args.map:
+        raise OlsplatInputError("--map goes with --run: over --connect the drone sends its prior map")
+    if bool(args.client_key) != bool(args.server_key):
+        raise OlsplatInputError("CURVE needs both --client-key and --server-key")
+    keys = curve.ClientKeys(args.client_key, args.server_key) if args.client_key else None
+    try:
+        client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
+    except zmq.ZMQError as exc:
+        raise OlsplatInputError(f"cannot connect to {args.connect}: {zmq.strerror(exc.errno or 0)}") from None
+    return LinkSource(client, args.max_splats)
 
 
 def run(args: argparse.Namespace) -> int:

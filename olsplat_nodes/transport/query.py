@@ -15,7 +15,18 @@ from typing import Any
 import msgpack
 import zmq
 
-from olsplat_msgs import DEFAULT_MAX_BYTES, QueryReply, QueryRequest, StatusRequest, WireError, decode, encode
+from olsplat_msgs import (
+    DEFAULT_MAX_BYTES,
+    QueryReply,
+    QueryRequest,
+    SplatsReply,
+    SplatsRequest,
+    StatusRequest,
+    ViewsRequest,
+    WireError,
+    decode,
+    encode,
+)
 
 from ._sockets import Closable, DropLog, attach, deadline_after, log, make_socket, remaining_ms
 from .curve import ClientKeys, ServerKeys
@@ -98,7 +109,7 @@ class QueryServer(Closable):
         keys: ServerKeys | None = None,
         *,
         max_bytes: int = DEFAULT_MAX_BYTES,
-        accept: tuple[type, ...] = (QueryRequest, StatusRequest),
+        accept: tuple[type, ...] = (QueryRequest, StatusRequest, SplatsRequest, ViewsRequest),
         hwm: int = 100,
         queries_per_s: float | None = None,
         burst: int = 10,
@@ -157,11 +168,14 @@ class QueryServer(Closable):
             names = " or ".join(cls.__name__ for cls in self.accept)
             self._bad(identity, f"expected {names}, got {type(msg).__name__}", getattr(msg, "request_id", ""))
             return None
-        if self.limiter is not None and isinstance(msg, QueryRequest) and not self.limiter.allow(_client_of(frames)):
+        # the costly requests (a query's work, a map of up to 20 MB) count against the rate limit
+        costly = isinstance(msg, (QueryRequest, SplatsRequest))
+        if self.limiter is not None and costly and not self.limiter.allow(_client_of(frames)):
             self.stats["busy"] += 1
             self._drop_log("a client over the query rate limit")
             message = f"over the rate limit of {self.limiter.rate:g} queries per second per client: retry later"
-            self.reply(identity, QueryReply(request_id=msg.request_id, status="busy", message=message))
+            refusal: type = SplatsReply if isinstance(msg, SplatsRequest) else QueryReply
+            self.reply(identity, refusal(request_id=getattr(msg, "request_id", ""), status="busy", message=message))
             return None
         self.stats["requests"] += 1
         return identity, msg

@@ -5,7 +5,17 @@ from __future__ import annotations
 import numpy as np
 
 from olsplat_nodes.ground.review import query_text_problem, split_negatives
-from olsplat_nodes.ground.splats import RAMP, UNOBSERVED, browser_splats, decimate, relevance_colours
+from olsplat_nodes.ground.splats import (
+    RAMP,
+    UNOBSERVED,
+    browser_splats,
+    decimate,
+    pack_splats,
+    relevance_colours,
+    relevance_margin,
+    unpack_splats,
+)
+from olsplat_nodes.query.answer import QueryFeatures
 from olsplat_nodes.scene import Gaussians
 from olsplat_nodes.scene.rotations import quat_to_rotmat
 
@@ -52,7 +62,7 @@ def test_splat_covariances_are_r_s_s_r():
 
 
 def test_relevance_colours_span_the_ramp_and_grey_the_unobserved():
-    colours = relevance_colours(np.array([-1.0, -0.2, 0.0, 0.2, 5.0, 0.1]), np.array([1, 1, 1, 1, 1, 0], bool))
+    colours = relevance_colours(np.array([-1.0, -0.2, 0.0, 0.2, 5.0, np.nan]))
     np.testing.assert_allclose(colours[0], RAMP[0])
     np.testing.assert_allclose(colours[1], RAMP[0])
     np.testing.assert_allclose(colours[2], RAMP[2])
@@ -69,3 +79,55 @@ def test_query_texts_the_page_refuses_with_a_sentence():
     assert "a negative" in query_text_problem("roof", ["road\x07"])
     assert "33 negatives" in query_text_problem("roof", [f"n{i}" for i in range(33)])
     assert split_negatives(" road, ,trees ,") == ["road", "trees"]
+
+
+def test_splats_packed_for_the_wire_come_back_within_a_colour_step():
+    s = browser_splats(random_gaussians(300, seed=5), 200)
+    wire = pack_splats(s)
+    assert {k: v.dtype.str for k, v in wire.items()} == {
+        "centers": "<f4",
+        "covariances": "<f4",
+        "rgbs": "|u1",
+        "opacities": "|u1",
+    }
+    assert sum(v.nbytes for v in wire.values()) == 40 * 200
+    back = unpack_splats(**wire, total=300)
+    np.testing.assert_array_equal(back.centers, s.centers)
+    np.testing.assert_array_equal(back.covariances, s.covariances)  # symmetric: the triangle holds it all
+    assert np.abs(back.rgbs - s.rgbs).max() <= 0.5 / 255 + 1e-7
+    assert np.abs(back.opacities - s.opacities).max() <= 0.5 / 255 + 1e-7
+    assert back.total == 300 and np.array_equal(back.ids, np.arange(200))
+    try:
+        unpack_splats(wire["centers"], wire["covariances"][:5], wire["rgbs"], wire["opacities"], 300)
+    except ValueError as exc:
+        assert "covariances" in str(exc)
+    else:
+        raise AssertionError("a short covariance array was accepted")
+
+
+def unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def test_relevance_margin_is_the_query_minus_the_best_negative_per_splat():
+    rng = np.random.default_rng(2)
+    n, d, k = 400, 16, 12
+    texts = unit(rng.normal(size=(4, d)))  # the query, then three negatives
+    observed = rng.random(n) < 0.7
+    ids = np.sort(rng.choice(n, 150, replace=False))
+    dense = unit(rng.normal(size=(n, d)))
+    dense[~observed] = 0.0
+    centres = unit(rng.normal(size=(k, d)))
+    codes = rng.integers(0, k, n).astype(np.int32)
+    codes[~observed] = -1
+    for features, feature_of in [
+        (QueryFeatures(dense), lambda g: dense[g]),
+        (QueryFeatures(centres, codes), lambda g: centres[codes[g]]),
+    ]:
+        margin = relevance_margin(features, observed, ids, texts)
+        for row, g in enumerate(ids):  # the definition, one splat at a time
+            if not observed[g]:
+                assert np.isnan(margin[row])
+                continue
+            cos = [float(np.dot(feature_of(g), t)) for t in texts]
+            assert abs(margin[row] - (cos[0] - max(cos[1:]))) < 1e-5

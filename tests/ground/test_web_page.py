@@ -1,12 +1,14 @@
 """``olsplat ground web`` in a real browser: Debian's headless Chromium, driven by playwright.
 
-The page is served by the real command (a subprocess) over a run folder the real graph wrote
-(the tiny replay). Screenshots go to build/test-artifacts/ground_web/ (kept after the run).
+The page is served by the real command (a subprocess): over a run folder the real graph wrote
+(the tiny replay; a post-flight review), and over the CURVE ground link of a live graph (the
+tiny replay while it flies). Screenshots go to build/test-artifacts/ground_web/ (kept).
 """
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -30,14 +32,13 @@ OLSPLAT = str(Path(sys.executable).parent / "olsplat")
 LABELS = ["red roof buildings", "blue roof buildings", "white roof buildings", "grey roof buildings", "road", "tree"]
 
 
-def serve_page(run_dir: Path, ply: Path, log: Path) -> tuple[subprocess.Popen, str]:
-    """The page's command (its output in ``log``) and its address, once it says it serves."""
+def serve_page(source: list[str], log: Path) -> tuple[subprocess.Popen, str]:
+    """``olsplat ground web`` with ``source`` (--run ... or --connect ...), its output in
+    ``log``, and its address, once it says it serves."""
     port = free_port()
     with log.open("w") as out:
         process = subprocess.Popen(
-            [OLSPLAT, "ground", "web", "--run", str(run_dir), "--map", str(ply), "--port", str(port)],
-            stdout=out,
-            stderr=subprocess.STDOUT,
+            [OLSPLAT, "ground", "web", *source, "--port", str(port)], stdout=out, stderr=subprocess.STDOUT
         )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and process.poll() is None:
@@ -86,7 +87,8 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
     from playwright.sync_api import sync_playwright
 
     scene, run_dir = finished_run
-    process, address = serve_page(run_dir, scene / "map" / "point_cloud.ply", run_dir.parent / "web.log")
+    ply = scene / "map" / "point_cloud.ply"
+    process, address = serve_page(["--run", str(run_dir), "--map", str(ply)], run_dir.parent / "web.log")
     try:
         with sync_playwright() as playwright:
             page = browser(playwright).new_page(viewport={"width": 1280, "height": 800})
@@ -133,9 +135,106 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
         process.wait(timeout=30)
 
 
-def test_the_page_follows_a_live_graph_without_a_reload(tiny, tmp_path):
-    """The page is open before the flight starts ("no map yet"), then shows each new map version
-    the graph writes, up to the final one, without being reloaded."""
+def wait_map_version(page, condition: str, timeout_ms: int) -> None:
+    page.wait_for_function(
+        f"() => Number(document.querySelector('#olsplat-status').dataset.mapVersion) {condition}", timeout=timeout_ms
+    )
+
+
+def test_the_page_follows_a_live_graph_over_the_curve_link_without_a_reload(tiny, tmp_path):
+    """The page is opened on the ground link before the drone's graph runs ("link lost -
+    retrying"), then, over CURVE, shows the prior map the drone sends, "no map yet", each new
+    map version up to the final one without a reload, the nodes' levels, and answers a query;
+    when the drone goes away it says so again."""
+    from playwright.sync_api import sync_playwright
+
+    from olsplat_nodes.aggregate import latest_map
+    from olsplat_nodes.transport import curve
+
+    scene, _ = tiny
+    _, server_secret = curve.generate(tmp_path / "server", "query_server")
+    ground_public, ground_secret = curve.generate(tmp_path / "ground", "ground")
+    (tmp_path / "allow").mkdir()
+    shutil.copy(ground_public, tmp_path / "allow")
+    port = free_port()
+    link = [
+        "--connect",
+        f"tcp://127.0.0.1:{port}",
+        "--client-key",
+        str(ground_secret),
+        "--server-key",
+        str(tmp_path / "server" / "query_server.key"),
+        "--timeout",
+        "3",
+    ]
+    process, address = serve_page(link, tmp_path / "web.log")
+    run_dir = tmp_path / "run"
+    supervisor = Supervisor(
+        launch_tiny(
+            scene,
+            run_dir,
+            port,
+            "refiner.period_s=1",
+            f"query_server.server_secret={server_secret}",
+            f"query_server.allow_dir={tmp_path / 'allow'}",
+            "launch.exit_when=[]",  # the drone stays up after the final map, until stopped
+        )
+    )
+    seen: list[int] = []
+    graph = threading.Thread(target=supervisor.run)
+    try:
+        with sync_playwright() as playwright:
+            page = browser(playwright).new_page(viewport={"width": 1280, "height": 800})
+            page.goto(address)
+            page.wait_for_selector("#olsplat-status", timeout=60_000)
+            page.get_by_text("link lost - retrying").first.wait_for(timeout=30_000)
+            seen.append(map_version(page))
+            graph.start()
+            page.get_by_text(re.compile(r"Gaussians.* drawn")).first.wait_for(timeout=120_000)  # the prior map came
+            final = None
+            while final is None or not final["final"] or map_version(page) < final["version"]:
+                assert graph.is_alive() and len(seen) < 3000, "the flight did not reach its final map in 10 min"
+                seen.append(map_version(page))
+                final = latest_map(run_dir / "map")
+                time.sleep(0.2)
+            page.get_by_text("final (the flight ended)").wait_for(timeout=10_000)
+            seen.append(map_version(page))
+            for node in ("accumulator", "refiner", "region_encoder"):
+                assert page.locator("#olsplat-status td", has_text=node).count() >= 1, f"{node} not in the status"
+            assert page.locator("#olsplat-status", has_text="CURVE").count() == 1
+            time.sleep(3)
+            before = canvas_pixels(page, "4_live_final")
+            assert (before.min(axis=2) < 200).mean() > 0.2, "no splats in the 3D view"
+
+            field(page, "negatives").fill(", ".join(LABELS[1:]))
+            field(page, "query").fill(LABELS[0])
+            page.get_by_role("button", name="Ask").click()
+            page.get_by_text("Gaussians pick it").wait_for(timeout=60_000)
+            page.get_by_role("button", name=f"#0 {LABELS[0]}").wait_for(timeout=30_000)
+            time.sleep(3)
+            after = canvas_pixels(page, "5_live_query")
+            changed = np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40
+            assert changed.mean() > 0.05, f"the splats' colours did not change ({changed.mean():.3f} of the view)"
+
+            supervisor.request_stop()  # the drone goes away: the page says so, and keeps its map
+            graph.join(120)
+            page.get_by_text("link lost - retrying").first.wait_for(timeout=30_000)
+            page.get_by_text("last heard").first.wait_for(timeout=10_000)
+            canvas_pixels(page, "6_link_lost")
+    finally:
+        supervisor.request_stop()
+        if graph.is_alive():
+            graph.join(120)
+        process.terminate()
+        process.wait(timeout=30)
+    versions = sorted(set(seen))
+    assert seen[0] == 0 and seen == sorted(seen), seen  # never goes back
+    assert versions[-1] == final["version"] and len(versions) >= 2, versions
+
+
+def test_the_page_follows_a_run_folder_being_written_without_a_reload(tiny, tmp_path):
+    """On the machine that holds the run folder, the page opened before the flight ("no map
+    yet") shows each new map version the graph writes, up to the final one."""
     from playwright.sync_api import sync_playwright
 
     from olsplat_nodes.aggregate import latest_map
@@ -143,7 +242,8 @@ def test_the_page_follows_a_live_graph_without_a_reload(tiny, tmp_path):
     scene, _ = tiny
     run_dir = tmp_path / "run"
     run_dir.mkdir()
-    process, address = serve_page(run_dir, scene / "map" / "point_cloud.ply", tmp_path / "web.log")
+    ply = scene / "map" / "point_cloud.ply"
+    process, address = serve_page(["--run", str(run_dir), "--map", str(ply)], tmp_path / "web.log")
     seen: list[int] = []
     try:
         with sync_playwright() as playwright:
@@ -161,13 +261,9 @@ def test_the_page_follows_a_live_graph_without_a_reload(tiny, tmp_path):
                 time.sleep(0.2)
             final = latest_map(run_dir / "map")
             assert final is not None and final["final"]
-            page.wait_for_function(
-                f"() => Number(document.querySelector('#olsplat-status').dataset.mapVersion) === {final['version']}",
-                timeout=30_000,
-            )
+            wait_map_version(page, f"=== {final['version']}", 30_000)
             page.get_by_text("final (the flight ended)").wait_for(timeout=10_000)
             seen.append(map_version(page))
-            canvas_pixels(page, "4_live_final")
     finally:
         process.terminate()
         process.wait(timeout=30)

@@ -21,7 +21,12 @@ from olsplat_msgs import (
     QueryRequest,
     RegionFeatures,
     StatusReply,
+    SplatsReply,
+    SplatsRequest,
     StatusRequest,
+    ViewPose,
+    ViewsReply,
+    ViewsRequest,
 )
 
 
@@ -123,9 +128,45 @@ def sample_messages() -> list[tuple[str, object]]:
                 heatmap=rng.random((6, 8), dtype=np.float32),
                 mask=(rng.random((6, 8)) > 0.5).astype(np.uint8),
                 image=rng.integers(0, 256, (6, 8, 3), dtype=np.uint8),
+                splat_margin=np.array([0.25, -0.5, np.nan], np.float16),
                 seconds=0.125,
             ),
         ),
+        ("query-splats", QueryRequest(request_id="r3", text="roof", splats=300_000)),
+        ("splats-request", SplatsRequest(request_id="p1", max_splats=5)),
+        (
+            "splats-reply",
+            SplatsReply(
+                request_id="p1",
+                message="3 of 9 Gaussians drawn",
+                total=9,
+                centers=rng.normal(size=(3, 3)).astype(np.float32),
+                covariances=rng.random((3, 6), dtype=np.float32),
+                rgbs=rng.integers(0, 256, (3, 3), dtype=np.uint8),
+                opacities=np.array([0, 128, 255], np.uint8),
+            ),
+        ),
+        ("splats-refused", SplatsReply(request_id="p2", status="bad_request", message="max_splats must be 1..500,000")),
+        ("views-request", ViewsRequest(request_id="v1", start=500)),
+        (
+            "views-reply",
+            ViewsReply(
+                request_id="v1",
+                start=500,
+                total=502,
+                views=[
+                    ViewPose(
+                        name="frame_0500.jpg",
+                        width=640,
+                        height=480,
+                        K=[500.0, 0, 320, 0, 500, 240, 0, 0, 1],
+                        world_from_camera=[float(x) for x in np.eye(4).reshape(-1)],
+                    ),
+                    ViewPose(name="ü", width=1, height=1, K=[1.0] * 9, world_from_camera=[0.0] * 16),
+                ],
+            ),
+        ),
+        ("views-none", ViewsReply(request_id="v2", start=7, total=3)),
         ("reply-none-arrays", QueryReply(request_id="r2", status="no_map", message="no snapshot yet")),
         (
             "reply-empty-arrays",
@@ -177,7 +218,7 @@ def assert_same(a, b) -> None:
                 x.shape,
                 y.shape,
             )
-            assert np.array_equal(x, y), f.name
+            assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), f.name  # bit-exact incl. NaN
         elif isinstance(x, float) and math.isnan(x):
             assert isinstance(y, float) and math.isnan(y), f.name
         else:

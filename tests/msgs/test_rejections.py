@@ -123,7 +123,7 @@ CASES = [
         "olsplat_msgs/Teleport",
     ),
     ("foreign-schema", _with_header(STATUS, _set("schema", "sensor_msgs/Image")), UnknownSchema, "sensor_msgs/Image"),
-    ("version-2", _with_header(STATUS, _set("version", 2)), UnsupportedVersion, "version 2"),
+    ("version-3", _with_header(STATUS, _set("version", 3)), UnsupportedVersion, "version 3"),
     ("version-0", _with_header(STATUS, _set("version", 0)), UnsupportedVersion, "version 0"),
     ("version-str", _with_header(STATUS, _set("version", "1")), MalformedMessage, "'version' must be an int"),
     ("version-missing", _with_header(STATUS, _delete("version")), MalformedMessage, "'version' must be an int"),
@@ -311,12 +311,12 @@ CASES = [
         MalformedMessage,
         "QueryReply.instances[0].n_gaussians: 18446744073709551615 outside the signed 64-bit range",
     ),
-    ("arrays-not-list", _with_header(REPLY, _set("arrays", {})), MalformedMessage, "'arrays' must list 3 entries"),
+    ("arrays-not-list", _with_header(REPLY, _set("arrays", {})), MalformedMessage, "'arrays' must list 4 entries"),
     (
         "arrays-too-few",
         _with_header(REPLY, lambda h: h["arrays"].pop()),
         MalformedMessage,
-        "'arrays' must list 3 entries",
+        "'arrays' must list 4 entries",
     ),
     (
         "array-entry-not-map",
@@ -334,7 +334,7 @@ CASES = [
         "array-order-swapped",
         _with_header(REPLY, lambda h: h["arrays"].reverse()),
         MalformedMessage,
-        "QueryReply.heatmap: array entry named 'image'",
+        "QueryReply.heatmap: array entry named 'splat_margin'",
     ),
     (
         "dtype-unknown",
@@ -391,8 +391,13 @@ CASES = [
         MalformedMessage,
         "QueryReply.mask: shape must be a list",
     ),
-    ("buffer-short", [*REPLY[:3], REPLY[3][:-1], REPLY[4]], MalformedMessage, "QueryReply.mask: frame has 3 bytes"),
-    ("buffer-long", [*REPLY[:3], REPLY[3] + b"\x00", REPLY[4]], MalformedMessage, "QueryReply.mask: frame has 5 bytes"),
+    ("buffer-short", [*REPLY[:3], REPLY[3][:-1], *REPLY[4:]], MalformedMessage, "QueryReply.mask: frame has 3 bytes"),
+    (
+        "buffer-long",
+        [*REPLY[:3], REPLY[3] + b"\x00", *REPLY[4:]],
+        MalformedMessage,
+        "QueryReply.mask: frame has 5 bytes",
+    ),
     (
         "buffer-huge-shape",
         _with_header(REPLY, _set("arrays.1.shape", [2**40, 2**40])),

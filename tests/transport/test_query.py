@@ -119,7 +119,11 @@ def test_server_answers_bad_request_to_bad_input_and_keeps_serving(ctx):
             ([b"", b"query", b"\xc1 garbage"], "", "MalformedMessage"),
             ([b"", *good[:1]], "", "at least 2 frames"),
             ([b"", *wrong_version], "ok1", "UnsupportedVersion"),  # id salvaged from the readable header
-            ([b"", *encode(EndOfStream(), "query")], "", "expected QueryRequest or StatusRequest, got EndOfStream"),
+            (
+                [b"", *encode(EndOfStream(), "query")],
+                "",
+                "expected QueryRequest or StatusRequest or SplatsRequest or ViewsRequest, got EndOfStream",
+            ),
             ([b"", b"query", b"\x00" * 3000, b"\x00" * 3000], "", "MessageTooLarge"),
             ([*good], "", "empty delimiter"),  # a DEALER that forgot the delimiter
         ]
@@ -175,7 +179,7 @@ def test_client_skips_garbage_and_stale_replies(ctx):
         router.send_multipart([identity, b"no delimiter"])
         router.send_multipart([identity, b"", *good[:1]])  # truncated
         router.send_multipart(
-            [identity, b"", good[0], msgpack.packb({**msgpack.unpackb(good[1]), "version": 2}), *good[2:]]
+            [identity, b"", good[0], msgpack.packb({**msgpack.unpackb(good[1]), "version": 3}), *good[2:]]
         )
         router.send_multipart([identity, b"", *encode(QueryReply(request_id="old"), "query")])
         router.send_multipart([identity, b"", *good])
