@@ -45,7 +45,8 @@ def node_row(node: dict) -> tuple[str, str, str]:
 
 class LinkSource:
     """The page's source over the ground link. ``client`` is a ``transport.QueryClient`` (its
-    timeout bounds every exchange); ``max_splats`` the browser decimation asked for."""
+    ``ask`` gives a reply or None after its timeout; the sockets stay in the transport layer);
+    ``max_splats`` the browser decimation asked for."""
 
     def __init__(self, client, max_splats: int):
         self.client = client
@@ -61,16 +62,19 @@ class LinkSource:
     def _request(self, message, expected: type):
         """The reply to ``message`` if it is an ``expected``; None (and ``link_problem`` set)
         when the link is silent or the server answers something else."""
-        from ..transport import NoReply
-
         message.request_id = uuid.uuid4().hex[:12]
-        try:
-            reply = self.client.request(message)
-        except NoReply:
+        unreadable = self.client.stats["bad_replies"]
+        reply = self.client.ask(message)
+        if reply is None:
             self.link_problem = (
                 f"link lost - retrying: {self.endpoint} did not answer within {self.client.timeout_s:g} s"
                 + (" (are the CURVE keys the right pair?)" if self.secure else "")
             )
+            if self.client.stats["bad_replies"] > unreadable:  # it answered, in a form we cannot read
+                self.link_problem = (
+                    f"{self.endpoint} answers in a form this ground station cannot read "
+                    "(another olsplat version?): see this process's log - retrying"
+                )
             return None
         if not isinstance(reply, expected):  # an older server, or a refusal without our message
             detail = getattr(reply, "message", "")

@@ -284,6 +284,14 @@ class QueryClient(Closable):
                 continue
             return msg
 
+    def ask(self, msg: Any) -> Any | None:
+        """``request(msg)``, or None when no reply came in time (a caller that shows a silent
+        link as a state rather than handling an exception)."""
+        try:
+            return self.request(msg)
+        except NoReply:
+            return None
+
     def request(self, msg: Any) -> Any:
         """Send ``msg`` (a QueryRequest or StatusRequest), return the reply message."""
         if hasattr(msg, "request_id") and not msg.request_id:

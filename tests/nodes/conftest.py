@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import zmq
 
-from olsplat_msgs import DEFAULT_MAX_BYTES, DiagnosticStatus, ImageFrame, WireError, decode, encode
+from olsplat_msgs import DEFAULT_MAX_BYTES, VERSION, DiagnosticStatus, ImageFrame, WireError, decode, encode
 from olsplat_nodes.launcher import Supervisor
 from tests.helpers import free_port, wait_for
 
@@ -310,7 +310,7 @@ def bad_variants(good: list[bytes]) -> dict[str, list[bytes]]:
         "not msgpack": [topic, b"\xc1\xc1\xc1", *arrays],
         "truncated header": [topic, header[: len(header) // 2], *arrays],
         "flipped header bytes": [topic, bytes(flipped), *arrays],
-        "wrong version": [topic, _repack(header, version=2), *arrays],
+        "wrong version": [topic, _repack(header, version=VERSION + 1), *arrays],
         "unknown schema": [topic, _repack(header, schema="olsplat_msgs/NoSuchMessage"), *arrays],
         "single frame": [topic],
         "extra frame": [topic, header, *arrays, b"surplus"],

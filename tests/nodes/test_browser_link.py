@@ -127,3 +127,39 @@ def test_a_silent_link_is_a_state_the_page_shows_not_an_error(ctx, sockdir):
         source.splats = object()  # as if the map had come before the link went silent
         answer = source.ask("road", [], "")
         assert answer.status == "timeout" and "link lost" in answer.message
+
+
+def test_a_drone_speaking_another_wire_version_is_named_as_such(ctx, sockdir):
+    """A server of another schema version answers, but in a form this client refuses: the page
+    says so instead of calling the link lost."""
+    import threading
+
+    import msgpack
+    import zmq
+
+    from olsplat_msgs import StatusReply, encode
+    from olsplat_nodes.ground.link import LinkSource
+
+    endpoint = f"ipc://{sockdir}/other.sock"
+    router = ctx.socket(zmq.ROUTER)
+    router.linger = 0
+    router.bind(endpoint)
+
+    def other_version_server():
+        if router.poll(5000):
+            identity, _empty, *_request = router.recv_multipart()
+            topic, header, *arrays = encode(StatusReply(request_id="x"), "query")
+            later = msgpack.packb({**msgpack.unpackb(header), "version": 99})
+            router.send_multipart([identity, b"", topic, later, *arrays])
+
+    thread = threading.Thread(target=other_version_server, daemon=True)
+    thread.start()
+    try:
+        with QueryClient(ctx, endpoint, timeout_s=1.0) as client:
+            source = LinkSource(client, 1000)
+            assert source.refresh() is False
+            level, text = {w: (lv, t) for w, lv, t in source.status_rows()}["link"]
+            assert level == "ERROR" and "cannot read" in text and "another olsplat version" in text
+    finally:
+        thread.join(5)
+        router.close()
