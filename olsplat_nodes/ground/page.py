@@ -56,6 +56,7 @@ class GroundPage:
         )
         self.server.gui.set_panel_label(title)
         self.last_query: tuple[str, list[str]] | None = None
+        self.coloured: tuple | None = None  # (text, negatives, map version) the splats show
         self.shown_views = 0
         self.instance_buttons: list = []
         self.answer: WebAnswer | None = None
@@ -190,15 +191,18 @@ class GroundPage:
                 return
             self.last_query = (answer.text, negatives)
             self.answer = answer
-            assert answer.margin is not None and self.splats is not None
-            self.splats.rgbs = relevance_colours(answer.margin)
-            self.colour_bar.visible = True
-            self._draw_instances(answer)
             shown = answer.heatmap_picture is not None
-            if shown:
+            if shown:  # the pictures first: the one thing that changes when only the view does
                 self.heatmap_image.image = answer.heatmap_picture
                 self.mask_image.image = answer.mask_picture
             self.heatmap_image.visible = self.mask_image.visible = shown
+            question = (answer.text, tuple(negatives), answer.map_version)
+            if question != self.coloured:  # else a view chosen for the same question: colours stand
+                assert answer.margin is not None and self.splats is not None
+                self.splats.rgbs = relevance_colours(answer.margin)  # ~3.6 MB to each browser
+                self.colour_bar.visible = True
+                self._draw_instances(answer)
+                self.coloured = question
 
     def _draw_instances(self, answer: WebAnswer) -> None:
         for handle in self.instance_buttons:
