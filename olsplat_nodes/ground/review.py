@@ -98,7 +98,7 @@ class RunReview:
         from ..query.heatmap import FeatureImages
         from ..scene import read_ply
 
-        self.run_dir = Path(run_dir)
+        self.run_dir, self.prior_map = Path(run_dir), Path(prior_map)
         if not self.run_dir.is_dir():
             raise OlsplatInputError(f"{self.run_dir}: no such run folder")
         self.gaussians = read_ply(prior_map)

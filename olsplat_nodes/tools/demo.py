@@ -223,11 +223,8 @@ def run(args: argparse.Namespace) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     write_summary_md(out / "summary.md", summary)
     print(f"summary -> {out / 'summary.json'}, {out / 'summary.md'}; pictures -> {pictures}/")
-    negatives = ", ".join(texts)  # the page drops the query's own text from its negatives
-    print(
-        f"look at the map in a browser (http://127.0.0.1:8080):\n"
-        f'  .venv/bin/olsplat ground web --run {run_dir} --negatives "{negatives}"'
-    )
+    # the page's negatives are then the flight's labels (queries.json beside the map's folder)
+    print(f"look at the map in a browser (http://127.0.0.1:8080):\n  .venv/bin/olsplat ground web --run {run_dir}")
     return 0
 
 

@@ -68,8 +68,9 @@ def add_parser(subparsers) -> None:
     )
     web.add_argument(
         "--negatives",
-        default="object, things, stuff, texture",
-        help="the page's first negatives, comma-separated (default: the query server's; editable on the page)",
+        help="the page's first negatives, comma-separated, editable on the page (default with --run: the "
+        "flight's labels when its queries.json lies beside the map's folder, as the demo's; else the query "
+        "server's: object, things, stuff, texture)",
     )
     web.add_argument("--seconds", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     web.set_defaults(run=run_web)
@@ -89,11 +90,14 @@ def run_web(args: argparse.Namespace) -> int:
         raise OlsplatInputError(
             f"--max-splats must be 1..{MAX_SPLATS:,} (what a browser draws smoothly), got {args.max_splats}"
         )
+    negatives = args.negatives
     if args.connect:
         source, where = _link_source(args), args.connect
     else:
         source, where = _run_source(args), str(args.run_dir)
-    page = GroundPage(source, args.host, args.port, title=f"olsplat ground station - {where}", negatives=args.negatives)
+        negatives = negatives or _mission_negatives(source.prior_map)
+    negatives = negatives or "object, things, stuff, texture"
+    page = GroundPage(source, args.host, args.port, title=f"olsplat ground station - {where}", negatives=negatives)
     print(f"ground station: http://{args.host}:{page.port} (of {where}); Ctrl-C stops", flush=True)
     serve(page, args.seconds)
     return 0
@@ -111,6 +115,23 @@ def _run_source(args: argparse.Namespace):
     if not prior.exists():
         raise OlsplatInputError(f"{prior}: prior map not found: give the PLY the run was made with (--map)")
     return RunReview(args.run_dir, prior, args.max_splats)
+
+
+def _mission_negatives(prior_map: Path) -> str | None:
+    """The flight's label texts, comma-separated, when FLIGHT/queries.json lies beside the prior
+    map's folder (FLIGHT/map/point_cloud.ply, a simulated flight's layout): a query must beat
+    the other things the mission looks for, a sharper test than "object, things"."""
+    from ..errors import OlsplatInputError
+    from ..evaluate.scene_eval import label_texts, load_queries
+
+    flight = Path(prior_map).resolve().parent.parent
+    if not (flight / "queries.json").is_file():
+        return None
+    try:
+        return ", ".join(label_texts(*load_queries(flight)))
+    except OlsplatInputError as exc:
+        print(f"note: the page's negatives are the query server's: {exc}", file=sys.stderr)
+        return None
 
 
 def _link_source(args: argparse.Namespace):

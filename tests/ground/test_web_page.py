@@ -86,6 +86,8 @@ def finished_run(tiny, tmp_path_factory):
 def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finished_run):
     from playwright.sync_api import sync_playwright
 
+    from olsplat_nodes.evaluate.scene_eval import label_texts, load_queries
+
     scene, run_dir = finished_run
     ply = scene / "map" / "point_cloud.ply"
     process, address = serve_page(["--run", str(run_dir), "--map", str(ply)], run_dir.parent / "web.log")
@@ -103,6 +105,8 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
             # splats drawn: most of the view is the map's colours, not viser's white background
             assert (before.min(axis=2) < 200).mean() > 0.2, "no splats in the 3D view"
 
+            # the first negatives: the flight's labels (its queries.json lies beside the map's folder)
+            assert field(page, "negatives").input_value() == ", ".join(label_texts(*load_queries(scene)))
             field(page, "negatives").fill(", ".join(LABELS[1:]))
             field(page, "query").fill(LABELS[0])
             page.get_by_role("button", name="Ask").click()
