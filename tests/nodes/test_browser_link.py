@@ -163,3 +163,29 @@ def test_a_drone_speaking_another_wire_version_is_named_as_such(ctx, sockdir):
     finally:
         thread.join(5)
         router.close()
+
+
+def test_a_nodes_error_reaches_the_status_panel_with_its_message(ctx, sockdir):
+    """The status panel's rows of nodes as the query server reports them (a field launch whose
+    camera is missing: the ingest's ERROR and its message)."""
+    from olsplat_nodes.ground.link import LinkSource, node_row
+
+    ingest = {
+        "node": "ingest",
+        "level": 2,
+        "message": "camera /dev/video0: no such device",
+        "values": {"rate_hz": 0.0, "latency_ms": 0.0, "dropped": 1, "gaps": 2},
+        "age_s": 0.4,
+    }
+    name, level, text = node_row(ingest)
+    assert (name, level) == ("ingest", "ERROR")
+    assert text.startswith("camera /dev/video0: no such device;") and "drops 3" in text
+    assert node_row({**ingest, "level": 3})[1] == "STALE" and node_row({**ingest, "level": 1})[1] == "WARN"
+
+    # the link goes silent after that status: the last rows heard stay, marked STALE
+    with QueryClient(ctx, f"ipc://{sockdir}/gone.sock", timeout_s=0.3) as client:
+        source = LinkSource(client, 100)
+        source.nodes = [ingest]
+        source.refresh()
+        rows = {what: (level, text) for what, level, text in source.status_rows()}
+    assert rows["ingest"][0] == "STALE" and rows["ingest"][1].startswith("last heard: camera /dev/video0")
