@@ -49,12 +49,25 @@ def time_queries(
 ) -> dict[str, list[float]]:
     """Round-trip seconds per kind (``QUERY_KINDS``) of ``relevance`` queries without a view and
     ``heatmaps`` queries spread over the first ``heatmap_views`` views of the run, each text
-    one of the scene's labels with the others as negatives. Raises RuntimeError on a refusal."""
+    one of the scene's labels with the others as negatives. Raises RuntimeError on a refusal.
+    Waits first (up to 60 s) until the query server has loaded the run's newest map: the
+    refiner writes it before the server hears of it (announcement, or its 2 s look at
+    ``latest.json``), and a query in between is answered ``no_map`` or from an older version."""
     from olsplat_msgs import QueryRequest
 
+    from ..aggregate.snapshot import latest_map
     from ..aggregate.views import load_views
     from ..evaluate.scene_eval import label_texts, load_queries
 
+    newest = latest_map(run_dir / "map")
+    deadline = time.monotonic() + 60.0
+    while newest is not None:
+        status = sample_status(client, {})
+        if status is not None and status.map_version >= newest["version"]:
+            break
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the query server did not load map version {newest['version']} within 60 s")
+        time.sleep(0.2)
     labels, queries = load_queries(scene)
     texts = label_texts(labels, queries)
     views = [v.camera.name for v in load_views(run_dir / "views")][:heatmap_views]
