@@ -28,7 +28,7 @@ from olsplat_msgs import (
 
 from ..query.localize import Instance3D
 from ..scene import Camera
-from .review import DEFAULT_NEGATIVES, MapState, WebAnswer, query_text_problem, view_pictures
+from .review import MapState, WebAnswer, map_row, prepared_query, view_pictures
 from .splats import BrowserSplats, unpack_splats
 
 LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
@@ -130,9 +130,7 @@ class LinkSource:
         """The drone's answer as the page shows it; bad input, no map, a silent link and a
         refusal come back as a status with a sentence."""
         start = time.perf_counter()
-        text = text.strip()
-        negatives = [n for n in negatives if n != text] or list(DEFAULT_NEGATIVES)
-        problem = query_text_problem(text, negatives)
+        text, negatives, problem = prepared_query(text, negatives)
         if problem:
             return WebAnswer("bad_request", problem, text)
         if self.splats is None:
@@ -172,23 +170,17 @@ class LinkSource:
     def status_rows(self) -> list[tuple[str, str, str]]:
         """(what, level, text) rows: the link, the map, the views, then every node as the query
         server reports it (the last heard, shown STALE, while the link is lost)."""
-        s = self.state
         security = "CURVE" if self.secure else "no encryption"
         link = (
             ("link", "ERROR", self.link_problem)
             if self.link_problem
             else ("link", "OK", f"{self.endpoint} ({security})")
         )
-        if s.version == 0:
-            map_row = ("map", "WARN", "no map yet: waiting for the first refinement on the drone")
-        else:
-            ended = "final (the flight ended)" if s.final else "the flight goes on"
-            map_row = (
-                "map",
-                "OK",
-                f"version {s.version}, {s.views_in_map} views, {s.observed:,} Gaussians observed; {ended}",
-            )
-        rows = [link, map_row, ("views", "OK" if self._cameras else "WARN", f"{len(self._cameras)} aggregated")]
+        rows = [
+            link,
+            map_row(self.state, "on the drone"),
+            ("views", "OK" if self._cameras else "WARN", f"{len(self._cameras)} aggregated"),
+        ]
         for node in self.nodes:
             name, level, text = node_row(node)
             rows.append((name, "STALE", f"last heard: {text}") if self.link_problem else (name, level, text))

@@ -42,6 +42,14 @@ def query_text_problem(text: str, negatives: list[str]) -> str | None:
     return None
 
 
+def prepared_query(text: str, negatives: list[str]) -> tuple[str, list[str], str | None]:
+    """(text stripped, negatives without the text itself (the query server's four when none is
+    left), the reason the page cannot ask it or None): what both page sources ask."""
+    text = text.strip()
+    negatives = [n for n in negatives if n != text] or list(DEFAULT_NEGATIVES)
+    return text, negatives, query_text_problem(text, negatives)
+
+
 def split_negatives(text: str) -> list[str]:
     """The negatives box's comma-separated texts, empty ones dropped."""
     return [n.strip() for n in text.split(",") if n.strip()]
@@ -153,9 +161,7 @@ class RunReview:
         from ..query.answer import CachedTexts, answer_query, encoder_for_map
 
         start = time.perf_counter()
-        text = text.strip()
-        negatives = [n for n in negatives if n != text] or list(DEFAULT_NEGATIVES)
-        problem = query_text_problem(text, negatives)
+        text, negatives, problem = prepared_query(text, negatives)
         if problem:
             return WebAnswer("bad_request", problem, text)
         if self.language_map is None or self.features is None:

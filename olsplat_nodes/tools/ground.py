@@ -134,20 +134,30 @@ def _mission_negatives(prior_map: Path) -> str | None:
         return None
 
 
+def _client(args: argparse.Namespace):
+    """The ground link's client of ``--connect`` (CURVE with both key files); ZMQError on a
+    malformed endpoint."""
+    import zmq
+
+    from ..errors import OlsplatInputError
+    from ..transport import QueryClient, curve
+
+    if bool(args.client_key) != bool(args.server_key):
+        raise OlsplatInputError("CURVE needs both --client-key and --server-key")
+    keys = curve.ClientKeys(args.client_key, args.server_key) if args.client_key else None
+    return QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
+
+
 def _link_source(args: argparse.Namespace):
     import zmq
 
     from ..errors import OlsplatInputError
     from ..ground.link import LinkSource
-    from ..transport import QueryClient, curve
 
     if args.map:
         raise OlsplatInputError("--map goes with --run: over --connect the drone sends its prior map")
-    if bool(args.client_key) != bool(args.server_key):
-        raise OlsplatInputError("CURVE needs both --client-key and --server-key")
-    keys = curve.ClientKeys(args.client_key, args.server_key) if args.client_key else None
     try:
-        client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
+        client = _client(args)
     except zmq.ZMQError as exc:
         raise OlsplatInputError(f"cannot connect to {args.connect}: {zmq.strerror(exc.errno or 0)}") from None
     return LinkSource(client, args.max_splats)
@@ -159,15 +169,12 @@ def run(args: argparse.Namespace) -> int:
     from olsplat_msgs import QueryRequest, StatusRequest
 
     from ..errors import EXIT_FAILED, OlsplatInputError
-    from ..transport import NoReply, QueryClient, curve
+    from ..transport import NoReply
 
     if args.ground_command == "query" and not args.text.strip():
         raise OlsplatInputError("the query text is empty")
-    if bool(args.client_key) != bool(args.server_key):
-        raise OlsplatInputError("CURVE needs both --client-key and --server-key")
-    keys = curve.ClientKeys(args.client_key, args.server_key) if args.client_key else None
     try:
-        client = QueryClient(zmq.Context.instance(), args.connect, timeout_s=args.timeout, keys=keys)
+        client = _client(args)
     except zmq.ZMQError as exc:  # a malformed endpoint (no port, unknown transport): same exit as an unreachable one
         reason = zmq.strerror(exc.errno or 0)
         print(
