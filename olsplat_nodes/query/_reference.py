@@ -13,6 +13,13 @@ import numpy as np
 from .localize import Instance3D
 
 
+def winners_reference(table: np.ndarray, embeddings: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    """[N] bool, the relevance rule in numpy: argmax over the [rows, Q] products is the query
+    (index 0). With ``rows`` ([N], -1 = none) the table is a codebook's centres."""
+    wins = (np.asarray(table, np.float64) @ np.asarray(embeddings, np.float64).T).argmax(1) == 0
+    return wins if rows is None else np.append(wins, False)[rows]
+
+
 def _touching(voxel: tuple[int, int, int]):
     """The 26 voxels that share a face, an edge or a corner with ``voxel``."""
     i, j, k = voxel

@@ -20,6 +20,9 @@ from ..errors import OlsplatInputError
 from ..scene import Camera, Gaussians
 from .heatmap import CANONICAL_NEGATIVES, FeatureImages, relevancy_mask, render_heatmaps, threshold_mask
 from .localize import Instance3D, Region2D, VoxelIndex, default_cluster_radius, instances_in_3d, regions_in_view
+from .winners import gather_verdicts, winning_rows
+
+_EMPTY = np.zeros(0, np.bool_)  # the kernels' "no observed mask"
 
 
 @dataclass
@@ -56,14 +59,16 @@ class QueryFeatures:
             return QueryFeatures(np.asarray(language_map.centres, np.float32), rows)
         return QueryFeatures(np.asarray(language_map.features, np.float32))  # no copy when already float32
 
-    def winners(self, embeddings: np.ndarray) -> np.ndarray:
+    def winners(self, embeddings: np.ndarray, observed: np.ndarray | None = None) -> np.ndarray:
         """[N] bool: the Gaussians whose feature is closer to embeddings[0] than to every other
-        row of embeddings [Q, D] (unit rows)."""
-        wins = (self.table @ embeddings.T).argmax(1) == 0
+        row of embeddings [Q, D] (unit rows), among the ``observed`` ones ([N] bool) when given.
+        ``winners.winning_rows``: one pass over the rows, or over the K centres and then one
+        gather over the N rows of a codebook map (row -1, never observed, never wins)."""
+        seen = _EMPTY if observed is None else np.ascontiguousarray(observed, np.bool_)
+        embeddings = np.ascontiguousarray(embeddings, np.float32)
         if self.rows is None:
-            return wins
-        # one gather over the N rows: row -1 (never observed) reads the appended False
-        return np.append(wins, False)[self.rows]
+            return winning_rows(self.table, embeddings, seen)
+        return gather_verdicts(winning_rows(self.table, embeddings, _EMPTY), self.rows, seen)
 
     def winners_in_order(self, embeddings: np.ndarray, index: VoxelIndex) -> np.ndarray | None:
         """``winners`` in ``index.order`` ([N'] bool), for a codebook map: a sequential gather
@@ -72,8 +77,8 @@ class QueryFeatures:
         rows = self.rows_in_order(index)
         if rows is None:
             return None
-        wins = (self.table @ embeddings.T).argmax(1) == 0
-        return np.append(wins, False)[rows]
+        verdicts = winning_rows(self.table, np.ascontiguousarray(embeddings, np.float32), _EMPTY)
+        return gather_verdicts(verdicts, rows, _EMPTY)
 
     def rows_in_order(self, index: VoxelIndex) -> np.ndarray | None:
         """[N'] int32 ``rows`` in ``index.order``, made once per index (~50 ms for 5M: a
@@ -157,7 +162,7 @@ def answer_query(
         )
     embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
     features = features if features is not None else QueryFeatures.of(language_map)
-    chosen = features.winners(embeddings) & language_map.observed
+    chosen = features.winners(embeddings, language_map.observed)
     radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
     in_order = None
     if voxel_index is not None and voxel_index.eps == float(radius):

@@ -48,13 +48,18 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 # One of each +/- pair of the 26 neighbour offsets: searching keys + offset for all 13 finds
 # every touching pair of occupied voxels once.
 _HALF_NEIGHBOURS = np.array(
     [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)], np.int64
 )  # [13, 3]
+
+
+# Voxels per unit of parallel work in the clustering: small enough that dense and sparse parts of
+# the map spread over both cores, large enough that scheduling costs nothing.
+VOXEL_RUN = 64
 
 
 @dataclass
@@ -319,6 +324,34 @@ def _box(points, lo, hi):
     return low, high
 
 
+@njit(cache=True, parallel=True)
+def _boxes(points, start, end):
+    """(low [V, 3], high [V, 3]): the box of each voxel's points[start[v]:end[v]]."""
+    n = end.shape[0]
+    low = np.empty((n, 3))
+    high = np.empty((n, 3))
+    for v in prange(n):
+        low[v], high[v] = _box(points, start[v], end[v])
+    return low, high
+
+
+@njit(cache=True, parallel=True)
+def _cores_first(points, start, core):
+    """[V] core points per voxel; reorders each voxel's points (and ``core``) in place so that
+    its core points come first."""
+    n = start.shape[0] - 1
+    cores = np.zeros(n, np.int64)
+    for v in prange(n):
+        for p in range(start[v], start[v + 1]):
+            if core[p]:
+                q = start[v] + cores[v]
+                for d in range(3):
+                    points[p, d], points[q, d] = points[q, d], points[p, d]
+                core[p], core[q] = core[q], core[p]
+                cores[v] += 1
+    return cores
+
+
 @njit(cache=True)
 def _count_near(points, p, lo, hi, low, high, reach2, enough) -> int:
     """How many of points[lo:hi] (their box: low, high) lie within sqrt(reach2) of point p,
@@ -340,7 +373,7 @@ def _count_near(points, p, lo, hi, low, high, reach2, enough) -> int:
     return found
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _core(points, start, begin, around, low, high, reach2, min_points, lowest, eps):
     """[M] bool: DBSCAN's core test, at least min_points points (itself included) within eps,
     counted over the point's own and touching voxels (its whole eps-ball).
@@ -349,34 +382,43 @@ def _core(points, start, begin, around, low, high, reach2, min_points, lowest, e
     every point of a cell holding min_points points is core without a distance (on the dense
     roofs and roads of a survey map, most points; a third of a 700k-point query's time)."""
     core = np.zeros(points.shape[0], np.bool_)
-    cell = np.zeros(8, np.int64)
-    half = 0.5 * eps
-    for v in range(start.shape[0] - 1):
-        block = 0
-        for i in range(begin[v], begin[v + 1]):
-            block += start[around[i] + 1] - start[around[i]]
-        if block < min_points:
-            continue  # no point here can have min_points within eps
-        if start[v + 1] - start[v] >= min_points:
-            # the voxel's corner: its points share floor((p - lowest) / eps) (``_voxel_keys``)
-            corner = np.floor((points[start[v]] - lowest) / eps) * eps + lowest
-            cell[:] = 0
-            for p in range(start[v], start[v + 1]):
-                cell[_half_cell(points[p], corner, half)] += 1
-            for p in range(start[v], start[v + 1]):
-                if cell[_half_cell(points[p], corner, half)] >= min_points:
-                    core[p] = True
-        for p in range(start[v], start[v + 1]):
-            if core[p]:
-                continue
-            found = 0
-            for i in range(begin[v], begin[v + 1]):  # its own voxel first: the likeliest
-                w = around[i]
-                found += _count_near(points, p, start[w], start[w + 1], low[w], high[w], reach2, min_points - found)
-                if found >= min_points:
-                    core[p] = True
-                    break
+    n = start.shape[0] - 1
+    # voxels are independent here: the threads take runs of VOXEL_RUN voxels
+    for run in prange((n + VOXEL_RUN - 1) // VOXEL_RUN):
+        cell = np.zeros(8, np.int64)
+        for v in range(run * VOXEL_RUN, min(n, (run + 1) * VOXEL_RUN)):
+            _core_of_voxel(points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, core)
     return core
+
+
+@njit(cache=True)
+def _core_of_voxel(points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, core):
+    """``_core`` for voxel v's points (cell: an [8] scratch array)."""
+    half = 0.5 * eps
+    block = 0
+    for i in range(begin[v], begin[v + 1]):
+        block += start[around[i] + 1] - start[around[i]]
+    if block < min_points:
+        return  # no point here can have min_points within eps
+    if start[v + 1] - start[v] >= min_points:
+        # the voxel's corner: its points share floor((p - lowest) / eps) (``_voxel_keys``)
+        corner = np.floor((points[start[v]] - lowest) / eps) * eps + lowest
+        cell[:] = 0
+        for p in range(start[v], start[v + 1]):
+            cell[_half_cell(points[p], corner, half)] += 1
+        for p in range(start[v], start[v + 1]):
+            if cell[_half_cell(points[p], corner, half)] >= min_points:
+                core[p] = True
+    for p in range(start[v], start[v + 1]):
+        if core[p]:
+            continue
+        found = 0
+        for i in range(begin[v], begin[v + 1]):  # its own voxel first: the likeliest
+            w = around[i]
+            found += _count_near(points, p, start[w], start[w + 1], low[w], high[w], reach2, min_points - found)
+            if found >= min_points:
+                core[p] = True
+                break
 
 
 @njit(cache=True)
@@ -401,22 +443,10 @@ def _cluster_points(points, start, first, second, eps, min_points, lowest):
     n = start.shape[0] - 1
     reach2 = eps * eps
     begin, around = _neighbourhoods(n, first, second)
-    low = np.empty((n, 3))
-    high = np.empty((n, 3))
-    for v in range(n):
-        low[v], high[v] = _box(points, start[v], start[v + 1])
+    low, high = _boxes(points, start, start[1:])
     core = _core(points, start, begin, around, low, high, reach2, min_points, lowest, eps)
-    # core points first in each voxel: voxel v's are then points[start[v]:start[v] + cores[v]]
-    cores = np.zeros(n, np.int64)
-    for v in range(n):
-        for p in range(start[v], start[v + 1]):
-            if core[p]:
-                q = start[v] + cores[v]
-                for d in range(3):
-                    points[p, d], points[q, d] = points[q, d], points[p, d]
-                core[p], core[q] = core[q], core[p]
-                cores[v] += 1
-        low[v], high[v] = _box(points, start[v], start[v] + cores[v])
+    cores = _cores_first(points, start, core)  # voxel v's core points: points[start[v]:start[v] + cores[v]]
+    low, high = _boxes(points, start, start[:-1] + cores)
 
     parent = np.arange(n)
     for e in range(first.shape[0]):
@@ -434,22 +464,35 @@ def _cluster_points(points, start, first, second, eps, min_points, lowest):
                 else:
                     parent[ra] = rb
                 break
-    cluster = np.full(points.shape[0], -1, np.int64)
+    root = np.empty(n, np.int64)
     for v in range(n):
-        if cores[v] > 0:
-            cluster[start[v] : start[v] + cores[v]] = _root(parent, v)
-        for p in range(start[v] + cores[v], start[v + 1]):
-            # border point: of the voxels with a core point within eps of it, the one with the
-            # most core points, ties to the lowest index
-            best = -1
-            for i in range(begin[v], begin[v + 1]):
-                w = around[i]
-                if cores[w] == 0 or (best >= 0 and (cores[w] < cores[best] or (cores[w] == cores[best] and w > best))):
-                    continue
-                if _count_near(points, p, start[w], start[w] + cores[w], low[w], high[w], reach2, 1):
-                    best = w
-            if best >= 0:
-                cluster[p] = _root(parent, best)
+        root[v] = _root(parent, v)
+    return _labels(points, start, begin, around, cores, low, high, reach2, root)
+
+
+@njit(cache=True, parallel=True)
+def _labels(points, start, begin, around, cores, low, high, reach2, root):
+    """[M] int64 cluster of each point (``_cluster_points``), given each voxel's cluster ``root``
+    [V]: core points take their voxel's; a border point, of the voxels with a core point within
+    eps of it, the one with the most core points (ties: the lowest index); -1 for noise."""
+    n = start.shape[0] - 1
+    cluster = np.full(points.shape[0], -1, np.int64)
+    for run in prange((n + VOXEL_RUN - 1) // VOXEL_RUN):
+        for v in range(run * VOXEL_RUN, min(n, (run + 1) * VOXEL_RUN)):
+            if cores[v] > 0:
+                cluster[start[v] : start[v] + cores[v]] = root[v]
+            for p in range(start[v] + cores[v], start[v + 1]):
+                best = -1
+                for i in range(begin[v], begin[v + 1]):
+                    w = around[i]
+                    if cores[w] == 0:
+                        continue
+                    if best >= 0 and (cores[w] < cores[best] or (cores[w] == cores[best] and w > best)):
+                        continue
+                    if _count_near(points, p, start[w], start[w] + cores[w], low[w], high[w], reach2, 1):
+                        best = w
+                if best >= 0:
+                    cluster[p] = root[best]
     return cluster
 
 

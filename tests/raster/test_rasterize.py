@@ -229,3 +229,31 @@ def test_the_early_off_screen_test_keeps_every_gaussian_that_reaches_the_image(k
     np.testing.assert_array_equal(fast.radii > 0, ref["valid"])
     radius = np.ceil(config.radius_sigmas * np.sqrt(1 / np.linalg.eigvalsh(ref["conic"])[:, 0]))
     assert (np.abs(fast.radii[ref["valid"]] - radius[ref["valid"]]) <= 1).all()
+
+
+def test_the_prefetch_hint_compiles_for_rows_and_changes_nothing():
+    from numba import njit
+    from numba.core.errors import TypingError
+
+    from olsplat_nodes.raster.prefetch import prefetch_row
+
+    @njit
+    def first_column(table, rows):
+        total = 0.0
+        for r in rows:
+            prefetch_row(table, r)
+            prefetch_row(table[:, 16:], r)
+        for r in rows:
+            total += table[r, 0]
+        return total
+
+    table = np.arange(64 * 32, dtype=np.float32).reshape(64, 32)
+    rows = np.array([3, 60, 0], np.int64)
+    assert first_column(table, rows) == table[rows, 0].sum()
+
+    @njit
+    def flat(values):
+        prefetch_row(values, 0)
+
+    with pytest.raises(TypingError):
+        flat(np.zeros(4, np.float32))
