@@ -25,8 +25,9 @@ def test_heatmaps_in_the_rasterizer_equal_those_of_the_feature_image():
     got, got_alpha = render_heatmaps(gaussians, features, texts, camera)
     assert got.shape == (5, 36, 48)
     np.testing.assert_allclose(got, expected, atol=2e-5)
-    np.testing.assert_array_equal(got_alpha, alpha)
-    assert (got[:, alpha == 0] == 0).all() and np.abs(got).max() <= 1 + 1e-5
+    # heatmaps may come from the C kernel (raster/native.py): its exp is a polynomial
+    np.testing.assert_allclose(got_alpha, alpha, atol=2e-6)
+    assert (got_alpha[alpha == 0] == 0).all() and (got[:, alpha == 0] == 0).all() and np.abs(got).max() <= 1 + 1e-5
     # the same pass can also write the unit features F / |F| into the caller's buffer
     unit = np.full((36 * 48, 24), np.nan, np.float32)
     again, _ = render_heatmaps(gaussians, features, texts, camera, unit_out=unit)
