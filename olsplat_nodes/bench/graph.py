@@ -14,7 +14,8 @@ answered from the server's cache of rendered features, and both are reported).
 ``views_per_s`` (aggregated per second of stream: frames_aggregated / (frames_sent / rate)),
 ``seconds`` (until the final map), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms`` (all
 heatmap queries), ``query_heatmap_first_p95_ms`` and ``query_heatmap_repeat_p95_ms`` (first and
-later queries on a view), and
+later queries on a view), ``query_heatmap_first_server_p95_ms`` (the server's own time for
+the first ones), and
 ``nodes.<name>.{busy_ms, latency_ms, drops, handled}`` (means over the flight's heartbeats; the
 accumulator's latency_ms is the frame-to-store latency).
 """

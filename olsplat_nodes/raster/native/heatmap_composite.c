@@ -198,6 +198,75 @@ static void add_listed(float *restrict acc, const float *restrict feat, int64_t 
     }
 }
 
+#ifdef __AVX2__
+static inline float sum8(__m256 v)
+{
+    __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+    s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    s = _mm_add_ss(s, _mm_movehdup_ps(s));
+    return _mm_cvtss_f32(s);
+}
+#endif
+
+/* A pixel's outputs from its feature sum a [dim]: heat[q] = cos(a, queries[q]) (0 where a = 0;
+ * the 1 / (alpha + eps) of F cancels) and, when unit is given, unit = a / |a|. */
+static void pixel_outputs(const float *a, int64_t dim, const float *queries, int64_t n_queries, float *heat,
+                          float *unit)
+{
+    int64_t q = 0;
+#ifdef __AVX2__
+    if (dim % 8 == 0) {
+        __m256 s = _mm256_setzero_ps();
+        for (int64_t f = 0; f < dim; f += 8) {
+            const __m256 v = _mm256_loadu_ps(a + f);
+            s = _mm256_fmadd_ps(v, v, s);
+        }
+        const float length = sqrtf(sum8(s)), scale = length > 0.0f ? 1.0f / length : 0.0f;
+        if (unit) {
+            const __m256 v_scale = _mm256_set1_ps(scale);
+            for (int64_t f = 0; f < dim; f += 8)
+                _mm256_storeu_ps(unit + f, _mm256_mul_ps(_mm256_loadu_ps(a + f), v_scale));
+        }
+        for (; q + 4 <= n_queries; q += 4) { /* four queries per pass over a */
+            const float *q0 = queries + q * dim, *q1 = q0 + dim, *q2 = q1 + dim, *q3 = q2 + dim;
+            __m256 d0 = _mm256_setzero_ps(), d1 = d0, d2 = d0, d3 = d0;
+            for (int64_t f = 0; f < dim; f += 8) {
+                const __m256 v = _mm256_loadu_ps(a + f);
+                d0 = _mm256_fmadd_ps(v, _mm256_loadu_ps(q0 + f), d0);
+                d1 = _mm256_fmadd_ps(v, _mm256_loadu_ps(q1 + f), d1);
+                d2 = _mm256_fmadd_ps(v, _mm256_loadu_ps(q2 + f), d2);
+                d3 = _mm256_fmadd_ps(v, _mm256_loadu_ps(q3 + f), d3);
+            }
+            heat[q] = sum8(d0) * scale;
+            heat[q + 1] = sum8(d1) * scale;
+            heat[q + 2] = sum8(d2) * scale;
+            heat[q + 3] = sum8(d3) * scale;
+        }
+        for (; q < n_queries; q++) {
+            const float *row = queries + q * dim;
+            __m256 d = _mm256_setzero_ps();
+            for (int64_t f = 0; f < dim; f += 8)
+                d = _mm256_fmadd_ps(_mm256_loadu_ps(a + f), _mm256_loadu_ps(row + f), d);
+            heat[q] = sum8(d) * scale;
+        }
+        return;
+    }
+#endif
+    float square = 0.0f;
+    for (int64_t f = 0; f < dim; f++)
+        square += a[f] * a[f];
+    const float length = sqrtf(square), scale = length > 0.0f ? 1.0f / length : 0.0f;
+    if (unit)
+        for (int64_t f = 0; f < dim; f++)
+            unit[f] = a[f] * scale;
+    for (; q < n_queries; q++) {
+        float dot = 0.0f;
+        for (int64_t f = 0; f < dim; f++)
+            dot += a[f] * queries[q * dim + f];
+        heat[q] = dot * scale;
+    }
+}
+
 /* Returns 0, or -1 when a tile's buffers could not be allocated (outputs then incomplete). */
 int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32_t *order,
                        const int64_t *tile_order, int64_t n_tiles, const float *records, const float *features,
@@ -304,20 +373,8 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
                 out_rgb[at * 3 + 1] = acc_g[p] + final_t * background[1];
                 out_rgb[at * 3 + 2] = acc_b[p] + final_t * background[2];
                 out_depth[at] = total > 1e-10f ? acc_z[p] / total : 0.0f;
-                const float *a = acc + p * dim;
-                float square = 0.0f;
-                for (int64_t f = 0; f < dim; f++)
-                    square += a[f] * a[f];
-                const float length_ = sqrtf(square), scale = length_ > 0.0f ? 1.0f / length_ : 0.0f;
-                if (out_unit)
-                    for (int64_t f = 0; f < dim; f++)
-                        out_unit[at * dim + f] = a[f] * scale;
-                for (int64_t q = 0; q < n_queries; q++) { /* cos(F, q): the 1 / (alpha + eps) cancels */
-                    float dot = 0.0f;
-                    for (int64_t f = 0; f < dim; f++)
-                        dot += a[f] * queries[q * dim + f];
-                    out_heat[at * n_queries + q] = dot * scale;
-                }
+                pixel_outputs(acc + p * dim, dim, queries, n_queries, out_heat + at * n_queries,
+                              out_unit ? out_unit + at * dim : NULL);
             }
         }
         free(acc), free(chunk_feat), free(list_w), free(list_c), free(listed);
