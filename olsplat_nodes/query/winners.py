@@ -7,7 +7,7 @@ are the cosines of eq. semantic_heatmap). That is numpy's ``(table @ embeddings.
 kernels to. The numpy form makes an [N, Q] float32 product and reads it again for the argmax, and
 reads the rows of never-observed Gaussians; here each row is read once, only when observed, and
 the negatives are tried one at a time until one beats the query. On the small demo map (390k
-Gaussians, D = 128, 3 negatives) 45-57 ms -> see README "Queries" for the figures.
+Gaussians, D = 128, 3 negatives): 15-18 ms per query instead of 45-57 ms (README, round 6).
 """
 
 from __future__ import annotations
