@@ -57,8 +57,8 @@ _HALF_NEIGHBOURS = np.array(
 )  # [13, 3]
 
 
-# Voxels per unit of parallel work in the clustering: small enough that dense and sparse parts of
-# the map spread over both cores, large enough that scheduling costs nothing.
+# Voxels per iteration of the parallel core test: each iteration makes one small scratch array
+# for its run of voxels instead of one per voxel.
 VOXEL_RUN = 64
 
 
@@ -383,7 +383,7 @@ def _core(points, start, begin, around, low, high, reach2, min_points, lowest, e
     roofs and roads of a survey map, most points; a third of a 700k-point query's time)."""
     core = np.zeros(points.shape[0], np.bool_)
     n = start.shape[0] - 1
-    # voxels are independent here: the threads take runs of VOXEL_RUN voxels
+    # voxels are independent here: in parallel, by runs of VOXEL_RUN voxels
     for run in prange((n + VOXEL_RUN - 1) // VOXEL_RUN):
         cell = np.zeros(8, np.int64)
         for v in range(run * VOXEL_RUN, min(n, (run + 1) * VOXEL_RUN)):
@@ -477,22 +477,21 @@ def _labels(points, start, begin, around, cores, low, high, reach2, root):
     eps of it, the one with the most core points (ties: the lowest index); -1 for noise."""
     n = start.shape[0] - 1
     cluster = np.full(points.shape[0], -1, np.int64)
-    for run in prange((n + VOXEL_RUN - 1) // VOXEL_RUN):
-        for v in range(run * VOXEL_RUN, min(n, (run + 1) * VOXEL_RUN)):
-            if cores[v] > 0:
-                cluster[start[v] : start[v] + cores[v]] = root[v]
-            for p in range(start[v] + cores[v], start[v + 1]):
-                best = -1
-                for i in range(begin[v], begin[v + 1]):
-                    w = around[i]
-                    if cores[w] == 0:
-                        continue
-                    if best >= 0 and (cores[w] < cores[best] or (cores[w] == cores[best] and w > best)):
-                        continue
-                    if _count_near(points, p, start[w], start[w] + cores[w], low[w], high[w], reach2, 1):
-                        best = w
-                if best >= 0:
-                    cluster[p] = root[best]
+    for v in prange(n):
+        if cores[v] > 0:
+            cluster[start[v] : start[v] + cores[v]] = root[v]
+        for p in range(start[v] + cores[v], start[v + 1]):
+            best = -1
+            for i in range(begin[v], begin[v + 1]):
+                w = around[i]
+                if cores[w] == 0:
+                    continue
+                if best >= 0 and (cores[w] < cores[best] or (cores[w] == cores[best] and w > best)):
+                    continue
+                if _count_near(points, p, start[w], start[w] + cores[w], low[w], high[w], reach2, 1):
+                    best = w
+            if best >= 0:
+                cluster[p] = root[best]
     return cluster
 
 

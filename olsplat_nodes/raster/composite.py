@@ -14,7 +14,7 @@ total weight (1 - T_final), clamped to [topk_min, topk_max] and to the number of
 
 Each Gaussian is one 64-byte record (``project.RECORD``), so it costs one cache line; a tile
 copies its records in chunks into a small buffer before compositing them (see ``CHUNK``), and
-asks for the next chunk's records and feature rows ahead (``prefetch.prefetch_row``).
+asks for the next chunk's records and feature rows ahead (``prefetch.prefetch``).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from ._network32 import sort_descending
-from .prefetch import prefetch_row
+from .prefetch import prefetch
 from .project import BLUE, CA, CB, CC, CUT, DEPTH, EX, EY, GREEN, MX, MY, OPACITY, RECORD, RED
 
 
@@ -155,12 +155,11 @@ def composite_tiles(
                 # and at the tile's start this chunk too (its misses overlap each other)
                 for c in range(j if j == 0 else j + CHUNK, min(j + 2 * CHUNK, list_length)):
                     g = order[slots[offsets[tile] + c]]
-                    prefetch_row(records, g)
-                    if n_feat > 0:
-                        row = g if feature_rows.shape[0] == 0 else feature_rows[g]
-                        if row >= 0:
-                            for f in range(0, n_feat, 16):  # 16 float32: one 64-byte line
-                                prefetch_row(features[:, f:], row)
+                    prefetch(records, g, 0)
+                    row = g if feature_rows.shape[0] == 0 else feature_rows[g]
+                    if row >= 0:
+                        for f in range(0, n_feat, 16):  # 16 float32: one 64-byte line
+                            prefetch(features, row, f)
                 for c in range(min(CHUNK, list_length - j)):
                     g = order[slots[offsets[tile] + j + c]]
                     for f in range(RECORD):

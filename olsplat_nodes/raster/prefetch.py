@@ -15,16 +15,20 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 
-def _prefetch_row(typingctx, array, row):
-    """Numba typing and code of ``prefetch_row(array, row)``."""
-    if not isinstance(array, types.Array) or array.ndim != 2 or not isinstance(row, types.Integer):
+def _prefetch(typingctx, array, row, column):
+    """Numba typing and code of ``prefetch(array, row, column)``."""
+    integers = isinstance(row, types.Integer) and isinstance(column, types.Integer)
+    if not isinstance(array, types.Array) or array.ndim != 2 or not integers:
         return None
-    signature = types.void(array, row)
+    signature = types.void(array, row, column)
 
     def codegen(context, builder, sig, args):
-        array_type, row_type = sig.args
+        array_type, row_type, column_type = sig.args
         view = context.make_array(array_type)(context, builder, args[0])
-        index = [context.cast(builder, args[1], row_type, types.intp), context.get_constant(types.intp, 0)]
+        index = [
+            context.cast(builder, args[1], row_type, types.intp),
+            context.cast(builder, args[2], column_type, types.intp),
+        ]
         pointer = cgutils.get_item_pointer(context, builder, array_type, view, index, wraparound=False)
         byte_pointer = ir.IntType(8).as_pointer()
         i32 = ir.IntType(32)
@@ -38,7 +42,7 @@ def _prefetch_row(typingctx, array, row):
     return signature, codegen
 
 
-# Called from numba code as prefetch_row(array, row): hint that array[row, 0] (a 2-D array,
-# row >= 0) will be read soon; no effect on results. (Typed Any: the intrinsic's Python
-# signature is numba's typing hook, not the call's.)
-prefetch_row: Any = intrinsic(_prefetch_row)
+# Called from numba code as prefetch(array, row, column): hint that the cache line holding
+# array[row, column] (a 2-D array, indices >= 0) will be read soon; no effect on results.
+# (Typed Any: the intrinsic's Python signature is numba's typing hook, not the call's.)
+prefetch: Any = intrinsic(_prefetch)

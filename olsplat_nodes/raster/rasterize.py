@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from ..scene import Camera, Gaussians
@@ -103,24 +102,18 @@ def rasterize(
     evals = np.zeros((tiles_x * tiles_y, 2), np.int64)
     # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
     tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
-    library = native.kernel() if len(queries) and not want_topk and tile <= 64 else None
-    if library is not None:  # heatmaps: the C kernel (native.py), same outputs
-        threads = numba.get_num_threads()  # the caller's setting, as for the numba kernels
-        colour = np.ascontiguousarray(background, np.float32)  # kept alive through the call
-        status = library.composite_heatmaps(
-            _address(offsets), _address(slots), _address(order), _address(tile_order), len(tile_order),
-            _address(projected.records), _address(feats), feats.shape[1], _address(rows) if len(rows) else None,
-            width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
-            _address(colour), _address(queries), len(queries),
-            _address(rgb), _address(alpha), _address(depth), _address(out_features),
-            _address(unit) if len(unit) else None, _address(evals), threads,
+    if len(queries) and not want_topk and native.available(tile):  # heatmaps: the C kernel, same outputs
+        native.composite_heatmaps(
+            offsets, slots, order, tile_order, projected.records, feats, rows, width, height, tile, config,
+            background, queries, rgb, alpha, depth, out_features, unit, evals,
         )  # fmt: skip
-        if status != 0:
-            raise MemoryError("the heatmap kernel could not allocate its tile buffers")
     else:
-        _composite_numba(
-            offsets, slots, order, tile_order, projected, feats, width, height, tile, config, want_topk,
-            background, queries, rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit, rows,
+        composite_tiles(
+            offsets, slots, order, tile_order, projected.records, feats,
+            width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
+            want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
+            np.asarray(background, np.float32), queries,
+            rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit, rows,
         )  # fmt: skip
     clock.append(time.perf_counter())
     return RenderResult(
@@ -138,22 +131,3 @@ def rasterize(
         n_visible=int((projected.radii > 0).sum()),
         seconds=dict(zip(("project", "bin", "composite"), np.diff(clock).tolist(), strict=True)),
     )
-
-
-def _address(array: np.ndarray) -> int:
-    """The data pointer of a C-contiguous array, for the C kernel (which reads the layouts above)."""
-    assert array.flags.c_contiguous, "the C kernel needs C-contiguous arrays"
-    return array.ctypes.data
-
-
-def _composite_numba(
-    offsets, slots, order, tile_order, projected, feats, width, height, tile, config, want_topk,
-    background, queries, rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit, rows,
-):  # fmt: skip
-    composite_tiles(
-        offsets, slots, order, tile_order, projected.records, feats,
-        width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
-        want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
-        np.asarray(background, np.float32), queries,
-        rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit, rows,
-    )  # fmt: skip

@@ -235,14 +235,14 @@ def test_the_prefetch_hint_compiles_for_rows_and_changes_nothing():
     from numba import njit
     from numba.core.errors import TypingError
 
-    from olsplat_nodes.raster.prefetch import prefetch_row
+    from olsplat_nodes.raster.prefetch import prefetch
 
     @njit
     def first_column(table, rows):
         total = 0.0
         for r in rows:
-            prefetch_row(table, r)
-            prefetch_row(table[:, 16:], r)
+            prefetch(table, r, 0)
+            prefetch(table, r, 16)
         for r in rows:
             total += table[r, 0]
         return total
@@ -253,7 +253,7 @@ def test_the_prefetch_hint_compiles_for_rows_and_changes_nothing():
 
     @njit
     def flat(values):
-        prefetch_row(values, 0)
+        prefetch(values, 0, 0)
 
     with pytest.raises(TypingError):
         flat(np.zeros(4, np.float32))

@@ -291,7 +291,7 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
         float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8], weights[MAX_TILE + 8];
         float chunk[CHUNK][RECORD];
         float *acc = calloc((size_t)(n_pix * dim), sizeof(float));
-        float *chunk_feat = malloc((size_t)(CHUNK * dim) * sizeof(float) + 1);
+        float *chunk_feat = malloc((size_t)(CHUNK * dim) * sizeof(float) + 1); /* + 1: never malloc(0) */
         float *list_w = malloc((size_t)(n_pix * CHUNK) * sizeof(float));
         uint8_t *list_c = malloc((size_t)(n_pix * CHUNK));
         int32_t *listed = calloc((size_t)n_pix, sizeof(int32_t));
