@@ -117,12 +117,16 @@ def relevance_margin(features, observed: np.ndarray, ids: np.ndarray, embeddings
     """[M] float32 cos(query) - max cos(negatives) of the splats ``ids`` of the prior map, from a
     map's ``query.QueryFeatures``, its ``observed`` [N] bool and the L2-normalised text
     embeddings [1 + n, D] (the query first); NaN where no view observed the Gaussian."""
-    # the [rows, Q] product first, then a gather of Q columns (gathering the splats' D-wide rows
-    # first would copy 150 MB for 300k splats at D = 128)
-    cos = features.table @ np.asarray(embeddings, np.float32).T
+    embeddings = np.asarray(embeddings, np.float32).T
     if features.rows is None:  # a dense map: one row per Gaussian, zeros where unobserved
-        cos = cos[ids]
+        # the splats' rows in blocks (float16 rows are widened to float32 block by block, and a
+        # gather of all the D-wide rows at once would copy 150 MB for 300k splats at D = 128)
+        cos = np.empty((len(ids), embeddings.shape[1]), np.float32)
+        for start in range(0, len(ids), 16_384):
+            block = ids[start : start + 16_384]
+            cos[start : start + len(block)] = features.table[block].astype(np.float32) @ embeddings
     else:  # a codebook map: the K centres scored, then gathered through the splats' codes
+        cos = features.table.astype(np.float32) @ embeddings
         cos = np.append(cos, np.zeros((1, cos.shape[1]), np.float32), 0)[features.rows[ids]]
     margin = (cos[:, 0] - cos[:, 1:].max(1)).astype(np.float32)
     margin[~np.asarray(observed, bool)[ids]] = np.nan

@@ -233,7 +233,7 @@ class QueryServerNode(Node):
             )
             return
         self.features = None  # the old version's rows go before the new ones are made (peak memory)
-        self.features = QueryFeatures.of(language_map)  # float32 once, not per query
+        self.features = QueryFeatures.of(language_map)  # once, not per query
         if self.voxel_index is not None:  # else the first query after the index makes them
             self.features.rows_in_order(self.voxel_index)
         language_map.features = np.zeros((0, self.features.table.shape[1]), np.float32)  # held once, above

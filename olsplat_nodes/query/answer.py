@@ -17,6 +17,7 @@ import numpy as np
 
 from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
+from ..native import library
 from ..scene import Camera, Gaussians
 from .heatmap import CANONICAL_NEGATIVES, FeatureImages, relevancy_mask, render_heatmaps, threshold_mask
 from .localize import Instance3D, Region2D, VoxelIndex, default_cluster_radius, instances_in_3d, regions_in_view
@@ -41,12 +42,14 @@ class QueryAnswer:
 
 @dataclass
 class QueryFeatures:
-    """A map's features as queries use them: float32 unit rows of a table and, for a codebook
-    map, each Gaussian's row in it. Relevance then scores the K centres, not the N Gaussians
-    (what keeps queries fast on a map of millions), and rendering reads the centres through
-    the rows, so the [N, D] features are never made."""
+    """A map's features as queries use them: unit rows of a table and, for a codebook map, each
+    Gaussian's row in it. Relevance then scores the K centres, not the N Gaussians (what keeps
+    queries fast on a map of millions), and rendering reads the centres through the rows, so
+    the [N, D] features are never made. ``of`` keeps a map's float16 rows as they are where the
+    C kernels are built (half the memory and half the bytes each query reads; they read float16
+    exactly), and widens them to float32 for the numba kernels otherwise."""
 
-    table: np.ndarray  # [M, D] float32: row g is Gaussian g (M = N), or the codebook's centres (M = K)
+    table: np.ndarray  # [M, D] float16 or float32: row g is Gaussian g (M = N), or the codebook's centres (M = K)
     rows: np.ndarray | None = None  # [N] int32 row of ``table`` per Gaussian (-1: never observed)
     # codebook maps: rows in a VoxelIndex's order, made at the first query that clusters
     _ordered: dict[int, tuple[VoxelIndex, np.ndarray]] = field(default_factory=dict, repr=False)
@@ -56,8 +59,8 @@ class QueryFeatures:
         if language_map.codes is not None and language_map.centres is not None:
             rows = language_map.codes.astype(np.int32)
             rows[(rows == 65_535) | ~language_map.observed] = -1  # no feature: as a dense map's 0 row
-            return QueryFeatures(np.asarray(language_map.centres, np.float32), rows)
-        return QueryFeatures(np.asarray(language_map.features, np.float32))  # no copy when already float32
+            return QueryFeatures(_table(language_map.centres), rows)
+        return QueryFeatures(_table(language_map.features))
 
     def winners(self, embeddings: np.ndarray, observed: np.ndarray | None = None) -> np.ndarray:
         """[N] bool: the Gaussians whose feature is closer to embeddings[0] than to every other
@@ -90,6 +93,13 @@ class QueryFeatures:
         if cached is None or cached[0] is not index:
             cached = self._ordered[id(index)] = (index, self.rows[index.order])
         return cached[1]
+
+
+def _table(rows: np.ndarray) -> np.ndarray:
+    """A map's rows as the query kernels read them: float16 kept where the C kernels are built
+    (no copy), float32 otherwise (no copy when they already are)."""
+    keep = np.asarray(rows).dtype == np.float16 and library() is not None
+    return np.ascontiguousarray(rows, np.float16 if keep else np.float32)
 
 
 class CachedTexts:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene import Camera, Gaussians
-from . import native
+from . import heatmap_native
 from .binning import bin_tiles
 from .composite import composite_tiles
 from .config import RasterConfig
@@ -37,7 +37,7 @@ def rasterize(
     gaussians: Gaussians,
     camera: Camera,
     config: RasterConfig | None = None,
-    features: np.ndarray | None = None,  # [N, D] per-Gaussian features to render
+    features: np.ndarray | None = None,  # [N, D] per-Gaussian features to render (float32; float16 see below)
     want_topk: bool = True,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     feature_queries: np.ndarray | None = None,  # [Q, D] unit rows: render cos(F(p), row) instead of F(p)
@@ -56,7 +56,9 @@ def rasterize(
     then that caller's buffer (C-contiguous float32 [H * W, D], e.g. one reused view after view)
     also receives each pixel's unit feature F / |F| (rows of 0 where nothing was rendered).
     Heatmaps (``feature_queries`` without Top-K) are composited by the C kernel when it is built
-    (``native.py``: same outputs, alpha within 2e-6 and cosines within 2e-5 of the numba kernel's).
+    (``heatmap_native.py``: same outputs, alpha within 2e-6 and cosines within 2e-5 of the numba
+    kernel's). That kernel reads float16 features as they are (a language map's stored form: half
+    the bytes); every other path widens them to float32 first (the same values, exactly).
     """
     config = config or RasterConfig()
     n = len(gaussians)
@@ -64,7 +66,9 @@ def rasterize(
     if features is None:
         feats = np.zeros((n, 0), np.float32)
     else:
-        feats = np.ascontiguousarray(features, dtype=np.float32)  # no copy when it already is
+        keep_half = getattr(features, "dtype", None) == np.float16 and feature_queries is not None and not want_topk
+        keep_half = keep_half and heatmap_native.available(config.tile_size)  # the C kernel reads float16
+        feats = np.ascontiguousarray(features, dtype=np.float16 if keep_half else np.float32)  # no copy if it is
         if feats.ndim != 2 or (feature_rows is None and feats.shape[0] != n):
             raise ValueError(f"features must be [N={n}, D], got shape {feats.shape}")
         if feature_rows is not None:
@@ -102,8 +106,8 @@ def rasterize(
     evals = np.zeros((tiles_x * tiles_y, 2), np.int64)
     # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
     tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
-    if len(queries) and not want_topk and native.available(tile):  # heatmaps: the C kernel, same outputs
-        native.composite_heatmaps(
+    if len(queries) and not want_topk and heatmap_native.available(tile):  # heatmaps: the C kernel, same outputs
+        heatmap_native.composite_heatmaps(
             offsets, slots, order, tile_order, projected.records, feats, rows, width, height, tile, config,
             background, queries, rgb, alpha, depth, out_features, unit, evals,
         )  # fmt: skip

@@ -25,7 +25,7 @@ def test_heatmaps_in_the_rasterizer_equal_those_of_the_feature_image():
     got, got_alpha = render_heatmaps(gaussians, features, texts, camera)
     assert got.shape == (5, 36, 48)
     np.testing.assert_allclose(got, expected, atol=2e-5)
-    # heatmaps may come from the C kernel (raster/native.py): its exp is a polynomial
+    # heatmaps may come from the C kernel (raster/heatmap_native.py): its exp is a polynomial
     np.testing.assert_allclose(got_alpha, alpha, atol=2e-6)
     assert (got_alpha[alpha == 0] == 0).all() and (got[:, alpha == 0] == 0).all() and np.abs(got).max() <= 1 + 1e-5
     # the same pass can also write the unit features F / |F| into the caller's buffer

@@ -1,8 +1,10 @@
-"""The relevance kernels (query/winners.py) against the numpy rule (query/_reference.py)."""
+"""The relevance kernels (query/winners.py: numba over float32 rows, C over float16 ones) against
+the numpy rule (query/_reference.py)."""
 
 import numpy as np
 import pytest
 
+from olsplat_nodes.native import library
 from olsplat_nodes.query._reference import winners_reference
 from olsplat_nodes.query.answer import QueryFeatures
 from olsplat_nodes.query.localize import VoxelIndex
@@ -79,3 +81,40 @@ def test_query_features_winners_match_the_rule_for_dense_and_codebook_maps():
     index = VoxelIndex.build(means, 2.0)
     np.testing.assert_array_equal(book.winners_in_order(embeddings, index), expected[index.order])
     assert QueryFeatures(dense).winners_in_order(embeddings, index) is None
+
+
+needs_c = pytest.mark.skipif(library() is None, reason="the C kernels are not built here")
+
+
+@needs_c
+@pytest.mark.parametrize("dim,negatives", [(128, 3), (70, 1), (13, 12)])
+def test_float16_rows_follow_the_rule_in_c(dim, negatives):
+    """float16 tables (a language map's stored form) go to native/winning_rows.c: the rule on
+    their float32 values, away from ties; dims off the 8-value blocks take the scalar tail."""
+    rng = np.random.default_rng(dim)
+    table = unit(rng.normal(size=(30_000, dim))).astype(np.float16)
+    table[::11] = 0.0
+    embeddings = unit(rng.normal(size=(1 + negatives, dim)))
+    observed = rng.random(30_000) < 0.8
+    wide = table.astype(np.float32)
+    clear = np.abs(margins(wide, embeddings)) > 1e-5
+    clear[::11] = True  # zero rows tie exactly at 0: the query wins
+    expected = winners_reference(wide, embeddings)
+    np.testing.assert_array_equal(winning_rows(table, embeddings, NONE)[clear], expected[clear])
+    np.testing.assert_array_equal(winning_rows(table, embeddings, observed)[clear], (expected & observed)[clear])
+
+
+@needs_c
+def test_query_features_keep_a_maps_float16_rows():
+    """QueryFeatures.of keeps a map's float16 rows (no float32 copy) where the C kernels are built."""
+    from olsplat_nodes.aggregate.snapshot import LanguageMap
+
+    rng = np.random.default_rng(2)
+    observed = rng.random(500) < 0.7
+    language_map = LanguageMap.from_features(rng.normal(size=(500, 32)) * observed[:, None], observed, "test")
+    features = QueryFeatures.of(language_map)
+    assert features.table.dtype == np.float16 and np.shares_memory(features.table, language_map.features)
+    embeddings = unit(rng.normal(size=(3, 32)))
+    expected = winners_reference(language_map.features.astype(np.float32), embeddings) & observed
+    clear = np.abs(margins(language_map.features, embeddings)) > 1e-5
+    np.testing.assert_array_equal(features.winners(embeddings, observed)[clear], expected[clear])

@@ -1,5 +1,6 @@
-"""The C heatmap kernel (raster/native/heatmap_composite.c) against the numba kernel and the
-numpy reference: every output of a heatmap render, on small scenes of every camera model."""
+"""The C heatmap kernel (native/heatmap_composite.c) against the numba kernel and the numpy
+reference: every output of a heatmap render, on small scenes of every camera model; float16
+tables as their float32 values."""
 
 from __future__ import annotations
 
@@ -8,8 +9,10 @@ import platform
 import numpy as np
 import pytest
 
+from olsplat_nodes.native import cpu_has
 from olsplat_nodes.query.heatmap import heatmaps
-from olsplat_nodes.raster import native, rasterize
+from olsplat_nodes.raster import heatmap_native as native
+from olsplat_nodes.raster import rasterize
 from olsplat_nodes.raster._reference import rasterize_reference
 
 from ..conftest import camera_for, random_gaussians
@@ -36,9 +39,9 @@ def render(gaussians, camera, features, texts, rows=None, background=(0.0, 0.0, 
 
 def test_the_kernel_is_built_and_used_on_this_machine():
     """``make setup`` builds it (setup.py); on an x86-64 Linux machine with AVX2 it must load."""
-    if platform.machine() != "x86_64" or not native._cpu_has("avx2", "fma"):
-        pytest.skip("the C kernel's AVX2 build needs an x86-64 CPU with AVX2 and FMA")
-    assert native.kernel() is not None, "olsplat_nodes/raster/_heatmap_native was not built: run make setup"
+    if platform.machine() != "x86_64" or not cpu_has("avx2", "fma", "f16c"):
+        pytest.skip("the C kernels' AVX2 build needs an x86-64 CPU with AVX2, FMA and F16C")
+    assert native.kernel() is not None, "olsplat_nodes/native/_kernels was not built: run make setup"
 
 
 # (width, height, Gaussians, camera model, feature channels): channels below, at and above the
@@ -99,3 +102,40 @@ def test_c_heatmaps_read_codebook_rows_as_the_numba_kernel(monkeypatch):
     np.testing.assert_allclose(fast_unit, slow_unit, atol=2e-5)
     np.testing.assert_array_equal(fast.features, dense.features)  # same kernel, rows or dense
     np.testing.assert_array_equal(fast_unit, dense_unit)
+
+
+@pytest.mark.parametrize("dim", [24, 64, 130])
+def test_float16_tables_render_as_their_float32_values(dim):
+    """A language map's float16 rows are read as they are (F16C), dense or through codebook
+    rows: the same outputs as the same values widened to float32, bit for bit."""
+    if native.kernel() is None:
+        pytest.skip("the C kernel is not built here")
+    rng = np.random.default_rng(dim)
+    gaussians = random_gaussians(350, 2, seed=dim)
+    camera = camera_for("PINHOLE_SKEWED", 45, 37)
+    half = unit_rows(rng.normal(size=(350, dim))).astype(np.float16)
+    half[::7] = 0.0
+    texts = unit_rows(rng.normal(size=(5, dim)))
+    got, got_unit = render(gaussians, camera, half, texts)
+    wide, wide_unit = render(gaussians, camera, half.astype(np.float32), texts)
+    assert got.alpha.max() > 0.5 and np.abs(got.features).max() > 0.1, "the scene must render features"
+    np.testing.assert_array_equal(got.features, wide.features)
+    np.testing.assert_array_equal(got_unit, wide_unit)
+    np.testing.assert_array_equal(got.alpha, wide.alpha)
+    rows = rng.integers(-1, 40, 350).astype(np.int32)
+    got, got_unit = render(gaussians, camera, half[:40], texts, rows=rows)
+    wide, wide_unit = render(gaussians, camera, half[:40].astype(np.float32), texts, rows=rows)
+    np.testing.assert_array_equal(got.features, wide.features)
+    np.testing.assert_array_equal(got_unit, wide_unit)
+
+
+def test_float16_features_elsewhere_render_as_float32():
+    """Paths the C kernel does not take (Top-K, a feature image) widen float16 to float32."""
+    rng = np.random.default_rng(1)
+    gaussians = random_gaussians(200, 1, seed=1)
+    camera = camera_for("PINHOLE_CENTRED", 32, 24)
+    half = rng.normal(size=(200, 16)).astype(np.float16)
+    got = rasterize(gaussians, camera, features=half)
+    wide = rasterize(gaussians, camera, features=half.astype(np.float32))
+    np.testing.assert_array_equal(got.features, wide.features)
+    np.testing.assert_array_equal(got.topk_ids, wide.topk_ids)

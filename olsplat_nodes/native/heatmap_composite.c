@@ -15,11 +15,16 @@
  *   lists each pixel's (weight, Gaussian) pairs, then each pixel adds its list with 64 channels
  *   in eight AVX2 registers at a time, so the accumulators are read and written once per chunk
  *   instead of once per contribution (the numba kernel's channel sums are bound by that traffic).
- *   Additions per pixel keep their front-to-back order.
+ *   Additions per pixel keep their front-to-back order. A Gaussian's feature row is read only
+ *   when it contributed to the tile, straight from the table (no copy).
  *
- * Built as an optional extension (setup.py); ``native.py`` loads it with ctypes and
- * ``rasterize`` falls back to the numba kernel without it. Tested against the numba kernel and
- * the numpy reference (tests/raster/test_native.py).
+ * The feature table may be float32 or float16 (``half``: IEEE binary16 bits, widened with F16C as
+ * they are read, exactly). A language map stores its features as float16, so the query server
+ * keeps them so: half the memory, and half the bytes this kernel reads, its largest stall.
+ *
+ * Part of the optional extension of olsplat_nodes/native (setup.py); ``raster/heatmap_native.py``
+ * calls it and ``rasterize`` falls back to the numba kernel without it. Tested against the numba
+ * kernel and the numpy reference (tests/raster/test_native.py).
  */
 #include <math.h>
 #include <stdint.h>
@@ -149,54 +154,85 @@ static void row_pass(float *restrict trans, float *restrict acc_r, float *restri
 #endif
 }
 
-/* acc[p] += w * feat[c] over pixel p's listed pairs (list order), for every pixel; empties the lists. */
-static void add_listed(float *restrict acc, const float *restrict feat, int64_t dim, const float *list_w,
-                       const uint8_t *list_c, int32_t *listed, int64_t n_pix)
-{
-    for (int64_t p = 0; p < n_pix; p++) {
-        const int32_t n = listed[p];
-        if (n == 0)
-            continue;
-        const float *w = list_w + p * CHUNK;
-        const uint8_t *c = list_c + p * CHUNK;
-        float *a = acc + p * dim;
-        int64_t f = 0;
-#ifdef __AVX2__
-        for (; f + 64 <= dim; f += 64) {
-            __m256 a0 = _mm256_loadu_ps(a + f), a1 = _mm256_loadu_ps(a + f + 8);
-            __m256 a2 = _mm256_loadu_ps(a + f + 16), a3 = _mm256_loadu_ps(a + f + 24);
-            __m256 a4 = _mm256_loadu_ps(a + f + 32), a5 = _mm256_loadu_ps(a + f + 40);
-            __m256 a6 = _mm256_loadu_ps(a + f + 48), a7 = _mm256_loadu_ps(a + f + 56);
-            for (int32_t k = 0; k < n; k++) {
-                const __m256 wk = _mm256_set1_ps(w[k]);
-                const float *r = feat + (int64_t)c[k] * dim + f;
-                a0 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r), a0);
-                a1 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r + 8), a1);
-                a2 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r + 16), a2);
-                a3 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r + 24), a3);
-                a4 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r + 32), a4);
-                a5 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r + 40), a5);
-                a6 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r + 48), a6);
-                a7 = _mm256_fmadd_ps(wk, _mm256_loadu_ps(r + 56), a7);
-            }
-            _mm256_storeu_ps(a + f, a0);
-            _mm256_storeu_ps(a + f + 8, a1);
-            _mm256_storeu_ps(a + f + 16, a2);
-            _mm256_storeu_ps(a + f + 24, a3);
-            _mm256_storeu_ps(a + f + 32, a4);
-            _mm256_storeu_ps(a + f + 40, a5);
-            _mm256_storeu_ps(a + f + 48, a6);
-            _mm256_storeu_ps(a + f + 56, a7);
-        }
-#endif
-        for (int32_t k = 0; k < n; k++) { /* channels past the last 64 (or all, without AVX2) */
-            const float *r = feat + (int64_t)c[k] * dim;
-            for (int64_t g = f; g < dim; g++)
-                a[g] += w[k] * r[g];
-        }
-        listed[p] = 0;
+/* acc[p] += w * row[c] over pixel p's listed pairs (list order), for every pixel; empties the
+ * lists. ``rows`` [CHUNK] point at the chunk's feature rows of ``dim`` values of type T (float or
+ * uint16_t float16 bits); LOAD8 widens 8 values at a pointer to float32, LOAD1 one value. */
+#define DEFINE_ADD_LISTED(NAME, T, LOAD8, LOAD1)                                                                  \
+    static void NAME(float *restrict acc, const void *const *rows, int64_t dim, const float *list_w,             \
+                     const uint8_t *list_c, int32_t *listed, int64_t n_pix)                                      \
+    {                                                                                                             \
+        for (int64_t p = 0; p < n_pix; p++) {                                                                     \
+            const int32_t n = listed[p];                                                                          \
+            if (n == 0)                                                                                           \
+                continue;                                                                                         \
+            const float *w = list_w + p * CHUNK;                                                                  \
+            const uint8_t *c = list_c + p * CHUNK;                                                                \
+            float *a = acc + p * dim;                                                                             \
+            int64_t f = 0;                                                                                        \
+            ADD_LISTED_BLOCKS(T, LOAD8)                                                                           \
+            for (int32_t k = 0; k < n; k++) { /* channels past the last 64 (or all, without AVX2) */             \
+                const T *r = (const T *)rows[c[k]];                                                               \
+                for (int64_t g = f; g < dim; g++)                                                                 \
+                    a[g] += w[k] * LOAD1(r + g);                                                                  \
+            }                                                                                                     \
+            listed[p] = 0;                                                                                        \
+        }                                                                                                         \
     }
+
+#ifdef __AVX2__
+/* 64 channels at a time in eight registers: each pixel's sums are read and written once per chunk */
+#define ADD_LISTED_BLOCKS(T, LOAD8)                                                                               \
+    for (; f + 64 <= dim; f += 64) {                                                                              \
+        __m256 a0 = _mm256_loadu_ps(a + f), a1 = _mm256_loadu_ps(a + f + 8);                                      \
+        __m256 a2 = _mm256_loadu_ps(a + f + 16), a3 = _mm256_loadu_ps(a + f + 24);                                \
+        __m256 a4 = _mm256_loadu_ps(a + f + 32), a5 = _mm256_loadu_ps(a + f + 40);                                \
+        __m256 a6 = _mm256_loadu_ps(a + f + 48), a7 = _mm256_loadu_ps(a + f + 56);                                \
+        for (int32_t k = 0; k < n; k++) {                                                                         \
+            const __m256 wk = _mm256_set1_ps(w[k]);                                                               \
+            const T *r = (const T *)rows[c[k]] + f;                                                               \
+            a0 = _mm256_fmadd_ps(wk, LOAD8(r), a0);                                                               \
+            a1 = _mm256_fmadd_ps(wk, LOAD8(r + 8), a1);                                                           \
+            a2 = _mm256_fmadd_ps(wk, LOAD8(r + 16), a2);                                                          \
+            a3 = _mm256_fmadd_ps(wk, LOAD8(r + 24), a3);                                                          \
+            a4 = _mm256_fmadd_ps(wk, LOAD8(r + 32), a4);                                                          \
+            a5 = _mm256_fmadd_ps(wk, LOAD8(r + 40), a5);                                                          \
+            a6 = _mm256_fmadd_ps(wk, LOAD8(r + 48), a6);                                                          \
+            a7 = _mm256_fmadd_ps(wk, LOAD8(r + 56), a7);                                                          \
+        }                                                                                                         \
+        _mm256_storeu_ps(a + f, a0);                                                                              \
+        _mm256_storeu_ps(a + f + 8, a1);                                                                          \
+        _mm256_storeu_ps(a + f + 16, a2);                                                                         \
+        _mm256_storeu_ps(a + f + 24, a3);                                                                         \
+        _mm256_storeu_ps(a + f + 32, a4);                                                                         \
+        _mm256_storeu_ps(a + f + 40, a5);                                                                         \
+        _mm256_storeu_ps(a + f + 48, a6);                                                                         \
+        _mm256_storeu_ps(a + f + 56, a7);                                                                         \
+    }
+#define LOAD8_F32(r) _mm256_loadu_ps(r)
+#define LOAD8_F16(r) _mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)(r)))
+#define LOAD1_F16(r) _cvtsh_ss(*(r))
+#else
+#define ADD_LISTED_BLOCKS(T, LOAD8)
+#define LOAD8_F32(r) 0
+#define LOAD8_F16(r) 0
+static inline float half_to_float(uint16_t h) /* IEEE binary16 bits -> float, without F16C */
+{
+    const uint32_t sign = (uint32_t)(h & 0x8000) << 16, exponent = (h >> 10) & 0x1f, mantissa = h & 0x3ff;
+    union { uint32_t u; float f; } out;
+    if (exponent == 0x1f) /* inf, nan */
+        out.u = sign | 0x7f800000u | (mantissa << 13);
+    else if (exponent == 0) /* zero, subnormal: mantissa * 2^-24 */
+        return (h & 0x8000 ? -1.0f : 1.0f) * (float)mantissa * (1.0f / 16777216.0f);
+    else
+        out.u = sign | ((exponent + 112) << 23) | (mantissa << 13);
+    return out.f;
 }
+#define LOAD1_F16(r) half_to_float(*(r))
+#endif
+#define LOAD1_F32(r) (*(r))
+
+DEFINE_ADD_LISTED(add_listed_f32, float, LOAD8_F32, LOAD1_F32)
+DEFINE_ADD_LISTED(add_listed_f16, uint16_t, LOAD8_F16, LOAD1_F16)
 
 #ifdef __AVX2__
 static inline float sum8(__m256 v)
@@ -269,8 +305,8 @@ static void pixel_outputs(const float *a, int64_t dim, const float *queries, int
 
 /* Returns 0, or -1 when a tile's buffers could not be allocated (outputs then incomplete). */
 int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32_t *order,
-                       const int64_t *tile_order, int64_t n_tiles, const float *records, const float *features,
-                       int64_t dim, const int32_t *feature_rows, int64_t width, int64_t height, int64_t tile_size,
+                       const int64_t *tile_order, int64_t n_tiles, const float *records, const void *features,
+                       int64_t dim, int half, const int32_t *feature_rows, int64_t width, int64_t height, int64_t tile_size,
                        float alpha_min, float alpha_max, float t_min, const float *background,
                        const float *queries, int64_t n_queries, float *out_rgb, float *out_alpha, float *out_depth,
                        float *out_heat, float *out_unit, int64_t *out_evals, int threads)
@@ -279,6 +315,9 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
         return -1;
     const int64_t tiles_x = (width + tile_size - 1) / tile_size;
     const int64_t n_pix = tile_size * tile_size;
+    const int64_t row_bytes = dim * (half ? 2 : 4);
+    void (*const add_listed)(float *restrict, const void *const *, int64_t, const float *, const uint8_t *,
+                             int32_t *, int64_t) = half ? add_listed_f16 : add_listed_f32;
     int failed = 0;
 #pragma omp parallel for schedule(dynamic, 4) num_threads(threads) reduction(| : failed)
     for (int64_t work = 0; work < n_tiles; work++) {
@@ -291,13 +330,14 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
         float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8], weights[MAX_TILE + 8];
         float chunk[CHUNK][RECORD];
         float *acc = calloc((size_t)(n_pix * dim), sizeof(float));
-        float *chunk_feat = malloc((size_t)(CHUNK * dim) * sizeof(float) + 1); /* + 1: never malloc(0) */
+        float *zero_row = calloc((size_t)dim + 1, sizeof(float)); /* the row of -1; + 1: never calloc(0) */
+        const void *chunk_rows[CHUNK];
         float *list_w = malloc((size_t)(n_pix * CHUNK) * sizeof(float));
         uint8_t *list_c = malloc((size_t)(n_pix * CHUNK));
         int32_t *listed = calloc((size_t)n_pix, sizeof(int32_t));
-        if (!acc || !chunk_feat || !list_w || !list_c || !listed) {
+        if (!acc || !zero_row || !list_w || !list_c || !listed) {
             failed = 1;
-            free(acc), free(chunk_feat), free(list_w), free(list_c), free(listed);
+            free(acc), free(zero_row), free(list_w), free(list_c), free(listed);
             continue;
         }
         for (int64_t p = 0; p < n_pix + 8; p++) {
@@ -310,25 +350,18 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
         for (int64_t j = 0; j < length && n_live > 0; j++) {
             if (j % CHUNK == 0) {
                 if (j > 0)
-                    add_listed(acc, chunk_feat, dim, list_w, list_c, listed, n_pix);
-                /* ask for the chunk after this one now (at the tile's start, this one too) */
+                    add_listed(acc, chunk_rows, dim, list_w, list_c, listed, n_pix);
+                /* ask for the records of the chunk after this one now (at the tile's start, this
+                 * one's too); feature rows are asked for once their Gaussian has contributed */
                 const int64_t ahead = length < j + 2 * CHUNK ? length : j + 2 * CHUNK;
-                for (int64_t c = j == 0 ? 0 : j + CHUNK; c < ahead; c++) {
-                    const int64_t g = order[slots[first + c]];
-                    __builtin_prefetch(records + g * RECORD);
-                    const int64_t row = feature_rows ? feature_rows[g] : g;
-                    for (int64_t f = 0; row >= 0 && f < dim; f += 16)
-                        __builtin_prefetch(features + row * dim + f);
-                }
+                for (int64_t c = j == 0 ? 0 : j + CHUNK; c < ahead; c++)
+                    __builtin_prefetch(records + (int64_t)order[slots[first + c]] * RECORD);
                 const int64_t m = length - j < CHUNK ? length - j : CHUNK;
                 for (int64_t c = 0; c < m; c++) {
                     const int64_t g = order[slots[first + j + c]];
                     memcpy(chunk[c], records + g * RECORD, RECORD * sizeof(float));
                     const int64_t row = feature_rows ? feature_rows[g] : g;
-                    if (row < 0)
-                        memset(chunk_feat + c * dim, 0, (size_t)dim * sizeof(float));
-                    else
-                        memcpy(chunk_feat + c * dim, features + row * dim, (size_t)dim * sizeof(float));
+                    chunk_rows[c] = row < 0 ? (const void *)zero_row : (const char *)features + row * row_bytes;
                 }
             }
             const float *rec = chunk[j % CHUNK];
@@ -341,6 +374,7 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
             px1 = (px1 < x_end ? px1 : x_end) - x_start;
             py0 = (py0 > y_start ? py0 : y_start) - y_start;
             py1 = (py1 < y_end ? py1 : y_end) - y_start;
+            int contributed = 0;
             for (int64_t ly = py0; ly < py1; ly++) {
                 const float dy = my - ((float)(y_start + ly) + 0.5f);
                 const int64_t row = ly * tile_size;
@@ -357,11 +391,16 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
                         list_w[p * CHUNK + listed[p]] = weights[lx];
                         list_c[p * CHUNK + listed[p]] = (uint8_t)(j % CHUNK);
                         listed[p]++;
+                        contributed = 1;
                     }
                 }
             }
+            /* its feature row is read at the chunk's end: ask for it now (half of a tile's
+             * Gaussians never contribute, and their rows are never read) */
+            for (int64_t b = 0; contributed && b < row_bytes; b += 64)
+                __builtin_prefetch((const char *)chunk_rows[j % CHUNK] + b);
         }
-        add_listed(acc, chunk_feat, dim, list_w, list_c, listed, n_pix);
+        add_listed(acc, chunk_rows, dim, list_w, list_c, listed, n_pix);
         out_evals[tile * 2] = evals;
         out_evals[tile * 2 + 1] = tile_pairs;
         for (int64_t ly = 0; ly < y_end - y_start; ly++) {
@@ -377,24 +416,7 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
                               out_unit ? out_unit + at * dim : NULL);
             }
         }
-        free(acc), free(chunk_feat), free(list_w), free(list_c), free(listed);
+        free(acc), free(zero_row), free(list_w), free(list_c), free(listed);
     }
     return failed ? -1 : 0;
 }
-
-/* 1 when this build uses AVX2 and FMA instructions: the loader then checks that the CPU has them. */
-int built_with_avx2(void)
-{
-#if defined(__AVX2__) && defined(__FMA__)
-    return 1;
-#else
-    return 0;
-#endif
-}
-
-/* An (empty) Python module, so that setuptools builds and installs this file as an extension;
- * ``native.py`` loads the same file with ctypes. */
-#include <Python.h>
-static struct PyModuleDef heatmap_module = {PyModuleDef_HEAD_INIT, "_heatmap_native",
-                                            "C heatmap compositing, loaded with ctypes (raster/native.py)", -1, NULL};
-PyMODINIT_FUNC PyInit__heatmap_native(void) { return PyModule_Create(&heatmap_module); }
