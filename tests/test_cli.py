@@ -112,6 +112,13 @@ def test_the_parsers_method_names_are_the_method_table():
     assert list(METHOD_NAMES) == list(METHODS)
 
 
+def test_the_parsers_default_encoder_is_the_encoders_default():
+    from olsplat_nodes.encoders.spec import DEFAULT_SPEC, encoder_from_spec
+    from olsplat_nodes.tools.method_names import DEFAULT_ENCODER
+
+    assert DEFAULT_ENCODER == DEFAULT_SPEC == encoder_from_spec().name
+
+
 def test_help_does_not_import_the_heavy_packages():
     """`olsplat --help` stays fast: building the parser imports neither numba nor OpenCV nor torch."""
     import subprocess

@@ -38,7 +38,9 @@ def test_encode_scene(tiny, tmp_path, capsys):
     assert main(["encode", "--scene", str(scene), "--limit", "1", "--force", "--encoders", "olsplat-vit48"]) == 0
     data = np.load(scene / "cache" / "encode" / "frame_0000.npz")
     assert str(data["encoder"]) == "olsplat-vit48" and data["features_2"].shape[1] == 64
-    assert main(["encode", "--scene", str(scene), "--limit", "1", "--force"]) == 0  # default: shipped fusion
+    assert main(["encode", "--scene", str(scene), "--limit", "1", "--force"]) == 0  # default: olsplat-cnn64
+    assert str(np.load(scene / "cache" / "encode" / "frame_0000.npz")["encoder"]) == "olsplat-cnn64"
+    assert main(["encode", "--scene", str(scene), "--limit", "1", "--force", "--encoders", "shipped"]) == 0
     assert (
         str(np.load(scene / "cache" / "encode" / "frame_0000.npz")["encoder"])
         == "olsplat-cnn64:0.60+olsplat-vit48:0.40"

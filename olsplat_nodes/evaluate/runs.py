@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from ..encoders.spec import DEFAULT_SPEC
 from ..structure.branch import SHIPPED_MINKUNET, StructureConfig
 
 LAMBDA_2D = (0.5, 0.6, 0.7, 1.0)  # 1.0: the first encoder (cnn64) alone
@@ -28,7 +29,7 @@ class Run:
     label: str
     kind: str  # "method", "feature" or "sweep"
     method: str
-    encoders: str  # encoder spec ("shipped", names or folders)
+    encoders: str  # encoder spec (shipped names, "shipped" for both fused, or folders)
     weights: tuple[float, ...] | None  # lambda_2D fusion weights; None = the spec's default
     structure: StructureConfig | None  # the 3D branch, or None for 2D features only
 
@@ -50,7 +51,7 @@ class Run:
 
 def plan_runs(
     methods: list[str],
-    encoders: str = "shipped",
+    encoders: str = DEFAULT_SPEC,
     weights: tuple[float, ...] | None = None,
     with_3d: bool = False,
     feature_ablation: bool = False,
@@ -60,12 +61,12 @@ def plan_runs(
     main_structure = structure if with_3d else None
     runs = [Run(m, "method", m, encoders, weights, main_structure) for m in methods]
     if feature_ablation:
-        if encoders != "shipped":
+        if "," in encoders:
             members = encoders.split(",")
-        else:
+        else:  # the shipped ones (the default is one of them): each alone beside the given spec
             from ..encoders.shipped import SHIPPED
 
-            members = list(SHIPPED)
+            members = list(SHIPPED) if encoders in ("shipped", *SHIPPED) else [encoders]
         runs += [Run(name, "feature", "outlangsplat", name, None, None) for name in members]
         runs.append(Run(WITHOUT_3D, "feature", "outlangsplat", encoders, weights, None))
         descriptors = replace(structure, minkunet=None)

@@ -19,7 +19,8 @@ from typing import Any
 from ..scene.ply import ply_header
 
 MB = 2**20
-FEATURE_DIM = 128  # the shipped encoders' fused width; the estimate does not load an encoder
+FEATURE_DIM = 128  # the widest shipped spec (both encoders fused; the default olsplat-cnn64 is 64):
+# the estimate does not load an encoder, and errs high
 
 
 @dataclass(frozen=True)

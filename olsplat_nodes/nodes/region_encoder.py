@@ -19,6 +19,7 @@ import numpy as np
 
 from olsplat_msgs import EndOfStream, ImageFrame, RegionFeatures
 
+from ..encoders.spec import DEFAULT_SPEC
 from ..transport import Diagnostics, Publisher, Subscriber
 from .base import Node
 from .convert import camera_of, regions_message
@@ -41,7 +42,7 @@ def encode_frame(frame: ImageFrame, encoder, region_config) -> RegionFeatures:
 class RegionEncoderNode(Node):
     @dataclass(frozen=True)
     class Params:
-        encoder: str = "shipped"  # encoder spec as in ``olsplat encode --encoders``
+        encoder: str = DEFAULT_SPEC  # encoder spec as in ``olsplat encode --encoders``
         encoder_weights: tuple[float, ...] = ()  # lambda_2D per encoder, e.g. [0.6, 0.4]; [] = the default
         # regions per level at 640x480, coarse to fine; the method aggregates the finest level
         # only (unless accumulator.level_weights says otherwise), so only that one is made

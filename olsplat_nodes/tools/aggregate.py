@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    from .method_names import METHOD_NAMES
+    from .method_names import DEFAULT_ENCODER, METHOD_NAMES
 
     agg = subparsers.add_parser("aggregate", help="aggregate a scene's views into a language map")
     agg.add_argument("--scene", required=True, type=Path, help="a scene folder (olsplat sim make, or images + COLMAP)")
@@ -17,7 +17,11 @@ def add_parser(subparsers) -> None:
         choices=sorted(METHOD_NAMES),
         help="the method or a baseline (olsplat_nodes/method/table.py)",
     )
-    agg.add_argument("--encoders", default="shipped", help="'shipped' (default), shipped names or exported folders")
+    agg.add_argument(
+        "--encoders",
+        default=DEFAULT_ENCODER,
+        help=f"shipped names (default {DEFAULT_ENCODER}), 'shipped' (both fused) or exported folders",
+    )
     agg.add_argument("--weights", help="fusion weights, e.g. 0.6,0.4")
     agg.add_argument(
         "--set",

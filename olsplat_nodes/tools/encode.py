@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import OlsplatInputError
+from .method_names import DEFAULT_ENCODER
 
 
 def level_counts(levels: int) -> tuple[int, ...]:
@@ -29,9 +30,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--scene", required=True, type=Path, help="folder with images/ (and sparse/0/)")
     parser.add_argument(
         "--encoders",
-        default="shipped",
+        default=DEFAULT_ENCODER,
         help="comma-separated encoders: folders made by 'olsplat export-clip' or names of shipped encoders "
-        "(olsplat-cnn64, olsplat-vit48); 'shipped' (default): both shipped encoders fused; 'none': regions only",
+        f"(olsplat-cnn64, olsplat-vit48; default {DEFAULT_ENCODER}); 'shipped': both shipped encoders fused; "
+        "'none': regions only",
     )
     parser.add_argument("--weights", help="comma-separated fusion weights (default: equal; the paper: 0.6,0.4)")
     parser.add_argument(

@@ -10,7 +10,7 @@ from pathlib import Path
 
 
 def add_parser(subparsers) -> None:
-    from .method_names import METHOD_NAMES
+    from .method_names import DEFAULT_ENCODER, METHOD_NAMES
 
     ev = subparsers.add_parser("eval", help="aggregate with several methods and score them on the annotations")
     ev.add_argument(
@@ -21,7 +21,11 @@ def add_parser(subparsers) -> None:
         default="outlangsplat,outlangsplat-paper,projection,drsplat,topk,vala",
         help=f"comma-separated, from: {', '.join(METHOD_NAMES)}",
     )
-    ev.add_argument("--encoders", default="shipped", help="'shipped', shipped names or exported encoder folders")
+    ev.add_argument(
+        "--encoders",
+        default=DEFAULT_ENCODER,
+        help=f"shipped names (default {DEFAULT_ENCODER}), 'shipped' (both fused) or exported encoder folders",
+    )
     ev.add_argument("--weights", help="lambda_2D fusion weights, e.g. 0.6,0.4")
     ev.add_argument(
         "--features",

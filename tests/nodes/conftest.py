@@ -84,13 +84,13 @@ def tiny_camera(tiny):
 
 @pytest.fixture(scope="session")
 def region_features(tiny_camera):
-    """A real RegionFeatures of ENCODE_VIEW: region_encoder.encode_frame with the shipped encoder."""
+    """A real RegionFeatures of ENCODE_VIEW: region_encoder.encode_frame with the node's default encoder."""
     from olsplat_nodes.encoders.spec import encoder_from_spec
     from olsplat_nodes.nodes.region_encoder import encode_frame
     from olsplat_nodes.regions import RegionConfig
 
     camera, image = tiny_camera
-    return encode_frame(image_frame(camera, image), encoder_from_spec("shipped", None), RegionConfig())
+    return encode_frame(image_frame(camera, image), encoder_from_spec(), RegionConfig())
 
 
 @pytest.fixture(scope="session")

@@ -84,7 +84,7 @@ def test_graph_aggregates_every_frame_once_survives_kill9_and_answers(tiny, tmp_
             QueryRequest(
                 request_id="q1",
                 text="red roof buildings",
-                view="frame_0003.jpg",
+                view="frame_0001.jpg",  # its annotation has a red roof (frame_0003's has none)
                 heatmap=True,
                 threshold=float("nan"),
                 negatives=["road", "trees", "lawn"],

@@ -156,7 +156,7 @@ def test_reply_arrays_mean_what_the_schema_says(ctx, sockdir, tiny, tiny_run, tm
     """heatmap: the cosine of the view's rendered features with the query, in [-1, 1]; mask:
     where that beats every negative's heatmap on covered pixels; image: the view's photo."""
     from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
-    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.query.answer import encoder_for_map
     from olsplat_nodes.query.heatmap import FeatureImages, render_heatmaps
     from olsplat_nodes.scene import read_ply
 
@@ -177,7 +177,7 @@ def test_reply_arrays_mean_what_the_schema_says(ctx, sockdir, tiny, tiny_run, tm
 
     language_map = LanguageMap.load(latest_map(tmp_path / "map")["path"])
     view = next(v for v in load_views(tmp_path / "views") if v.camera.name == ENCODE_VIEW)
-    texts = encoder_from_spec().encode_text(["red roof buildings", *negatives])
+    texts = encoder_for_map(language_map).encode_text(["red roof buildings", *negatives])
     gaussians = read_ply(scene / "map" / "point_cloud.ply")
     features = language_map.features.astype(np.float32)
     rendered, _ = render_heatmaps(gaussians, features, texts, view.camera)  # eq. semantic_heatmap in the kernel
