@@ -2,7 +2,8 @@
 process, as the graph's nodes run them (the region encoder's regions and features, the
 accumulator's Top-K rasterization, observations, store segment and photo), with the nodes'
 thread setting (``--threads``, default 1 as in the launch files) and their region levels
-(``--levels``, default the finest only, as the region encoder makes them).
+(``--levels``, default the finest only, as the region encoder makes them) and encoder
+(``--encoders``, default the region encoder's).
 
 The first view warms up (numba compilation, page faults) and is not counted; the figures are
 means over the next ``--views``. ``--json FILE`` writes ``{stage: seconds}`` plus ``total``.
@@ -18,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..tools.method_names import DEFAULT_ENCODER
+
 STAGES = ("regions", "features", "rasterize", "observe", "store", "photo")
 
 
@@ -27,6 +30,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--views", type=int, default=8, help="views measured after the warm-up one")
     parser.add_argument("--threads", type=int, default=1, help="numba, onnxruntime and OpenCV threads")
     parser.add_argument("--levels", default="240", help="regions per level at 640x480, comma-separated")
+    parser.add_argument(
+        "--encoders", default=DEFAULT_ENCODER, help=f"encoder spec as for olsplat encode (default {DEFAULT_ENCODER})"
+    )
     parser.add_argument("--json", type=Path, help="also write the figures here")
     parser.set_defaults(run=run)
 
@@ -54,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     scene = Scene.open(args.scene)
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     cv2.setNumThreads(args.threads)
-    encoder = encoder_from_spec(threads=args.threads)
+    encoder = encoder_from_spec(args.encoders, threads=args.threads)
     method = named_method("outlangsplat")
     gaussians = read_ply(scene.ply)
     cameras = scene.cameras[: args.views + 1]
