@@ -105,7 +105,7 @@ def test_the_pages_link_source_shows_the_drones_map_views_and_answers(served):
     assert rows["query_server"][0] == "OK"
     assert source.refresh() is False  # nothing new
 
-    answer = source.ask("red roof buildings", ["road", "trees"], ENCODE_VIEW)
+    answer = source.ask("parking lot", ["road", "trees"], ENCODE_VIEW)  # in the view's annotation (no red roofs)
     assert answer.status == "ok", answer.message
     assert answer.margin.shape == (4000,) and np.isfinite(answer.margin).any()
     assert answer.instances and all(i.gaussians >= 20 for i in answer.instances)
