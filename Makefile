@@ -30,7 +30,7 @@ system-deps:
 		echo "      (sudo apt-get install chromium runs them)"; \
 	fi
 
-$(STAMP): pyproject.toml setup.py $(wildcard olsplat_nodes/native/*.c) | system-deps
+$(STAMP): pyproject.toml setup.py $(wildcard olsplat_nodes/native/*.[ch]) | system-deps
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "olsplat needs Python >= 3.11, got " + sys.version.split()[0])'
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip

@@ -20,6 +20,7 @@ setup(
         Extension(
             "olsplat_nodes.native._kernels",
             sources=[f"olsplat_nodes/native/{name}" for name in SOURCES],
+            depends=["olsplat_nodes/native/simd.h"],
             extra_compile_args=flags,
             extra_link_args=["-fopenmp"],
             optional=True,

@@ -3,6 +3,7 @@
 
 - ``heatmap_composite.c``: a view's cosine heatmaps (glue: ``raster/heatmap_native.py``);
 - ``winning_rows.c``: the relevance rule over a float16 table (glue: ``query/winners.py``);
+- ``simd.h``: what both share (float16 bits to float, a register's sum);
 - ``module.c``: the (empty) Python module that makes setuptools build them, and the build's flags.
 
 ``library()`` is the loaded library, or None when the extension is missing (no C compiler at

@@ -30,9 +30,8 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#ifdef __AVX2__
-#include <immintrin.h>
-#endif
+
+#include "simd.h"
 
 /* columns of project.RECORD */
 enum { MX, MY, CA, CB, CC, OPACITY, CUT, EX, EY, RED, GREEN, BLUE, DEPTH };
@@ -210,39 +209,16 @@ static void row_pass(float *restrict trans, float *restrict acc_r, float *restri
     }
 #define LOAD8_F32(r) _mm256_loadu_ps(r)
 #define LOAD8_F16(r) _mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)(r)))
-#define LOAD1_F16(r) _cvtsh_ss(*(r))
 #else
 #define ADD_LISTED_BLOCKS(T, LOAD8)
 #define LOAD8_F32(r) 0
 #define LOAD8_F16(r) 0
-static inline float half_to_float(uint16_t h) /* IEEE binary16 bits -> float, without F16C */
-{
-    const uint32_t sign = (uint32_t)(h & 0x8000) << 16, exponent = (h >> 10) & 0x1f, mantissa = h & 0x3ff;
-    union { uint32_t u; float f; } out;
-    if (exponent == 0x1f) /* inf, nan */
-        out.u = sign | 0x7f800000u | (mantissa << 13);
-    else if (exponent == 0) /* zero, subnormal: mantissa * 2^-24 */
-        return (h & 0x8000 ? -1.0f : 1.0f) * (float)mantissa * (1.0f / 16777216.0f);
-    else
-        out.u = sign | ((exponent + 112) << 23) | (mantissa << 13);
-    return out.f;
-}
-#define LOAD1_F16(r) half_to_float(*(r))
 #endif
+#define LOAD1_F16(r) half_bits_to_float(*(r))
 #define LOAD1_F32(r) (*(r))
 
 DEFINE_ADD_LISTED(add_listed_f32, float, LOAD8_F32, LOAD1_F32)
 DEFINE_ADD_LISTED(add_listed_f16, uint16_t, LOAD8_F16, LOAD1_F16)
-
-#ifdef __AVX2__
-static inline float sum8(__m256 v)
-{
-    __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
-    s = _mm_add_ps(s, _mm_movehl_ps(s, s));
-    s = _mm_add_ss(s, _mm_movehdup_ps(s));
-    return _mm_cvtss_f32(s);
-}
-#endif
 
 /* A pixel's outputs from its feature sum a [dim]: heat[q] = cos(a, queries[q]) (0 where a = 0;
  * the 1 / (alpha + eps) of F cancels) and, when unit is given, unit = a / |a|. */

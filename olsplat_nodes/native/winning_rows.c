@@ -7,36 +7,8 @@
  * (tests/query/test_winners.py).
  */
 #include <stdint.h>
-#ifdef __AVX2__
-#include <immintrin.h>
-#endif
 
-#ifdef __AVX2__
-static inline float sum8_rows(__m256 v)
-{
-    __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
-    s = _mm_add_ps(s, _mm_movehl_ps(s, s));
-    s = _mm_add_ss(s, _mm_movehdup_ps(s));
-    return _mm_cvtss_f32(s);
-}
-#endif
-
-static inline float half_bits_to_float(uint16_t h) /* IEEE binary16 -> float, exactly */
-{
-#ifdef __F16C__
-    return _cvtsh_ss(h);
-#else
-    const uint32_t sign = (uint32_t)(h & 0x8000) << 16, exponent = (h >> 10) & 0x1f, mantissa = h & 0x3ff;
-    union { uint32_t u; float f; } out;
-    if (exponent == 0x1f) /* inf, nan */
-        out.u = sign | 0x7f800000u | (mantissa << 13);
-    else if (exponent == 0) /* zero, subnormal: mantissa * 2^-24 */
-        return (h & 0x8000 ? -1.0f : 1.0f) * (float)mantissa * (1.0f / 16777216.0f);
-    else
-        out.u = sign | ((exponent + 112) << 23) | (mantissa << 13);
-    return out.f;
-#endif
-}
+#include "simd.h"
 
 /* Dot product of a float16 row with a float32 embedding, both [dim]. */
 static inline float dot_half(const uint16_t *row, const float *embedding, int64_t dim)
@@ -48,7 +20,7 @@ static inline float dot_half(const uint16_t *row, const float *embedding, int64_
     for (; d + 8 <= dim; d += 8)
         sum = _mm256_fmadd_ps(_mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)(row + d))),
                               _mm256_loadu_ps(embedding + d), sum);
-    tail = sum8_rows(sum);
+    tail = sum8(sum);
 #endif
     for (; d < dim; d++)
         tail += half_bits_to_float(row[d]) * embedding[d];

@@ -16,6 +16,7 @@ kernel ``olsplat_nodes/native/winning_rows.c`` (numba has no float16), a float32
 from __future__ import annotations
 
 import ctypes
+from functools import cache
 
 import numba
 import numpy as np
@@ -28,14 +29,25 @@ _P = ctypes.c_void_p
 _HALF_ARGUMENTS: list = [_P, ctypes.c_int64, ctypes.c_int64, _P, ctypes.c_int64, _P, _P, ctypes.c_int]
 
 
+@cache
+def _half_kernel():
+    """The C kernel ``winning_rows_half``, typed, or None without the C kernels."""
+    loaded = library()
+    if loaded is None:
+        return None
+    kernel = loaded.winning_rows_half
+    kernel.argtypes, kernel.restype = _HALF_ARGUMENTS, None
+    return kernel
+
+
 def winning_rows(table: np.ndarray, embeddings: np.ndarray, observed: np.ndarray) -> np.ndarray:
     """[N] bool: row g of ``table`` [N, D] (float32, or float16 where the C kernels are built)
     picks embeddings[0] over every other row of ``embeddings`` [Q, D] float32, and observed[g]
     ([N] bool; empty: every row counts)."""
     if table.dtype == np.float32:
         return _winning_rows_float32(table, embeddings, observed)
-    loaded = library()
-    if table.dtype != np.float16 or loaded is None:
+    kernel = _half_kernel()
+    if table.dtype != np.float16 or kernel is None:
         raise TypeError(f"winning_rows: a float32 table, or float16 with the C kernels built; got {table.dtype}")
     table = np.ascontiguousarray(table)
     embeddings = np.ascontiguousarray(embeddings, np.float32)
@@ -45,8 +57,6 @@ def winning_rows(table: np.ndarray, embeddings: np.ndarray, observed: np.ndarray
         raise ValueError(f"observed must be [{len(table)}] or empty, got {len(observed)}")
     seen = np.ascontiguousarray(observed, np.bool_)
     wins = np.empty(len(table), np.bool_)
-    kernel = loaded.winning_rows_half
-    kernel.argtypes, kernel.restype = _HALF_ARGUMENTS, None
     kernel(
         table.ctypes.data, len(table), table.shape[1], embeddings.ctypes.data, len(embeddings),
         seen.ctypes.data if len(seen) else None, wins.ctypes.data, numba.get_num_threads(),
