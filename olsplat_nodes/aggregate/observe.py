@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .config import AggregationConfig
 
@@ -64,7 +64,7 @@ def stack_levels(label_maps: np.ndarray, bank: list[np.ndarray]) -> tuple[np.nda
     return slots, np.concatenate(bank).astype(np.float32)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
     """[P] float32 M_v(p) * q_sum(p) * q_eff(p) (or M_v(p) without quality): w~ = w * factor.
 
@@ -72,7 +72,7 @@ def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
     temporaries: on a small machine allocating and faulting in those cost more than the math."""
     n_pixels, k = topk_weights.shape
     out = np.zeros(n_pixels, np.float32)
-    for p in range(n_pixels):
+    for p in prange(n_pixels):
         if not valid[p]:
             continue
         if not use_quality:
@@ -93,82 +93,96 @@ def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
 
 
 @njit(cache=True)
-def _strengths(topk_ids, topk_weights, factors, n_gaussians):
-    """[N] float64 d_i = sum over the view's pixels and ranks of w~ (entries with w~ > 0)."""
-    strength = np.zeros(n_gaussians, np.float64)
+def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, n_gaussians):
+    """One pass over the view's entries (pixel order, then rank): d_i = sum of w~ over
+    Gaussian i's entries (float64 [N]), and the runs: per used level, consecutive entries of a
+    Gaussian in the same slot summed into one (gaussian, slot, level, summed w~) row, in the
+    order the runs start. Neighbouring pixels mostly share their Gaussians and regions, so a
+    view's ~5M entries make ~20x fewer runs, and only the runs are grouped afterwards
+    (``_mixtures``). last_slot / last_run remember each Gaussian's open run per level."""
     n_pixels, k = topk_ids.shape
-    for p in range(n_pixels):
-        f = factors[p]
-        if f == 0.0:
-            continue
-        for r in range(k):
-            i = topk_ids[p, r]
-            if i < 0:
-                continue
-            w = topk_weights[p, r] * f
-            if w > 0.0:
-                strength[i] += w
-    return strength
-
-
-@njit(cache=True)
-def _group_entries(topk_ids, topk_weights, factors, kept_of, n_kept):
-    """The kept Gaussians' entries grouped by Gaussian, in pixel order within a group:
-    (offsets [n_kept + 1], pixel [E] int32, w~ [E] float32). A counting sort in two passes."""
-    n_pixels, k = topk_ids.shape
-    offsets = np.zeros(n_kept + 1, np.int64)
-    for p in range(n_pixels):
-        f = factors[p]
-        if f == 0.0:
-            continue
-        for r in range(k):
-            i = topk_ids[p, r]
-            if i >= 0 and kept_of[i] >= 0 and topk_weights[p, r] * f > 0.0:
-                offsets[kept_of[i] + 1] += 1
-    for j in range(n_kept):
-        offsets[j + 1] += offsets[j]
-    fill = offsets[:-1].copy()
-    pixels = np.empty(offsets[n_kept], np.int32)
-    weights = np.empty(offsets[n_kept], np.float32)
-    for p in range(n_pixels):
-        f = factors[p]
-        if f == 0.0:
-            continue
-        for r in range(k):
-            i = topk_ids[p, r]
-            if i < 0:
-                continue
-            j = kept_of[i]
-            w = topk_weights[p, r] * f
-            if j >= 0 and w > 0.0:
-                pixels[fill[j]] = p
-                weights[fill[j]] = w
-                fill[j] += 1
-    return offsets, pixels, weights
-
-
-@njit(cache=True)
-def _mixtures(entry_offsets, pixels, weights, slot_maps, level_weights, strength):
-    """Per kept Gaussian, the distinct (slot, summed weight) over its entries, per level with a
-    non-zero level weight; mixture weights normalised by the Gaussian's d."""
     n_levels = slot_maps.shape[0]
-    n_kept = entry_offsets.shape[0] - 1
-    cap = pixels.shape[0] * n_levels
-    out_slots = np.empty(cap, np.int32)
-    out_weights = np.empty(cap, np.float32)
+    strength = np.zeros(n_gaussians, np.float64)
+    last_slot = np.full((n_levels, n_gaussians), -1, np.int32)
+    last_run = np.zeros((n_levels, n_gaussians), np.int64)
+    cap = max(1024, n_pixels)
+    run_gaussian = np.empty(cap, np.int32)
+    run_slot = np.empty(cap, np.int32)
+    run_level = np.empty(cap, np.int32)
+    run_weight = np.empty(cap, np.float64)
+    n = 0
+    for p in range(n_pixels):
+        f = factors[p]
+        if f == 0.0:
+            continue
+        for r in range(k):
+            i = topk_ids[p, r]
+            if i < 0:
+                continue
+            w = topk_weights[p, r] * f
+            if not w > 0.0:
+                continue
+            strength[i] += w
+            for level in range(n_levels):
+                slot = slot_maps[level, p]
+                if not level_on[level] or slot < 0:
+                    continue
+                if last_slot[level, i] == slot:
+                    run_weight[last_run[level, i]] += w
+                    continue
+                if n == cap:  # grow by half (numba has no append to a preallocated array)
+                    cap += cap // 2
+                    run_gaussian = _grown(run_gaussian, cap)
+                    run_slot = _grown(run_slot, cap)
+                    run_level = _grown(run_level, cap)
+                    run_weight = _grown(run_weight, cap)
+                run_gaussian[n], run_slot[n], run_level[n], run_weight[n] = i, slot, level, w
+                last_slot[level, i] = slot
+                last_run[level, i] = n
+                n += 1
+    return strength, run_gaussian[:n], run_slot[:n], run_level[:n], run_weight[:n]
+
+
+@njit(cache=True)
+def _grown(array, size):
+    out = np.empty(size, array.dtype)
+    out[: len(array)] = array
+    return out
+
+
+@njit(cache=True)
+def _mixtures(run_gaussian, run_slot, run_level, run_weight, kept_of, n_kept, n_levels, level_weights, strength):
+    """Per kept Gaussian (kept_of[i] = its row, -1 if not kept), level by level, its distinct
+    slots in the order they first appear with their summed w~; mixture weights a_l * sum / d.
+    Runs are grouped by kept Gaussian with a counting sort that keeps their order."""
+    counts = np.zeros(n_kept + 1, np.int64)
+    for e in range(run_gaussian.shape[0]):
+        j = kept_of[run_gaussian[e]]
+        if j >= 0:
+            counts[j + 1] += 1
+    for j in range(n_kept):
+        counts[j + 1] += counts[j]
+    fill = counts[:-1].copy()
+    grouped = np.empty(counts[n_kept], np.int64)
+    for e in range(run_gaussian.shape[0]):
+        j = kept_of[run_gaussian[e]]
+        if j >= 0:
+            grouped[fill[j]] = e
+            fill[j] += 1
+    out_slots = np.empty(counts[n_kept], np.int32)
+    out_weights = np.empty(counts[n_kept], np.float32)
     offsets = np.zeros(n_kept + 1, np.int64)
     local_slots = np.empty(256, np.int32)
     local_weights = np.empty(256, np.float64)
     n_out = 0
     for j in range(n_kept):
         for level in range(n_levels):
-            if level_weights[level] == 0.0:  # an unused level adds nothing: no zero-weight entries
-                continue
             n_local = 0
-            for e in range(entry_offsets[j], entry_offsets[j + 1]):
-                slot = slot_maps[level, pixels[e]]
-                if slot < 0:
+            for g in range(counts[j], counts[j + 1]):
+                e = grouped[g]
+                if run_level[e] != level:
                     continue
+                slot = run_slot[e]
                 found = -1
                 for s in range(n_local):
                     if local_slots[s] == slot:
@@ -182,7 +196,7 @@ def _mixtures(entry_offsets, pixels, weights, slot_maps, level_weights, strength
                         local_slots[found] = slot
                         local_weights[found] = 0.0
                         n_local += 1
-                local_weights[found] += weights[e]
+                local_weights[found] += run_weight[e]
             for s in range(n_local):
                 out_slots[n_out] = local_slots[s]
                 out_weights[n_out] = level_weights[level] * local_weights[s] / strength[j]
@@ -214,15 +228,16 @@ def observe_view(
     w = np.ascontiguousarray(topk_weights.reshape(height * width, k), np.float32)
     valid = (slot_maps >= 0).all(0).reshape(-1)  # M_v(p): the pixel has a feature at every level
     factors = _pixel_factors(w, valid, config.q_min, config.tau_e, config.kappa, config.eps, config.use_quality)
-    strength = _strengths(ids, w, factors, n_gaussians)
+    levels = slot_maps.shape[0]
+    a = level_weights(config, levels)
+    strength, run_gaussian, run_slot, run_level, run_weight = _runs(
+        ids, w, factors, slot_maps.reshape(levels, -1), a > 0, n_gaussians
+    )
     kept = np.flatnonzero(strength > config.tau_d).astype(np.int32)
     kept_of = np.full(n_gaussians, -1, np.int32)
     kept_of[kept] = np.arange(len(kept), dtype=np.int32)
-    levels = slot_maps.shape[0]
-    a = level_weights(config, levels)
     kept_strength = strength[kept]
-    entry_offsets, pixels, entry_weights = _group_entries(ids, w, factors, kept_of, len(kept))
     offsets, slots, weights = _mixtures(
-        entry_offsets, pixels, entry_weights, slot_maps.reshape(levels, -1), a, kept_strength
+        run_gaussian, run_slot, run_level, run_weight, kept_of, len(kept), levels, a, kept_strength
     )
     return ViewObservations(kept, kept_strength.astype(np.float32), offsets, slots, weights)

@@ -2,8 +2,11 @@
 ``olsplat_nodes.native._kernels``, and loaded here with ctypes.
 
 - ``heatmap_composite.c``: a view's cosine heatmaps (glue: ``raster/heatmap_native.py``);
+- ``topk_composite.c``: a view's render with the per-pixel Top-K, the accumulator's (glue:
+  ``raster/topk_native.py``);
 - ``winning_rows.c``: the relevance rule over a float16 table (glue: ``query/winners.py``);
-- ``simd.h``: what both share (float16 bits to float, a register's sum);
+- ``tile_pass.h``: what the two compositing kernels share (records, a Gaussian's pixel box, the
+  vectorized pass over a row of it); ``simd.h``: float16 bits to float, a register's sum;
 - ``module.c``: the (empty) Python module that makes setuptools build them, and the build's flags.
 
 ``library()`` is the loaded library, or None when the extension is missing (no C compiler at

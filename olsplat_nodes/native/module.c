@@ -1,4 +1,4 @@
-/* The Python side of olsplat's C kernels (heatmap_composite.c, winning_rows.c): an empty module,
+/* The Python side of olsplat's C kernels (heatmap_composite.c, topk_composite.c, winning_rows.c): an empty module,
  * so that setuptools builds and installs them as one extension; ``native/__init__.py`` loads the
  * same file with ctypes. */
 #include <Python.h>

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene import Camera, Gaussians
-from . import heatmap_native
+from . import heatmap_native, topk_native
 from .binning import bin_tiles
 from .composite import composite_tiles
 from .config import RasterConfig
@@ -59,6 +59,8 @@ def rasterize(
     (``heatmap_native.py``: same outputs, alpha within 2e-6 and cosines within 2e-5 of the numba
     kernel's). That kernel reads float16 features as they are (a language map's stored form: half
     the bytes); every other path widens them to float32 first (the same values, exactly).
+    Renders without features (the accumulator's Top-K) go to the C Top-K kernel when it is built
+    (``topk_native.py``: weights within a few ulp of the numba kernel's, the same ranking rule).
     """
     config = config or RasterConfig()
     n = len(gaussians)
@@ -110,6 +112,11 @@ def rasterize(
         heatmap_native.composite_heatmaps(
             offsets, slots, order, tile_order, projected.records, feats, rows, width, height, tile, config,
             background, queries, rgb, alpha, depth, out_features, unit, evals,
+        )  # fmt: skip
+    elif features is None and topk_native.available(tile, k):  # the accumulator's render: the C kernel, same Top-K
+        topk_native.composite_topk(
+            offsets, slots, order, tile_order, projected.records, width, height, tile, config, k,
+            background, rgb, alpha, depth, topk_ids, topk_weights, evals,
         )  # fmt: skip
     else:
         composite_tiles(

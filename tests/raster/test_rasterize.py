@@ -1,15 +1,26 @@
-"""The fast rasterizer against the slow numpy reference, and its Top-K contract."""
+"""The fast rasterizer against the slow numpy reference, and its Top-K contract: with the numba
+kernel and, where it is built, the C Top-K kernel (native/topk_composite.c)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from olsplat_nodes.raster import RasterConfig, rasterize
+from olsplat_nodes.raster import RasterConfig, rasterize, topk_native
 from olsplat_nodes.raster._reference import rasterize_reference
 from olsplat_nodes.raster.binning import radix_argsort
 
 from ..conftest import camera_for, random_gaussians
+
+
+@pytest.fixture(params=["numba", "c"])
+def topk_kernel(request, monkeypatch):
+    """Each Top-K test runs with both compositing kernels (the C one skipped where it is not built)."""
+    if request.param == "numba":
+        monkeypatch.setattr(topk_native, "kernel", lambda: None)
+    elif topk_native.kernel() is None:
+        pytest.skip("the C kernels are not built here")
+    return request.param
 
 
 def assert_topk_matches(fast, ref, tie_tol=1e-6):
@@ -38,7 +49,7 @@ CASES = [
 
 
 @pytest.mark.parametrize("width,height,n,kind,sh_degree,dim", CASES)
-def test_fast_matches_reference(width, height, n, kind, sh_degree, dim):
+def test_fast_matches_reference(width, height, n, kind, sh_degree, dim, topk_kernel):
     gaussians = random_gaussians(n, sh_degree, seed=n + width)
     camera = camera_for(kind, width, height)
     features = np.random.default_rng(1).normal(size=(n, dim)).astype(np.float32) if dim else None
@@ -57,7 +68,7 @@ def test_fast_matches_reference(width, height, n, kind, sh_degree, dim):
     assert 0 < fast.n_evaluations <= fast.n_tile_pairs
 
 
-def test_many_contributors_exercise_the_topk_cap():
+def test_many_contributors_exercise_the_topk_cap(topk_kernel):
     """A dense, translucent stack: pixels with more than 32 contributors and K between the bounds."""
     gaussians = random_gaussians(600, 0, seed=7, spread=0.5)
     gaussians.opacity_logits[:] = -2.0  # opacity ~0.12: many layers before saturation
@@ -70,7 +81,7 @@ def test_many_contributors_exercise_the_topk_cap():
     assert_topk_matches(fast, ref)
 
 
-def test_background_and_config_variants():
+def test_background_and_config_variants(topk_kernel):
     gaussians = random_gaussians(100, 1, seed=3)
     camera = camera_for("PINHOLE_SKEWED", 40, 30)
     config = RasterConfig(tile_size=8, topk_min=4, topk_max=12, topk_coverage=0.75, eps2d=0.1)
@@ -81,7 +92,7 @@ def test_background_and_config_variants():
     assert_topk_matches(fast, ref)
 
 
-def test_topk_contract():
+def test_topk_contract(topk_kernel):
     gaussians = random_gaussians(300, 0, seed=11)
     config = RasterConfig()
     out = rasterize(gaussians, camera_for("PINHOLE_CENTRED", 64, 48), config)
@@ -104,7 +115,7 @@ def test_topk_contract():
     assert np.all(np.diff(sorted_ids, axis=-1) != 0)
 
 
-def test_degenerate_gaussians_are_skipped():
+def test_degenerate_gaussians_are_skipped(topk_kernel):
     clean = random_gaussians(80, 2, seed=5)
     camera = camera_for("PINHOLE_CENTRED", 40, 30)
     expected = rasterize(clean, camera)
@@ -125,7 +136,7 @@ def test_degenerate_gaussians_are_skipped():
     np.testing.assert_allclose(got.rgb, ref["rgb"], atol=1e-4)
 
 
-def test_empty_view_and_no_topk():
+def test_empty_view_and_no_topk(topk_kernel):
     gaussians = random_gaussians(50, 0, seed=2)
     camera = camera_for("PINHOLE_CENTRED", 40, 30)
     camera.world_from_camera[:3, 3] = [0.0, 0.0, -10.0]  # looking at nothing

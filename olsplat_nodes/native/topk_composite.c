@@ -1,0 +1,195 @@
+/* Top-K compositing in C: the ``composite.composite_tiles`` rule for a view without features,
+ * the accumulator's render (colour, alpha, depth and the per-pixel adaptive Top-K; k_cap = 0:
+ * no Top-K, a plain render).
+ *
+ * Same contract as the numba kernel (its docstring and ``rasterize``): per tile, front to back
+ * over the tile's depth-ordered list, each Gaussian only over its alpha >= alpha_min pixel box
+ * (``pixel_box``), w = alpha * T, a pixel stops before T would fall to <= t_min. A pixel keeps
+ * its k_cap best contributions by rank key: the weight's float bits above the inverted depth
+ * position (larger weight first, the nearer Gaussian first on ties; ``composite.rank_key``),
+ * in an unsorted list whose smallest key is replaced by a larger one once the list is full. At
+ * the end the list is ranked and the adaptive K is the smallest k whose cumulative weight
+ * reaches coverage * (1 - T_final), clamped to [topk_min, k_cap] and to the contributors.
+ *
+ * One difference in how, none in what is kept: a row of a Gaussian's box is one vectorized pass
+ * (``tile_pass.h``: exp(-s) by a polynomial, relative error < 1e-6), so weights agree with the
+ * numba kernel's within a few ulp (and a pixel whose transmittance lands within those of t_min
+ * may stop one Gaussian apart).
+ *
+ * Part of the optional extension of olsplat_nodes/native (setup.py); ``raster/topk_native.py``
+ * calls it and ``rasterize`` falls back to the numba kernel without it (or for k_cap > 32).
+ * Tested against the numba kernel and the numpy reference (tests/raster/test_native.py).
+ */
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "tile_pass.h"
+
+#define MAX_K 32 /* largest k_cap (topk_max) of this kernel: the ranking network's size */
+
+/* Batcher's odd-even merge sort of 32 keys, the pairs of ``raster/sorting_network.batcher_pairs(32)``
+ * (a test checks this table against it): 191 compare-exchanges, each putting the larger key first. */
+static const int8_t NETWORK32[191][2] = {{0,1},{2,3},{4,5},{6,7},{8,9},{10,11},{12,13},{14,15},{16,17},{18,19},{20,21},{22,23},{24,25},{26,27},{28,29},{30,31},{0,2},{1,3},{4,6},{5,7},{8,10},{9,11},{12,14},{13,15},{16,18},{17,19},{20,22},{21,23},{24,26},{25,27},{28,30},{29,31},{1,2},{5,6},{9,10},{13,14},{17,18},{21,22},{25,26},{29,30},{0,4},{1,5},{2,6},{3,7},{8,12},{9,13},{10,14},{11,15},{16,20},{17,21},{18,22},{19,23},{24,28},{25,29},{26,30},{27,31},{2,4},{3,5},{10,12},{11,13},{18,20},{19,21},{26,28},{27,29},{1,2},{3,4},{5,6},{9,10},{11,12},{13,14},{17,18},{19,20},{21,22},{25,26},{27,28},{29,30},{0,8},{1,9},{2,10},{3,11},{4,12},{5,13},{6,14},{7,15},{16,24},{17,25},{18,26},{19,27},{20,28},{21,29},{22,30},{23,31},{4,8},{5,9},{6,10},{7,11},{20,24},{21,25},{22,26},{23,27},{2,4},{3,5},{6,8},{7,9},{10,12},{11,13},{18,20},{19,21},{22,24},{23,25},{26,28},{27,29},{1,2},{3,4},{5,6},{7,8},{9,10},{11,12},{13,14},{17,18},{19,20},{21,22},{23,24},{25,26},{27,28},{29,30},{0,16},{1,17},{2,18},{3,19},{4,20},{5,21},{6,22},{7,23},{8,24},{9,25},{10,26},{11,27},{12,28},{13,29},{14,30},{15,31},{8,16},{9,17},{10,18},{11,19},{12,20},{13,21},{14,22},{15,23},{4,8},{5,9},{6,10},{7,11},{12,16},{13,17},{14,18},{15,19},{20,24},{21,25},{22,26},{23,27},{2,4},{3,5},{6,8},{7,9},{10,12},{11,13},{14,16},{15,17},{18,20},{19,21},{22,24},{23,25},{26,28},{27,29},{1,2},{3,4},{5,6},{7,8},{9,10},{11,12},{13,14},{15,16},{17,18},{19,20},{21,22},{23,24},{25,26},{27,28},{29,30}};
+
+/* Sort k[32] largest first. The loop is unrolled, so k's indices are constants and the keys stay
+ * in registers (as in numba's generated _network32.py). Keys are below 2^63 (a weight's bits are
+ * those of a positive float): signed compares. */
+static inline void sort32(int64_t *k)
+{
+#pragma GCC unroll 200
+    for (int e = 0; e < 191; e++) {
+        const int64_t a = k[NETWORK32[e][0]], b = k[NETWORK32[e][1]];
+        k[NETWORK32[e][0]] = a > b ? a : b;
+        k[NETWORK32[e][1]] = a > b ? b : a;
+    }
+}
+
+/* The slot of the smallest of keys[0:n] (keys are distinct). */
+static inline int32_t smallest(const int64_t *keys, int32_t n)
+{
+    int32_t at = 0;
+    for (int32_t i = 1; i < n; i++)
+        at = keys[i] < keys[at] ? i : at;
+    return at;
+}
+
+static inline float bits_float(uint32_t bits)
+{
+    float w;
+    memcpy(&w, &bits, sizeof w);
+    return w;
+}
+
+/* Returns 0, or -1 when a tile's buffers could not be allocated, tile_size is over MAX_TILE or
+ * k_cap over MAX_K (outputs then incomplete). out_topk_ids / out_topk_weights are [H, W, k_cap]
+ * (unused when k_cap is 0); every entry is written (padding -1 / 0). */
+int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *order, const int64_t *tile_order,
+                   int64_t n_tiles, const float *records, int64_t width, int64_t height, int64_t tile_size,
+                   float alpha_min, float alpha_max, float t_min, int32_t k_cap, int32_t topk_min, double coverage,
+                   const float *background, float *out_rgb, float *out_alpha, float *out_depth,
+                   int32_t *out_topk_ids, float *out_topk_weights, int64_t *out_evals, int threads)
+{
+    if (tile_size > MAX_TILE || k_cap > MAX_K || k_cap < 0)
+        return -1;
+    const int64_t tiles_x = (width + tile_size - 1) / tile_size;
+    const int64_t n_pix = tile_size * tile_size;
+    int failed = 0;
+#pragma omp parallel for schedule(dynamic, 4) num_threads(threads) reduction(| : failed)
+    for (int64_t work = 0; work < n_tiles; work++) {
+        const int64_t tile = tile_order[work];
+        const int64_t x_start = (tile % tiles_x) * tile_size, y_start = (tile / tiles_x) * tile_size;
+        const int64_t x_end = x_start + tile_size < width ? x_start + tile_size : width;
+        const int64_t y_end = y_start + tile_size < height ? y_start + tile_size : height;
+        /* 8 floats past the tile: a row's last 8-pixel group may reach past it (masked) */
+        float trans[MAX_TILE * MAX_TILE + 8], acc_r[MAX_TILE * MAX_TILE + 8], acc_g[MAX_TILE * MAX_TILE + 8];
+        float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8], weights[MAX_TILE + 8];
+        float chunk[CHUNK][RECORD];
+        int32_t chunk_position[CHUNK];
+        /* pixel p's list: keys[p * MAX_K + i], count[p] of them; when full, last[p] is the slot of its smallest */
+        int32_t count[MAX_TILE * MAX_TILE], last[MAX_TILE * MAX_TILE];
+        int64_t *keys = k_cap > 0 ? malloc((size_t)(n_pix * MAX_K) * sizeof(int64_t)) : NULL;
+        if (k_cap > 0 && !keys) {
+            failed = 1;
+            continue;
+        }
+        for (int64_t p = 0; p < n_pix + 8; p++) {
+            trans[p] = 1.0f;
+            acc_r[p] = acc_g[p] = acc_b[p] = acc_z[p] = 0.0f;
+        }
+        memset(count, 0, sizeof count);
+        int64_t n_live = (x_end - x_start) * (y_end - y_start);
+        const int64_t first = offsets[tile], length = offsets[tile + 1] - first;
+        int64_t evals = 0, tile_pairs = n_live * length;
+        for (int64_t j = 0; j < length && n_live > 0; j++) {
+            if (j % CHUNK == 0) { /* ask for the chunk after this one (at the tile's start, this one too) */
+                const int64_t ahead = length < j + 2 * CHUNK ? length : j + 2 * CHUNK;
+                for (int64_t c = j == 0 ? 0 : j + CHUNK; c < ahead; c++)
+                    __builtin_prefetch(records + (int64_t)order[slots[first + c]] * RECORD);
+                const int64_t m = length - j < CHUNK ? length - j : CHUNK;
+                for (int64_t c = 0; c < m; c++) {
+                    chunk_position[c] = slots[first + j + c];
+                    memcpy(chunk[c], records + (int64_t)order[chunk_position[c]] * RECORD, RECORD * sizeof(float));
+                }
+            }
+            const float *rec = chunk[j % CHUNK];
+            /* the rank key's low half: the inverted depth position (the nearer ranks first on ties) */
+            const int64_t low = (int64_t)(0xFFFFFFFFu - (uint32_t)chunk_position[j % CHUNK]);
+            const float my = rec[MY], cut = rec[CUT] + 1e-3f; /* margin: the exact alpha test decides */
+            int64_t box[4];
+            pixel_box(rec, x_start, x_end, y_start, y_end, box);
+            const int64_t px0 = box[0], px1 = box[1], py0 = box[2], py1 = box[3];
+            for (int64_t ly = py0; ly < py1; ly++) {
+                const float dy = my - ((float)(y_start + ly) + 0.5f);
+                const int64_t row = ly * tile_size;
+                float counts[2] = {0.0f, 0.0f};
+                row_pass(trans + row, acc_r + row, acc_g + row, acc_b + row, acc_z + row, weights, (int32_t)px0,
+                         (int32_t)px1, (float)x_start + 0.5f, rec, dy, cut, alpha_min, alpha_max, t_min, counts);
+                const int64_t stopped = (int64_t)counts[1];
+                evals += (int64_t)counts[0];
+                n_live -= stopped;
+                tile_pairs -= stopped * (length - j - 1);
+                for (int64_t lx = px0; lx < px1 && k_cap > 0; lx++) {
+                    if (!(weights[lx] > 0.0f))
+                        continue;
+                    uint32_t bits;
+                    memcpy(&bits, weights + lx, sizeof bits);
+                    const int64_t p = row + lx, key = ((int64_t)bits << 32) | low;
+                    int64_t *list = keys + p * MAX_K;
+                    if (count[p] < k_cap) {
+                        list[count[p]++] = key;
+                        if (count[p] == k_cap)
+                            last[p] = smallest(list, k_cap);
+                    } else if (key > list[last[p]]) {
+                        list[last[p]] = key;
+                        last[p] = smallest(list, k_cap);
+                    }
+                }
+            }
+        }
+        out_evals[tile * 2] = evals;
+        out_evals[tile * 2 + 1] = tile_pairs;
+        for (int64_t ly = 0; ly < y_end - y_start; ly++) {
+            for (int64_t lx = 0; lx < x_end - x_start; lx++) {
+                const int64_t p = ly * tile_size + lx, at = (y_start + ly) * width + x_start + lx;
+                const float final_t = fabsf(trans[p]), total = 1.0f - final_t;
+                out_alpha[at] = total;
+                out_rgb[at * 3] = acc_r[p] + final_t * background[0];
+                out_rgb[at * 3 + 1] = acc_g[p] + final_t * background[1];
+                out_rgb[at * 3 + 2] = acc_b[p] + final_t * background[2];
+                out_depth[at] = total > 1e-10f ? acc_z[p] / total : 0.0f;
+                if (k_cap == 0)
+                    continue;
+                const int32_t n = count[p];
+                int64_t ranked[MAX_K];
+                memcpy(ranked, keys + p * MAX_K, (size_t)n * sizeof(int64_t));
+                memset(ranked + n, 0, (size_t)(MAX_K - n) * sizeof(int64_t)); /* padding ranks last */
+                sort32(ranked);
+                /* the adaptive K: a float32 running sum, compared in double as the numba kernel does */
+                int32_t keep = n;
+                float cumulative = 0.0f;
+                for (int32_t k = 0; k < n; k++) {
+                    cumulative += bits_float((uint32_t)(ranked[k] >> 32));
+                    if ((double)cumulative >= coverage * (double)total) {
+                        keep = k + 1;
+                        break;
+                    }
+                }
+                keep = keep > topk_min ? keep : topk_min;
+                keep = keep < n ? keep : n;
+                int32_t *ids = out_topk_ids + at * k_cap;
+                float *w = out_topk_weights + at * k_cap;
+                for (int32_t k = 0; k < keep; k++) {
+                    ids[k] = order[0xFFFFFFFFu - (uint32_t)(ranked[k] & 0xFFFFFFFF)];
+                    w[k] = bits_float((uint32_t)(ranked[k] >> 32));
+                }
+                for (int32_t k = keep; k < k_cap; k++) {
+                    ids[k] = -1;
+                    w[k] = 0.0f;
+                }
+            }
+        }
+        free(keys);
+    }
+    return failed ? -1 : 0;
+}
