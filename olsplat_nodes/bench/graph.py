@@ -45,6 +45,15 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--port", type=int, default=5610, help="the query server's TCP port")
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
     parser.add_argument("--json", type=Path, help="also write the figures here (keys: see the module docstring)")
+    parser.add_argument(
+        "--set",
+        dest="extra",
+        action="append",
+        default=[],
+        metavar="NODE.PARAM=VALUE",
+        help="override a node parameter as olsplat launch --set does (repeatable), "
+        "e.g. query_server.heatmap_max_side=640",
+    )
     parser.set_defaults(run=run)
 
 
@@ -77,7 +86,9 @@ def run(args: argparse.Namespace) -> int:
         "refiner.exit_on_final=false",
         "launch.exit_when=[]",
     ]
+    overrides += args.extra  # the user's, last: they win
     supervisor = Supervisor(load_launch(args.launch, overrides=overrides, run_dir=str(run_dir)))
+    supervisor.check()  # a bad launch file or --set is an error here, not in the thread
     thread = threading.Thread(target=supervisor.run, daemon=True)
     thread.start()
     client = QueryClient(zmq.Context.instance(), endpoint, timeout_s=60.0)

@@ -62,6 +62,15 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--port", type=int, default=5612, help="the query server's TCP port")
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
     parser.add_argument("--json", type=Path, help="also write the figures here (keys: see the module docstring)")
+    parser.add_argument(
+        "--set",
+        dest="extra",
+        action="append",
+        default=[],
+        metavar="NODE.PARAM=VALUE",
+        help="override a node parameter as olsplat launch --set does (repeatable), "
+        "e.g. query_server.heatmap_max_side=640",
+    )
     parser.set_defaults(run=run)
 
 
@@ -159,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
         "refiner.exit_on_final=false",
         "launch.exit_when=[]",
     ]
+    overrides += args.extra  # the user's, last: they win
     supervisor = Supervisor(load_launch(args.launch, overrides=overrides, run_dir=str(run_dir)))
     store_views = run_dir / "store" / "views"
 
@@ -170,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
 
     watch = MemoryWatch(lambda: supervisor.pids, views_stored, args.sample_s)
     start = time.monotonic()
+    supervisor.check()  # a bad launch file or --set is an error here, not in the thread
     thread = threading.Thread(target=supervisor.run, daemon=True)
     thread.start()
     watch.thread.start()

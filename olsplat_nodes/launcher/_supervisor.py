@@ -79,12 +79,21 @@ class Supervisor:
         return {s.node.name: s.child.process.pid for s in self._slots
                 if s.state == "running" and isinstance(s.child, ProcessChild) and s.child.process}  # fmt: skip
 
+    def check(self) -> dict:
+        """The checks ``run`` makes before any node starts, on their own: every configuration
+        error (LaunchFileError naming the file and key) and the memory estimate (a flight that
+        will not fit is refused now, not killed later). Returns the resolved parameters. A
+        caller that runs the supervisor in a thread calls this first, so that a bad launch file
+        or ``--set`` is its error, not the thread's."""
+        params = resolve_launch(self.config, self.run_dir)
+        check_memory(self.config, params)
+        return params
+
     def run(self) -> int:
         """Supervise until done; see the class docstring for the exit code. Call it once."""
         if self._slots:
             raise RuntimeError("Supervisor.run() was already called; make a new Supervisor")
-        params = resolve_launch(self.config, self.run_dir)  # every config error before any start
-        check_memory(self.config, params)  # a flight that will not fit is refused now, not killed later
+        params = self.check()
         logs = self.run_dir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         self._launch_log = open(logs / "launch.log", "a", buffering=1, encoding="utf-8")

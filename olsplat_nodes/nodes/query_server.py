@@ -87,6 +87,10 @@ class QueryServerNode(Node):
         # a heatmap reply carries the view's heatmap (float32), mask (uint8) and photo (RGB): 8 bytes
         # per pixel, 8.8 MB at 1280x960; a view that would make a larger reply is refused
         max_reply_mb: float = 128.0
+        # a view's heatmap, mask and photo are rendered and replied at most this many pixels on
+        # their longer side (the view scaled down; box2d on that grid): 4x fewer pixels to render
+        # and to send for a 1280x960 view at 640; 0 = the view's own size
+        heatmap_max_side: int = 0
         cluster_radius: float = 0.0  # 3D instances: chosen Gaussians closer than this (m) join one; 0 = from the map
         cluster_min_points: int = 20  # ... and an instance has at least this many
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
@@ -100,6 +104,10 @@ class QueryServerNode(Node):
 
         if not (params.cluster_radius >= 0 and params.cluster_min_points >= 1 and params.max_reply_mb > 0):
             raise ParameterError(f"{where}: need cluster_radius >= 0, cluster_min_points >= 1 and max_reply_mb > 0")
+        if params.heatmap_max_side < 0:
+            raise ParameterError(
+                f"{where}: heatmap_max_side must be >= 0 (0: the view's size), got {params.heatmap_max_side}"
+            )
         if params.server_secret:
             try:
                 curve.check_secret(params.server_secret)
@@ -369,6 +377,9 @@ class QueryServerNode(Node):
         try:
             views = self._current_views()
             camera = select_view([v.camera for v in views], request.view) if request.view else None
+            image = views[[v.camera for v in views].index(camera)].image() if camera is not None else None
+            if camera is not None and image is not None:
+                camera, image = self._reply_size(camera, image)
             if camera is not None and request.heatmap:
                 reply_mb = camera.width * camera.height * 8 / 2**20
                 if reply_mb > self.params.max_reply_mb:
@@ -377,7 +388,6 @@ class QueryServerNode(Node):
                         f"view {camera.name} is {camera.width}x{camera.height}: its heatmap reply would be "
                         f"{reply_mb:.1f} MB, over max_reply_mb {self.params.max_reply_mb:g}",
                     )
-            image = views[[v.camera for v in views].index(camera)].image() if camera is not None else None
             encoder_name = self.language_map.encoder
             if encoder_name not in self.encoders:
                 self.encoders[encoder_name] = CachedTexts(encoder_for_map(self.language_map))
@@ -393,7 +403,7 @@ class QueryServerNode(Node):
                 camera,
                 threshold,
                 images=self.feature_images if self.params.heatmap_cache_mb > 0 else None,
-                image_key=(self.version, camera.name if camera is not None else ""),
+                image_key=(self.version, camera.name, camera.width) if camera is not None else None,
                 cluster_radius=self.cluster_radius,
                 min_points=self.params.cluster_min_points,
                 features=self.features,
@@ -411,6 +421,17 @@ class QueryServerNode(Node):
             margin = relevance_margin(self.features, self.language_map.observed, splats.ids, embeddings)
             reply.splat_margin = margin.astype(np.float16)
         return reply
+
+    def _reply_size(self, camera, image: np.ndarray):
+        """(camera, photo) of a view at the reply's size: scaled down to ``heatmap_max_side`` on
+        the longer side (the photo by area averaging), or as they are."""
+        import cv2
+
+        side = self.params.heatmap_max_side
+        if side <= 0 or max(camera.width, camera.height) <= side:
+            return camera, image
+        small = camera.scaled(side / max(camera.width, camera.height))
+        return small, cv2.resize(image, (small.width, small.height), interpolation=cv2.INTER_AREA)
 
     def _values(self) -> dict:
         """This node's own status values: its counters and those of its three sockets;

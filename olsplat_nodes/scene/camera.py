@@ -66,6 +66,17 @@ class Camera:
         """[3] camera centre in world coordinates."""
         return self.world_from_camera[:3, 3].copy()
 
+    def scaled(self, factor: float) -> Camera:
+        """The same view as an image ``factor`` times the size (0.5: half the width and height,
+        each rounded, at least 1 px): focal lengths and principal point scaled by the exact ratio
+        of the sizes, so each pixel edge of this image maps onto the new one's (pixel centres
+        stay at +0.5); pose and distortion (normalised coordinates) unchanged."""
+        width, height = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+        K = self.K.copy()
+        K[0] *= width / self.width
+        K[1] *= height / self.height
+        return Camera(self.name, width, height, K, self.world_from_camera.copy(), self.dist.copy(), self.model)
+
     @property
     def camera_from_world(self) -> np.ndarray:
         """[4, 4] world-to-camera transform (the inverse rigid transform)."""

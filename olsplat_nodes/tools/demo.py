@@ -156,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_launch(args.launch, overrides=overrides, run_dir=str(run_dir))
     supervisor = Supervisor(config)
     exit_code: list[int] = []
+    supervisor.check()  # a bad launch file is an error here, not in the thread
     thread = threading.Thread(target=lambda: exit_code.append(supervisor.run()), daemon=True)
     thread.start()
     print(

@@ -35,3 +35,16 @@ def test_bench_graph_writes_the_documented_figures(tiny, tmp_path, capsys):
         assert set(figures["nodes"][node]) == {"busy_ms", "latency_ms", "drops", "handled"}
         assert figures["nodes"][node]["busy_ms"] > 0
     assert f"{figures['frames_sent']} frames sent at 4/s" in capsys.readouterr().out
+
+
+@pytest.mark.timeout(60)
+def test_a_bad_override_is_refused_before_anything_starts(tiny, tmp_path, capsys):
+    """``--set`` reaches the nodes' parameters: a value a node refuses is the command's one error
+    (naming the node and parameter) before any node starts, not a hang in the graph's thread."""
+    scene, _ = tiny
+    args = ["bench", "graph", "--scene", str(scene), "--work", str(tmp_path / "run"), "--port", str(free_port())]
+    args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--set", "query_server.heatmap_max_side=-1"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "(query_server).params: heatmap_max_side must be >= 0" in err
+    assert not (tmp_path / "run" / "logs").exists()  # no node was started

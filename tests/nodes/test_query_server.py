@@ -221,3 +221,43 @@ def test_a_heatmap_reply_over_the_size_limit_is_refused_with_its_size(ctx, sockd
     assert big.status == "bad_request" and big.heatmap is None
     assert big.message == f"view {ENCODE_VIEW} is 320x240: its heatmap reply would be 0.6 MB, over max_reply_mb 0.5"
     assert small.status == "ok" and small.heatmap is None  # without the heatmap the view costs nothing
+
+
+def test_a_capped_reply_is_the_view_rendered_at_that_size(ctx, sockdir, tiny, tiny_run, tmp_path):
+    """With heatmap_max_side the heatmap, mask and photo of the reply are on one grid, the view
+    scaled down to that longer side: the heatmap is the render of the scaled camera (not a
+    resampled full-size one), the photo the view's, area-averaged."""
+    import cv2
+
+    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
+    from olsplat_nodes.query.answer import encoder_for_map
+    from olsplat_nodes.query.heatmap import FeatureImages
+    from olsplat_nodes.scene import read_ply
+
+    scene, _ = tiny
+    shutil.copytree(tiny_run / "views", tmp_path / "views")
+    shutil.copytree(tiny_run / "map", tmp_path / "map")
+    negatives = ["road", "trees", "lawn"]
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views", heatmap_max_side=160)
+    with NodeThread(node) as running, QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=60.0) as client:
+        reply = client.request(QueryRequest(request_id="c", text="parking lot", view=ENCODE_VIEW, negatives=negatives))
+        running.assert_running()
+    assert reply.status == "ok", reply.message
+    view = next(v for v in load_views(tmp_path / "views") if v.camera.name == ENCODE_VIEW)
+    assert (view.camera.width, view.camera.height) == (320, 240)
+    assert reply.heatmap.shape == reply.mask.shape == (120, 160) and reply.image.shape == (120, 160, 3)
+    np.testing.assert_array_equal(reply.image, cv2.resize(view.image(), (160, 120), interpolation=cv2.INTER_AREA))
+
+    language_map = LanguageMap.load(latest_map(tmp_path / "map")["path"])
+    texts = encoder_for_map(language_map).encode_text(["parking lot", *negatives])
+    gaussians = read_ply(scene / "map" / "point_cloud.ply")
+    small = view.camera.scaled(0.5)
+    maps, alpha = FeatureImages(2**30).heatmaps("k", gaussians, language_map.features.astype(np.float32), texts, small)
+    np.testing.assert_allclose(reply.heatmap, maps[0], atol=2e-5)
+    expected_mask = (maps[0] > maps[1:].max(0)) & (alpha > 0.5)
+    assert (reply.mask.astype(bool) != expected_mask).mean() < 1e-3  # ties within the 2e-5 may flip a pixel
+    assert reply.mask.any()
+    for instance in reply.instances:
+        if instance["kind"] == "2d":
+            x0, y0, x1, y1 = instance["box2d"]
+            assert 0 <= x0 < x1 <= 160 and 0 <= y0 < y1 <= 120

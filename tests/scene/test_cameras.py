@@ -205,3 +205,26 @@ def test_camera_rejects_bad_values():
         Camera("c", 0, 10, np.eye(3), np.eye(4))
     with pytest.raises(ValueError, match="focal lengths"):
         Camera("c", 10, 10, np.zeros((3, 3)), np.eye(4))
+
+
+def test_a_scaled_camera_maps_pixel_edges_onto_the_smaller_image():
+    """Camera.scaled: a world point's pixel coordinates (top-left pixel centre at 0.5) scale by
+    the ratio of the sizes, so the image's edges stay its edges; the pose does not change."""
+    camera = Camera("v", 320, 240, intrinsics(300.0, 290.0, 161.0, 119.5), look_at([0, -20, 10], [0, 0, 0]))
+    small = camera.scaled(0.5)
+    assert (small.width, small.height, small.name) == (160, 120, "v")
+    np.testing.assert_array_equal(small.world_from_camera, camera.world_from_camera)
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(20, 3)) * 3.0
+    for cam, scale in ((camera, 1.0), (small, 0.5)):
+        local = (cam.camera_from_world[:3, :3] @ points.T).T + cam.camera_from_world[:3, 3]
+        uv = (cam.K @ local.T).T
+        uv = uv[:, :2] / uv[:, 2:]
+        if scale == 1.0:
+            full = uv
+        else:
+            np.testing.assert_allclose(uv, full * 0.5, rtol=1e-12, atol=1e-9)
+    odd = camera.scaled(1 / 3)  # 106.67 x 80 -> 107 x 80: each axis by its own exact ratio
+    assert (odd.width, odd.height) == (107, 80)
+    np.testing.assert_allclose(odd.K[0], camera.K[0] * 107 / 320)
+    np.testing.assert_allclose(odd.K[1], camera.K[1] * 80 / 240)
