@@ -98,7 +98,7 @@ def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, n_gaussians):
     Gaussian i's entries (float64 [N]), and the runs: per used level, consecutive entries of a
     Gaussian in the same slot summed into one (gaussian, slot, level, summed w~) row, in the
     order the runs start. Neighbouring pixels mostly share their Gaussians and regions, so a
-    view's ~5M entries make ~20x fewer runs, and only the runs are grouped afterwards
+    view's ~5M entries make ~15x fewer runs, and only the runs are grouped afterwards
     (``_mixtures``). last_slot / last_run remember each Gaussian's open run per level."""
     n_pixels, k = topk_ids.shape
     n_levels = slot_maps.shape[0]
