@@ -37,13 +37,15 @@ def render_heatmaps(
     config=None,
     unit_out=None,
     rows: np.ndarray | None = None,
+    active: np.ndarray | None = None,
 ):
     """([Q, H, W] cosine heatmaps H_q(v) of the unit text embeddings texts [Q, D], [H, W] alpha):
     ``heatmaps(render_feature_map(...))`` computed per pixel inside the rasterizer, without the
     [H, W, D] feature image (157 MB at 640x480 and D = 128). With ``unit_out`` (float32
     [H * W, D]) the same pass also writes each pixel's unit feature F / |F| there. With
     ``rows`` ([N] int, -1: none) ``features`` is a table, e.g. a codebook's centres, and
-    Gaussian g's feature is its row ``rows[g]``."""
+    Gaussian g's feature is its row ``rows[g]``. With ``active`` ([N] bool) only those
+    Gaussians are drawn (a level of detail's choice, ``raster/lod.py``)."""
     result = rasterize(
         gaussians,
         camera,
@@ -53,6 +55,7 @@ def render_heatmaps(
         feature_queries=np.asarray(texts, np.float32),
         unit_features_out=unit_out,
         feature_rows=rows,
+        active=active,
     )
     assert result.features is not None
     return np.moveaxis(result.features, -1, 0), result.alpha
@@ -117,6 +120,7 @@ class FeatureImages:
         camera: Camera,
         config=None,
         rows: np.ndarray | None = None,
+        active: np.ndarray | None = None,
     ):
         """([Q, H, W] cosine heatmaps of the unit texts [Q, D], [H, W] alpha), as ``render_heatmaps``."""
         with self.lock:
@@ -140,7 +144,7 @@ class FeatureImages:
                             unit = old
                     if unit is None:
                         unit = np.empty((pixels, dim), np.float32)
-            maps, alpha = render_heatmaps(gaussians, features, texts, camera, config, unit_out=unit, rows=rows)
+            maps, alpha = render_heatmaps(gaussians, features, texts, camera, config, unit, rows, active)
             if unit is not None:
                 with self.lock:
                     self.entries[key] = (unit, alpha)

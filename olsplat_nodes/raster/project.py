@@ -69,6 +69,7 @@ class Projected:
 def _project_kernel(
     means, quats, log_scales, opacity_logits, sh, viewmat, fx, fy, cx, cy, campos,
     width, height, tile_size, eps2d, near, far, radius_sigmas, alpha_min, records, radii, tile_rects, w_norm2,
+    active,
 ):  # fmt: skip
     n = means.shape[0]
     tiles_x = (width + tile_size - 1) // tile_size
@@ -79,6 +80,8 @@ def _project_kernel(
     lim_y_neg = cy / fy + 0.3 * (0.5 * height / fy)
     for i in prange(n):
         radii[i] = 0
+        if active.shape[0] > 0 and not active[i]:  # not drawn in this render (e.g. a level of detail's)
+            continue
         finite = True
         for k in range(3):
             finite &= np.isfinite(means[i, k]) and np.isfinite(log_scales[i, k])
@@ -187,9 +190,13 @@ def _project_kernel(
         radii[i] = radius
 
 
-def project(gaussians: Gaussians, camera: Camera, config: RasterConfig) -> Projected:
-    """Project every Gaussian of the map into ``camera`` (see the module docstring)."""
+def project(gaussians: Gaussians, camera: Camera, config: RasterConfig, active: np.ndarray | None = None) -> Projected:
+    """Project every Gaussian of the map into ``camera`` (see the module docstring); with
+    ``active`` ([N] bool) only those where it is True, the others culled (radius 0)."""
     n = len(gaussians)
+    drawn = np.zeros(0, np.bool_) if active is None else np.ascontiguousarray(active, np.bool_)
+    if len(drawn) not in (0, n):
+        raise ValueError(f"active must be [N={n}] bool, got {drawn.shape}")
     out = Projected(
         records=np.zeros((n, RECORD), np.float32),
         radii=np.zeros(n, np.int32),
@@ -200,6 +207,6 @@ def project(gaussians: Gaussians, camera: Camera, config: RasterConfig) -> Proje
         camera.camera_from_world, camera.fx, camera.fy, camera.cx, camera.cy, camera.center,
         camera.width, camera.height, config.tile_size, config.eps2d, config.near_plane, config.far_plane,
         config.radius_sigmas, config.alpha_min, out.records, out.radii, out.tile_rects,
-        float(np.linalg.norm(camera.camera_from_world[:3, :3], 2)) ** 2 * (1.0 + 1e-6),
+        float(np.linalg.norm(camera.camera_from_world[:3, :3], 2)) ** 2 * (1.0 + 1e-6), drawn,
     )  # fmt: skip
     return out

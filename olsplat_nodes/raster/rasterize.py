@@ -43,6 +43,7 @@ def rasterize(
     feature_queries: np.ndarray | None = None,  # [Q, D] unit rows: render cos(F(p), row) instead of F(p)
     unit_features_out: np.ndarray | None = None,  # [H * W, D] float32, with feature_queries: receives F / |F|
     feature_rows: np.ndarray | None = None,  # [N] int: Gaussian g's feature is features[feature_rows[g]] (-1: 0)
+    active: np.ndarray | None = None,  # [N] bool: only these are drawn (the others as if culled)
 ) -> RenderResult:
     """Render ``gaussians`` into ``camera``'s ideal pinhole image (distortion not applied).
 
@@ -59,6 +60,8 @@ def rasterize(
     (``heatmap_native.py``: same outputs, alpha within 2e-6 and cosines within 2e-5 of the numba
     kernel's). That kernel reads float16 features as they are (a language map's stored form: half
     the bytes); every other path widens them to float32 first (the same values, exactly).
+    With ``active`` only the Gaussians where it is True are drawn, as if the others were not in
+    the map (a level of detail's choice: ``lod.py``).
     Renders without features (the accumulator's Top-K) go to the C Top-K kernel when it is built
     (``topk_native.py``: weights within a few ulp of the numba kernel's, the same ranking rule).
     """
@@ -93,7 +96,7 @@ def rasterize(
         unit = unit_features_out
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     clock = [time.perf_counter()]
-    projected: Projected = project(gaussians, camera, config)
+    projected: Projected = project(gaussians, camera, config, active)
     clock.append(time.perf_counter())
     order, offsets, slots = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
     clock.append(time.perf_counter())
