@@ -83,7 +83,7 @@ def _camera(distance: float, width: int = 80, height: int = 60) -> Camera:
 
 @pytest.mark.parametrize("distance", [2.0, 15.0, 60.0, 400.0])
 def test_each_gaussian_is_drawn_exactly_once(town, distance):
-    gaussians, tree = town
+    _, tree = town
     own, merged = lod.select(tree, _camera(distance))
     count = own.astype(int)
     for node in np.flatnonzero(merged):
