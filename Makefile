@@ -42,6 +42,8 @@ $(STAMP): pyproject.toml setup.py $(wildcard olsplat_nodes/native/*.[ch]) | syst
 	$(PY) -m pip download -q --no-deps open_clip_torch==3.3.0 -d $(VENV)/reference
 	$(PY) -c "import glob, zipfile; z = zipfile.ZipFile(glob.glob('$(VENV)/reference/open_clip_torch-*.whl')[0]); \
 		[z.extract(n, '$(VENV)/reference') for n in ('open_clip/tokenizer.py', 'open_clip/bpe_simple_vocab_16e6.txt.gz')]"
+	# numba compiles on first use (~75 s for every node's kernels here): once now, not in a flight's first minute
+	$(VENV)/bin/olsplat warm-up
 	touch $(STAMP)
 
 demo: setup

@@ -30,6 +30,7 @@ EXAMPLES = {
     "render": "olsplat render --ply scene/map/point_cloud.ply --cameras scene/sparse/0 --view 3 --out r/v3 "
     "--png r/v3.png",
     "demo": "olsplat demo --out out\nolsplat demo --out out --preset small --seed 1",
+    "warm-up": "olsplat warm-up",
     "sim train-encoders": "olsplat sim train-encoders --out enc --seeds 10 --epochs 8",
     "sim zeroshot": "olsplat sim zeroshot --seeds 0 1 2 --views 12",
     "sim replay": "olsplat sim replay --log scene/replay.mcap --rate 2 --limit 10",
@@ -107,7 +108,20 @@ def build_parser() -> argparse.ArgumentParser:
     from olsplat_sim import cli as sim
 
     from .bench import cli as bench
-    from .tools import aggregate, demo, encode, evaluate, export_clip, ground, keys, launch, query, record, render
+    from .tools import (
+        aggregate,
+        demo,
+        encode,
+        evaluate,
+        export_clip,
+        ground,
+        keys,
+        launch,
+        query,
+        record,
+        render,
+        warm_up,
+    )
 
     parser = argparse.ArgumentParser(
         prog="olsplat",
@@ -131,6 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
         export_clip,
         bench,
         record,
+        warm_up,
     ):
         module.add_parser(subparsers)
     _finish(parser, [])

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..aggregate import ObservationStore, observe_view, stack_levels
+from ..aggregate import ObservationStore, ViewObservations, observe_view, stack_levels
 from ..aggregate.vala import observe_view_centres
 from ..raster import rasterize
 from ..scene import Camera, Gaussians
@@ -18,21 +18,20 @@ if TYPE_CHECKING:
     from ..structure.branch import StructuralBranch
 
 
-def add_view(
+def view_observations(
     gaussians: Gaussians,
     camera: Camera,
     label_maps: np.ndarray,
     bank: list[np.ndarray],
     method: Method,
-    store: ObservationStore,
     branch: StructuralBranch | None = None,
-) -> dict[str, float]:
-    """Render the view's adaptive Top-K, fuse its bank with the 3D branch (if any), observe,
-    append to ``store``.
+) -> tuple[ViewObservations, np.ndarray, dict[str, float]]:
+    """One view's observations, touching no store: render the view's adaptive Top-K, fuse its
+    bank with the 3D branch (if any), observe.
 
     ``label_maps`` [L, H, W] int32 (-1 = no region), ``bank`` one [R_l, D] float32 feature
-    array per level. Returns the seconds of each stage (rasterize, fuse, observe, append) and
-    ``kept``, the number of Gaussians the view observed."""
+    array per level. Returns the observations, the stacked region bank [sum R_l, D] they refer
+    to, and the seconds of each stage (rasterize, fuse, observe)."""
     t0 = time.perf_counter()
     rendered = rasterize(gaussians, camera, method.raster)
     assert rendered.topk_ids is not None and rendered.topk_weights is not None  # rasterize always keeps Top-K
@@ -49,12 +48,48 @@ def add_view(
     else:
         observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), config)
     t3 = time.perf_counter()
+    return observations, stacked, {"rasterize": t1 - t0, "fuse": t2 - t1, "observe": t3 - t2}
+
+
+def add_view(
+    gaussians: Gaussians,
+    camera: Camera,
+    label_maps: np.ndarray,
+    bank: list[np.ndarray],
+    method: Method,
+    store: ObservationStore,
+    branch: StructuralBranch | None = None,
+) -> dict[str, float]:
+    """``view_observations``, then append them to ``store``. Returns the seconds of each stage
+    (rasterize, fuse, observe, append) and ``kept``, the number of Gaussians the view observed."""
+    observations, stacked, stages = view_observations(gaussians, camera, label_maps, bank, method, branch)
+    t0 = time.perf_counter()
     store.append(camera.name, observations, stacked)
-    t4 = time.perf_counter()
-    return {
-        "rasterize": t1 - t0,
-        "fuse": t2 - t1,
-        "observe": t3 - t2,
-        "append": t4 - t3,
-        "kept": float(len(observations)),
-    }
+    stages["append"] = time.perf_counter() - t0
+    stages["kept"] = float(len(observations))
+    return stages
+
+
+def warm_up(gaussians: Gaussians, method: Method, feature_dim: int = 8) -> float:
+    """Run the per-view step once on a 32x24 nadir view of the whole map, so that numba
+    compiles its kernels (or loads them from its cache) now and not on the first frame of a
+    flight: on a fresh install that is ~8 s, in which a live camera's frames are lost. Nothing
+    is stored. Returns the seconds it took."""
+    from ..scene import intrinsics, look_at
+
+    start = time.perf_counter()
+    means = np.asarray(gaussians.means, np.float64)
+    low, high = np.percentile(means, [5, 95], axis=0) if len(means) else (np.zeros(3), np.ones(3))
+    centre = (low + high) / 2
+    height = 1.2 * float(max(high[0] - low[0], high[1] - low[1], 1.0))  # the map's bulk in view (focal 30 px)
+    camera = Camera(
+        "warm-up",
+        32,
+        24,
+        intrinsics(30.0, 30.0, 16.0, 12.0),
+        look_at(centre + np.array([0.0, 0.0, height]), centre, (0.0, 1.0, 0.0)),
+    )
+    label_maps = np.repeat(np.arange(4, dtype=np.int32), 8)[None, None, :].repeat(24, axis=1)  # 4 column regions
+    bank = [np.eye(4, feature_dim, dtype=np.float32)]
+    view_observations(gaussians, camera, label_maps, bank, method)
+    return time.perf_counter() - start

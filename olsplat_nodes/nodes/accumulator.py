@@ -97,7 +97,7 @@ class AccumulatorNode(Node):
 
     def setup(self) -> None:
         from ..aggregate import ObservationStore  # heavy imports here: the launcher imports node classes
-        from ..method import claim_store, method_params_of
+        from ..method import claim_store, method_params_of, warm_up
         from ..scene import read_ply
 
         p = self.params
@@ -112,6 +112,8 @@ class AccumulatorNode(Node):
         if self.structure is not None and self.branch_file.exists():
             self.branch = self._restore_branch()
         self.names = set(self.store.names())
+        # before "ready": a fresh install compiles the per-view kernels here, not on a flight's first frames
+        log.info("per-view kernels ready in %.1f s", warm_up(self.gaussians, self.method))
         if self.names:
             log.info("resuming: %d views already in %s", len(self.names), p.store)
         limit = int(p.max_message_mb * 2**20)

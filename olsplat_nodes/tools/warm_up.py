@@ -1,0 +1,93 @@
+"""``olsplat warm-up``: compile every numba kernel the nodes run, once, after an install.
+
+numba compiles a kernel on its first call and keeps the machine code in its cache
+(``__pycache__`` beside the sources, or ``NUMBA_CACHE_DIR``). On a fresh install the graph's
+first minute would otherwise be spent compiling on the drone's two cores: measured here, a
+`bench graph --rate 1` on a cold cache aggregated 32 of 60 frames, on a warm one 59. The nodes
+warm their per-frame kernels before they say they are ready, but the refiner's and the query
+server's compile while a flight streams. This command runs the real code paths of every node
+on the simulator's tiny flight (a few seconds to make): regions and features, the per-view
+step of the method and of VALA (the two observation kernels), the refiner's first and later
+passes as the refiner calls them, and a ground-station query with a heatmap. ``make setup``
+runs it; run it after ``pip install`` on a drone, before the first flight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "warm-up", help="compile the nodes' kernels once after an install (numba's cache), before a first flight"
+    )
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="olsplat_warm_up_") as work:
+        stages = warm_up_all(Path(work))
+    for stage, seconds in stages.items():
+        print(f"  {stage:<36} {seconds:6.1f} s")
+    print(f"kernels compiled (or found in numba's cache) in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def warm_up_all(work: Path) -> dict[str, float]:
+    """Run every node's kernels once on the tiny flight made in ``work``; returns seconds per stage."""
+    from olsplat_sim.make import make_dataset
+    from olsplat_sim.presets import PRESETS
+
+    from ..aggregate import LanguageMap, ObservationStore
+    from ..encoders.spec import encoder_from_spec
+    from ..method import add_view, named_method
+    from ..nodes.region_encoder import warm_up as warm_up_regions
+    from ..pipeline import Scene
+    from ..pipeline.scene_folder import view_features
+    from ..query.answer import answer_query
+    from ..query.heatmap import FeatureImages
+    from ..regions import RegionConfig
+    from ..scene import read_ply
+
+    stages: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        stages[stage] = now - clock
+        clock = now
+
+    make_dataset(PRESETS["tiny"], 0, work / "scene", log=lambda *_: None)
+    scene = Scene.open(work / "scene")
+    gaussians = read_ply(scene.ply)
+    encoder = encoder_from_spec()
+    lap("tiny flight made")
+    warm_up_regions(encoder, RegionConfig(level_counts=(240,), work_scale=0.5))  # the node's defaults
+    views = [view_features(scene, camera, encoder) for camera in scene.cameras[:3]]
+    lap("regions and features")
+    language_map = None
+    for name in ("outlangsplat", "vala"):
+        method = named_method(name)
+        store = ObservationStore(work / name, len(gaussians), writer=True)
+        for camera, (label_maps, bank) in zip(scene.cameras[:2], views[:2], strict=True):
+            add_view(gaussians, camera, label_maps, bank, method, store)
+        # the refiner's calls: a first pass over everything, then passes over touched Gaussians
+        features, observed = store.refine(None, method.aggregation, False, unit_float16=True)
+        add_view(gaussians, scene.cameras[2], *views[2], method, store)
+        store.touch_views(2)
+        features, touched = store.refine(features, method.aggregation, True, unit_float16=True)
+        if language_map is None and features is not None:
+            language_map = LanguageMap(features, observed | touched, encoder.name)
+        lap(f"per-view step + refiner, {name}")
+    if language_map is None:
+        raise RuntimeError(f"{scene.folder}: the tiny flight's views observed no Gaussian")
+    images = FeatureImages(64 * 2**20)
+    for _ in range(2):  # the first renders the view, the second is answered from the cache
+        answer_query(language_map, gaussians, encoder, "road", camera=scene.cameras[0], images=images, image_key=0)
+    lap("query, relevance and heatmap")
+    return stages
