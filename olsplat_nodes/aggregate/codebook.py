@@ -23,12 +23,14 @@ def assign(features: np.ndarray, centres: np.ndarray, chunk: int = 65_536) -> np
 def fit_codebook(
     features: np.ndarray, k: int, iterations: int = 15, sample: int = 100_000, seed: int = 0
 ) -> np.ndarray:
-    """[K, D] float32 unit centres fitted to the non-zero rows of ``features`` [N, D] (unit rows)."""
-    rows = features[np.linalg.norm(features.astype(np.float32), axis=1) > 0]
-    if len(rows) == 0:
+    """[K, D] float32 unit centres fitted to a sample of the non-zero rows of ``features`` [N, D]
+    (unit rows, float16 or float32). Only the sample is copied (as float32): a 5.2M x 64 map's
+    float32 copy and its norms would be 2.7 GB more at the peak of an offline run."""
+    nonzero = np.flatnonzero(_nonzero_rows(features))
+    if len(nonzero) == 0:
         raise ValueError("no observed Gaussian to fit a codebook to")
     rng = np.random.default_rng(seed)
-    data = rows[rng.choice(len(rows), min(sample, len(rows)), replace=False)].astype(np.float32)
+    data = np.asarray(features[nonzero[rng.choice(len(nonzero), min(sample, len(nonzero)), replace=False)]], np.float32)
     k = min(k, len(data))
     centres = _seed_plus_plus(data, k, rng)
     for _ in range(iterations):
@@ -42,6 +44,14 @@ def fit_codebook(
             fit = (data * centres[codes]).sum(1)
             centres[empty] = data[np.argsort(fit)[: int(empty.sum())]]
     return centres.astype(np.float32)
+
+
+def _nonzero_rows(features: np.ndarray, chunk: int = 262_144) -> np.ndarray:
+    """[N] bool: rows of ``features`` [N, D] with a non-zero value, a chunk at a time (no [N, D] temporary)."""
+    out = np.empty(len(features), bool)
+    for start in range(0, len(features), chunk):
+        out[start : start + chunk] = features[start : start + chunk].any(1)
+    return out
 
 
 def _seed_plus_plus(data: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -63,7 +73,7 @@ def compress(features: np.ndarray, centres: np.ndarray) -> np.ndarray:
     if len(centres) >= 65_535:
         raise ValueError(f"a uint16 codebook holds at most 65,534 centres, got {len(centres)}")
     codes = assign(features, centres).astype(np.uint16) if len(features) else np.zeros(0, np.uint16)
-    codes[~features.any(1)] = 65_535
+    codes[~_nonzero_rows(features)] = 65_535
     return codes
 
 

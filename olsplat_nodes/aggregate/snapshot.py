@@ -86,10 +86,10 @@ class LanguageMap:
         arrays: dict[str, Any]
         if not codebook and self.codes is not None and self.centres is not None:
             arrays = {"form": "codebook", "codes": self.codes, "centres": np.asarray(self.centres, np.float16)}
-        elif codebook:
-            unit = np.asarray(self.features, np.float32)
-            centres = fit_codebook(unit, codebook)
-            arrays = {"form": "codebook", "codes": compress(unit, centres), "centres": centres.astype(np.float16)}
+        elif codebook:  # from the rows as they are (float16): their float32 copy would double the peak
+            centres = fit_codebook(self.features, codebook)
+            codes = compress(self.features, centres)
+            arrays = {"form": "codebook", "codes": codes, "centres": centres.astype(np.float16)}
         else:
             arrays = {"form": "float16", "features": np.asarray(self.features, np.float16)}  # no copy if float16
         content: dict[str, Any] = {**arrays, **common}

@@ -63,10 +63,12 @@ def aggregate_scene(
     for camera in cameras:
         label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
         add_view(gaussians, camera, label_maps, bank, method, store, branch)
-    features, observed = store.refine(None, method.aggregation, only_touched=False)
+    # unit float16 rows range by range, as the live refiner keeps them (bit-identical to unit_rows
+    # of the float32 result, without its [N, D] float32 array and copy: 2.7 GB for the large map)
+    features, observed = store.refine(None, method.aggregation, only_touched=False, unit_float16=True)
     if features is None:
         raise OlsplatInputError(f"{scene.folder}: no view observed any Gaussian")
-    LanguageMap.from_features(features, observed, encoder.name).save(out / "language_map.npz", codebook)
+    LanguageMap(features, observed, encoder.name).save(out / "language_map.npz", codebook)
     seconds = time.perf_counter() - start
     return {
         "seconds": seconds,

@@ -71,3 +71,57 @@ def test_the_live_codebook_reassigns_what_changed_and_refits_when_the_map_double
     features[:] = dense
     codes, new_centres = live.update(features, observed, np.zeros(900, bool))
     assert live.fits == 2 and np.array_equal(codes, compress(features.astype(np.float32), new_centres))
+
+
+def _fit_by_the_first_rule(features, k, sample, seed=0):
+    """The rule as first written (a float32 copy of every row, then the sample): the oracle that
+    the bounded-memory fit must equal."""
+    from olsplat_nodes.aggregate.codebook import _seed_plus_plus
+
+    unit = np.asarray(features, np.float32)
+    rows = unit[np.linalg.norm(unit, axis=1) > 0]
+    rng = np.random.default_rng(seed)
+    data = rows[rng.choice(len(rows), min(sample, len(rows)), replace=False)]
+    centres = _seed_plus_plus(data, min(k, len(data)), rng)
+    for _ in range(15):
+        codes = assign(data, centres)
+        sums = np.zeros_like(centres)
+        np.add.at(sums, codes, data)
+        norms = np.linalg.norm(sums, axis=1, keepdims=True)
+        empty = norms[:, 0] == 0
+        centres = np.where(empty[:, None], centres, sums / np.maximum(norms, 1e-12))
+        if empty.any():
+            fit = (data * centres[codes]).sum(1)
+            centres[empty] = data[np.argsort(fit)[: int(empty.sum())]]
+    return centres.astype(np.float32)
+
+
+def test_a_float16_map_fits_and_compresses_as_its_float32_copy_did():
+    rng = np.random.default_rng(3)
+    features = _unit(rng.normal(size=(3000, 24))).astype(np.float16)
+    features[rng.random(3000) < 0.3] = 0  # unobserved rows
+    centres = fit_codebook(features, 12, sample=1500)
+    np.testing.assert_array_equal(centres, _fit_by_the_first_rule(features, 12, 1500))
+    np.testing.assert_array_equal(compress(features, centres), compress(features.astype(np.float32), centres))
+
+
+def test_saving_a_codebook_map_copies_no_float32_map(tmp_path):
+    """LanguageMap.save(codebook=K) of a float16 map never holds the map as float32: its peak
+    traced allocation stays below the size of that copy (the large map: 1.3 GB more)."""
+    import tracemalloc
+
+    from olsplat_nodes.aggregate import LanguageMap
+
+    n, d = 400_000, 64
+    rng = np.random.default_rng(4)
+    features = _unit(rng.normal(size=(n, d)).astype(np.float32)).astype(np.float16)
+    language_map = LanguageMap(features, np.ones(n, bool), "test")
+    tracemalloc.start()
+    try:
+        language_map.save(tmp_path / "map.npz", codebook=16)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    float32_copy = n * d * 4  # 102 MB
+    assert peak < 0.6 * float32_copy, f"peak {peak / 2**20:.0f} MB"
+    assert LanguageMap.load(tmp_path / "map.npz").form == "codebook"
