@@ -193,7 +193,7 @@ class RunReview:
         margin = relevance_margin(self.features, self.language_map.observed, self.splats.ids, embeddings)
         result = WebAnswer(
             "ok",
-            f"{int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; "
+            f"{answer.chosen_count:,} Gaussians pick it over {len(answer.negatives)} negatives; "
             f"{len(answer.instances)} instances in 3D",
             text,
             self.state.version,

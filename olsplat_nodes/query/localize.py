@@ -138,7 +138,7 @@ class VoxelIndex:
 
 def instances_in_3d(
     means: np.ndarray,
-    selected: np.ndarray,
+    selected: np.ndarray | None,
     eps: float = 1.5,
     min_points: int = 20,
     index: VoxelIndex | None = None,
@@ -146,7 +146,8 @@ def instances_in_3d(
 ) -> list[Instance3D]:
     """DBSCAN clusters of the selected Gaussians' centres, largest first (module docstring).
 
-    means [N, 3] world metres; selected: [N] bool mask or integer indices; eps: DBSCAN radius
+    means [N, 3] world metres; selected: [N] bool mask or integer indices (None when
+    ``in_order`` is given); eps: DBSCAN radius
     and voxel side, metres; min_points: points within eps (itself included) that make a point
     core, and the smallest instance; index: the map's ``VoxelIndex`` for this ``eps``;
     in_order: ``selected`` already in the index's order ([N'] bool), when the caller has it.
@@ -157,6 +158,8 @@ def instances_in_3d(
         if in_order is not None:
             take, count = in_order, int(np.count_nonzero(in_order))
         else:
+            if selected is None:
+                raise ValueError("instances_in_3d needs selected or in_order")
             selected = np.asarray(selected)
             if selected.dtype != np.bool_:
                 mask = np.zeros(len(means), bool)
@@ -169,6 +172,8 @@ def instances_in_3d(
         points, keys, start = _grouped(take, count, index.points, index.keys)
         dims, lowest = index.dims, index.lowest
     else:
+        if selected is None:
+            raise ValueError("instances_in_3d needs selected unless in_order comes with its index")
         points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
         if not np.isfinite(points.sum()):  # rare: a NaN/inf centre is nowhere, noise as DBSCAN has it
             points = points[np.isfinite(points).all(1)]

@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     )
     assert answer.mask is not None  # answered over a view: camera is given
     print(
-        f'"{text}": {int(answer.chosen.sum()):,} Gaussians pick it over {len(answer.negatives)} negatives; '
+        f'"{text}": {answer.chosen_count:,} Gaussians pick it over {len(answer.negatives)} negatives; '
         f"{len(answer.instances)} instances in 3D"
     )
     for i, inst in enumerate(answer.instances[:20]):

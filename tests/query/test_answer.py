@@ -75,3 +75,45 @@ def test_a_codebook_map_answers_through_its_centres_as_its_decoded_rows(tmp_path
         )  # fmt: skip
         expected = instances_in_3d(gaussians.means, with_index.chosen, 0.3, 3, index=index)
         assert with_index.instances == expected and len(expected) > 0
+
+
+def test_a_codebook_answer_counts_its_chosen_gaussians_without_the_mask(tmp_path):
+    """With its voxel index, a codebook map's answer counts the chosen Gaussians from the K
+    centres (what the query server replies) and makes the [N] mask only when asked: the count
+    equals the mask's, and the mask the dense map's."""
+    from olsplat_nodes.aggregate import LanguageMap
+    from olsplat_nodes.aggregate.codebook import compress, fit_codebook
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.query.answer import QueryFeatures, answer_query
+    from olsplat_nodes.query.localize import VoxelIndex, instances_in_3d
+
+    from ..conftest import random_gaussians
+
+    encoder = encoder_from_spec()
+    rng = np.random.default_rng(7)
+    gaussians = random_gaussians(3000, 0, seed=7, spread=3.0)
+    texts = encoder.encode_text(["road", "trees", "cars", "lawn"])
+    features = texts[rng.integers(0, 4, 3000)] + 0.3 * rng.normal(size=(3000, texts.shape[1]))
+    features /= np.linalg.norm(features, axis=1, keepdims=True)
+    observed = rng.random(3000) > 0.2
+    features[~observed] = 0
+    centres = fit_codebook(features.astype(np.float32), 24)
+    LanguageMap(
+        features.astype(np.float16), observed, encoder.name, codes=compress(features, centres), centres=centres
+    ).save(tmp_path / "map.npz")
+    compact, dense = LanguageMap.load(tmp_path / "map.npz", decode=False), LanguageMap.load(tmp_path / "map.npz")
+    index = VoxelIndex.build(gaussians.means, 0.5)
+    features_of_map = QueryFeatures.of(compact)
+    for text in ("road", "trees", "cars", "lawn"):
+        negatives = [t for t in ("road", "trees", "cars", "lawn") if t != text]
+        lazy = answer_query(
+            compact, gaussians, encoder, text, negatives, cluster_radius=0.5, min_points=3,
+            features=features_of_map, voxel_index=index,
+        )  # fmt: skip
+        assert lazy._chosen is None  # not made yet
+        plain = answer_query(dense, gaussians, encoder, text, negatives, cluster_radius=0.5, min_points=3)
+        assert lazy.chosen_count == int(lazy.chosen.sum()) == plain.chosen_count > 0
+        np.testing.assert_array_equal(lazy.chosen, plain.chosen)
+        assert not lazy.chosen[~observed].any()
+        expected = instances_in_3d(gaussians.means, plain.chosen, 0.5, 3, index=index)  # the same grid
+        assert lazy.instances == expected and len(expected) > 0
