@@ -123,6 +123,16 @@ def test_streaming_views_equal_the_batch(tmp_path, min_retained):
     assert ((F16 != 0).any(1) == observed).all()
 
 
+def _memory_mapped(array: np.ndarray) -> bool:
+    """Whether ``array`` reads a file's pages (its buffer chain ends in an mmap), not a copy."""
+    import mmap
+
+    base = array
+    while base is not None and not isinstance(base, mmap.mmap):
+        base = base.base if isinstance(base, np.ndarray) else getattr(base, "obj", None)
+    return base is not None
+
+
 def test_store_survives_reopening_and_half_written_views(tmp_path):
     n = 150
     store = ObservationStore(tmp_path, n, writer=True)
@@ -136,7 +146,7 @@ def test_store_survives_reopening_and_half_written_views(tmp_path):
     reopened = ObservationStore(tmp_path, n, writer=True)
     assert len(reopened) == 2 and not (tmp_path / "views" / "000002.tmp").exists()
     obs, bank = reopened.load(1)
-    assert isinstance(obs.gaussians, np.memmap) and bank.dtype == np.float16
+    assert _memory_mapped(obs.gaussians) and not obs.gaussians.flags.writeable and bank.dtype == np.float16
     F, observed = reopened.refine(None, AggregationConfig())
     assert F.shape == (n, 6) and observed.any()
 
@@ -200,3 +210,46 @@ def test_a_damaged_segment_is_quarantined_not_fatal(tmp_path):
     assert list(reopened.quarantined) == ["000001"] and len(reopened) == 3
     assert reopened.names() == ["v0", "", "v2"]  # so the accumulator stores the view anew if it comes again
     assert reopened.append(*views[1]) == 3
+
+
+@pytest.mark.parametrize(
+    "array",
+    [np.arange(7, dtype=np.int32), np.zeros((0, 6), np.float16), np.ones((5, 3), np.float32), np.zeros(0, np.int64)],
+)
+def test_a_segment_array_maps_as_np_load_reads_it(tmp_path, array):
+    from olsplat_nodes.aggregate.store import _map_npy, _npy_header
+
+    path = tmp_path / "a.npy"
+    np.save(path, array)
+    mapped = _map_npy(path, _npy_header(path))
+    expected = np.load(path, mmap_mode="r")
+    assert mapped.dtype == expected.dtype and mapped.shape == expected.shape
+    np.testing.assert_array_equal(mapped, expected)
+    if array.size:
+        assert _memory_mapped(mapped) and not mapped.flags.writeable
+        path.write_bytes(path.read_bytes()[:-2])  # truncated: its header promises more
+        with pytest.raises(ValueError, match="bytes, its header needs"):
+            _map_npy(path, _npy_header(path))
+
+
+def test_observation_counts_follow_appends_and_skip_a_quarantined_view(tmp_path):
+    """The store's running count equals a count made afresh over every usable segment."""
+    n = 150
+    views = list(_views(5, n))
+    store = ObservationStore(tmp_path, n, writer=True)
+    for name, obs, bank in views[:2]:
+        store.append(name, obs, bank)
+    reader = ObservationStore(tmp_path, n)
+    first = reader.observation_counts().copy()
+    for name, obs, bank in views[2:]:
+        store.append(name, obs, bank)
+    (tmp_path / "views" / "000003" / "strength.npy").write_bytes(b"damaged")  # quarantined when first read
+    counts = reader.observation_counts()
+    fresh = np.zeros(n, np.int64)
+    for index, (_, obs, _) in enumerate(views):
+        if index != 3:
+            fresh[obs.gaussians] += 1
+    assert not counts.flags.writeable
+    np.testing.assert_array_equal(counts, fresh)
+    np.testing.assert_array_equal(first, sum(np.bincount(obs.gaussians, minlength=n) for _, obs, _ in views[:2]))
+    assert list(reader.quarantined) == ["000003"]
