@@ -217,11 +217,9 @@ class ObservationStore:
         a = {}
         for key in _ARRAYS:
             path = folder / f"{key}.npy"
-            header = self.headers.get((folder.name, key))
-            if header is None:
-                header = _npy_header(path)
+            header = self.headers.get((folder.name, key)) or _npy_header(path)
             a[key] = _map_npy(path, header)
-            self.headers[(folder.name, key)] = header  # only once it mapped: a damaged file is read again
+            self.headers[(folder.name, key)] = header  # once it mapped: a damaged file's header is read again
         obs = ViewObservations(a["gaussians"], a["strength"], a["offsets"], a["slots"], a["weights"])
         return obs, a["bank"]
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -69,14 +70,16 @@ class QueryFeatures:
     # codebook maps: [K] int64 observed Gaussians per centre (made with the features: ~20 ms for 5M)
     _per_row: np.ndarray | None = field(default=None, repr=False)
 
+    def __post_init__(self) -> None:
+        if self.rows is not None:
+            self._per_row = np.bincount(self.rows[self.rows >= 0], minlength=len(self.table)).astype(np.int64)
+
     @staticmethod
     def of(language_map: LanguageMap) -> QueryFeatures:
         if language_map.codes is not None and language_map.centres is not None:
             rows = language_map.codes.astype(np.int32)
             rows[(rows == 65_535) | ~language_map.observed] = -1  # no feature: as a dense map's 0 row
-            table = _table(language_map.centres)
-            per_row = np.bincount(rows[rows >= 0], minlength=len(table)).astype(np.int64)
-            return QueryFeatures(table, rows, _per_row=per_row)
+            return QueryFeatures(_table(language_map.centres), rows)
         return QueryFeatures(_table(language_map.features))
 
     def winners(self, embeddings: np.ndarray, observed: np.ndarray | None = None) -> np.ndarray:
@@ -103,10 +106,8 @@ class QueryFeatures:
     def count_winners(self, embeddings: np.ndarray) -> int | None:
         """For a codebook map, ``winners(embeddings).sum()`` from the K centres' verdicts and the
         number of observed Gaussians per centre, without the [N] gather; None for a dense map."""
-        if self.rows is None:
-            return None
         if self._per_row is None:
-            self._per_row = np.bincount(self.rows[self.rows >= 0], minlength=len(self.table)).astype(np.int64)
+            return None
         verdicts = winning_rows(self.table, np.ascontiguousarray(embeddings, np.float32), _EMPTY)
         return int(self._per_row[verdicts].sum())
 
@@ -202,11 +203,7 @@ def answer_query(
         )
     embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
     features = features if features is not None else QueryFeatures.of(language_map)
-    feats = features
-
-    def chosen_of() -> np.ndarray:
-        return feats.winners(embeddings, language_map.observed)
-
+    chosen_of = partial(features.winners, embeddings, language_map.observed)
     radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
     in_order = None
     if voxel_index is not None and voxel_index.eps == float(radius):

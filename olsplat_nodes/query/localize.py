@@ -154,12 +154,12 @@ def instances_in_3d(
     """
     if not eps > 0:
         raise ValueError(f"eps must be a positive distance in metres, got eps={eps!r}")
+    if selected is None and (in_order is None or index is None or index.eps != float(eps)):
+        raise ValueError("instances_in_3d needs selected, unless in_order comes with its index")
     if index is not None and index.eps == float(eps):
         if in_order is not None:
             take, count = in_order, int(np.count_nonzero(in_order))
         else:
-            if selected is None:
-                raise ValueError("instances_in_3d needs selected or in_order")
             selected = np.asarray(selected)
             if selected.dtype != np.bool_:
                 mask = np.zeros(len(means), bool)
@@ -172,8 +172,6 @@ def instances_in_3d(
         points, keys, start = _grouped(take, count, index.points, index.keys)
         dims, lowest = index.dims, index.lowest
     else:
-        if selected is None:
-            raise ValueError("instances_in_3d needs selected unless in_order comes with its index")
         points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
         if not np.isfinite(points.sum()):  # rare: a NaN/inf centre is nowhere, noise as DBSCAN has it
             points = points[np.isfinite(points).all(1)]
