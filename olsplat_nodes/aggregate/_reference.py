@@ -6,6 +6,8 @@ from the paper's equations; use only on small inputs.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from .config import AggregationConfig
@@ -81,3 +83,40 @@ def streaming_median_reference(owner, view, strength, features, n):
                 z[i] /= np.linalg.norm(z[i])
             total[i] += w
     return z.astype(np.float32), np.bincount(owner, minlength=n)
+
+
+def fold_dense(prior_mean, weight, features, strength, config: AggregationConfig):
+    """A live map's fold of new views, in plain numpy: (F [N, D], weight [N]).
+
+    prior_mean [N, D] is each Gaussian's un-normalised F over the views folded in so far and
+    weight [N] their sum of final weights (0: no view yet); features [N, V, D] and strength
+    [N, V] (0 = not seen) are the new views. A Gaussian without a prior and with a new view is
+    computed exactly (``refine_dense``; its weight is its final sum of rho, or of d where the
+    F0 fallback applies); one with a prior weighs each new view against it with
+    rho = d exp(beta_T cos(f, prior)) and F = (W prior + sum rho f) / (W + sum rho + eps)."""
+    F = prior_mean.astype(np.float64).copy()
+    weight = weight.astype(np.float64).copy()
+    beta_last = config.beta_at(config.iterations) if config.iterations > 0 else 0.0
+    for i in range(len(F)):
+        seen = strength[i] > 0
+        if not seen.any():
+            continue
+        f, d = features[i, seen].astype(np.float64), strength[i, seen].astype(np.float64)
+        if weight[i] > 0:
+            cos = f @ F[i] / (np.linalg.norm(f, axis=1) * np.linalg.norm(F[i]) + config.eps)
+            rho = d * np.exp(beta_last * cos)
+            F[i] = (weight[i] * F[i] + rho @ f) / (weight[i] + rho.sum() + config.eps)
+            weight[i] += rho.sum()
+            continue
+        F[i] = refine_dense(f[None], d[None], config)[0]
+        if config.iterations == 0:
+            weight[i] = d.sum()
+            continue
+        previous = replace(config, iterations=config.iterations - 1, min_retained_views=None)
+        before = refine_dense(f[None], d[None], previous)[0]  # F^(T-1)
+        cos = f @ before / (np.linalg.norm(f, axis=1) * np.linalg.norm(before) + config.eps)
+        rho = d * np.exp(beta_last * cos)
+        kept = (rho.sum() ** 2 / (rho**2).sum()) / (d.sum() ** 2 / (d**2).sum())
+        fell_back = config.min_retained_views is not None and kept < config.min_retained_views
+        weight[i] = d.sum() if fell_back else rho.sum()
+    return F, weight

@@ -115,11 +115,29 @@ def _effective_views(w):
     return np.sum(w) ** 2 / max(np.sum(w * w), 1e-300)
 
 
+@njit(inline="always")
+def _prior_mean(prior_row, norm, out):
+    """out = the prior's un-normalised mean: its row's direction at length ``norm``."""
+    length = np.sqrt(_dot(prior_row, prior_row))
+    for d in range(out.shape[0]):
+        out[d] = prior_row[d] * (norm / length) if length > 0.0 else 0.0
+
+
 @njit(parallel=True, cache=True, fastmath=True)
-def _consistency(first, order, strength, entry_offsets, slots, weights, bank, betas, eps, min_retained):
-    """[n, D] float32 F per Gaussian; betas [T] beta_t; min_retained <= 0 turns the F0 fallback off."""
+def _consistency(
+    first, order, strength, entry_offsets, slots, weights, bank, betas, eps, min_retained, prior, weight, norm
+):
+    """[n, D] float32 F per Gaussian; betas [T] beta_t; min_retained <= 0 turns the F0 fallback off.
+
+    weight [n] and norm [n] float64 are the running state, read and written: a Gaussian with
+    weight 0 is computed exactly from its observations here (T iterations); one with weight W > 0
+    already holds earlier views, whose mean is prior [n, D]'s row direction at length norm, and
+    folds these in: each new view weighs rho = d exp(beta_T cos(f, F)) against that mean and
+    F = (W F + sum rho f) / (W + sum rho + eps). On return weight holds the sum of the final
+    weights (rho, or d after the F0 fallback) and norm |F|."""
     n, dim = first.shape[0] - 1, bank.shape[1]
     out = np.zeros((n, dim), np.float32)
+    beta_last = betas[-1] if betas.shape[0] > 0 else 0.0
     for g in prange(n):
         a, k = first[g], first[g + 1] - first[g]
         if k == 0:
@@ -127,9 +145,26 @@ def _consistency(first, order, strength, entry_offsets, slots, weights, bank, be
         features, norms = np.empty((k, dim)), np.empty(k)
         d, rho = np.empty(k), np.empty(k)
         _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
+        F = np.empty(dim)
+        if weight[g] > 0.0:  # fold the new views into the running mean
+            _prior_mean(prior[g], norm[g], F)
+            norm_F = np.sqrt(_dot(F, F))
+            for j in range(k):  # every new view against the same prior mean: order does not matter
+                rho[j] = d[j] * np.exp(beta_last * _dot(features[j], F) / (norms[j] * norm_F + eps))
+            total = weight[g]
+            F *= total
+            for j in range(k):
+                total += rho[j]
+                for c in range(dim):
+                    F[c] += rho[j] * features[j, c]
+            F /= total + eps
+            weight[g] = total
+            norm[g] = np.sqrt(_dot(F, F))
+            out[g] = F
+            continue
         F0 = np.empty(dim)
         _weighted_mean(features, d, eps, F0)
-        F = F0.copy()
+        F[:] = F0
         rho[:] = d
         for beta in betas:
             norm_F = np.sqrt(_dot(F, F))
@@ -142,17 +177,22 @@ def _consistency(first, order, strength, entry_offsets, slots, weights, bank, be
             retained = _effective_views(rho) / max(before, 1e-300) if before > 0 else 1.0
             if retained < min_retained:
                 F[:] = F0
+                rho[:] = d
+        weight[g] = np.sum(rho)
+        norm[g] = np.sqrt(_dot(F, F))
         out[g] = F
     return out
 
 
 @njit(parallel=True, cache=True)
-def _streaming_median(first, order, strength, entry_offsets, slots, weights, bank):
+def _streaming_median(first, order, strength, entry_offsets, slots, weights, bank, prior, weight, norm):
     """[n, D] float32 unit rows: VALA's streaming weighted geometric median in cosine space
     (VALA Sec. 4.2, Algorithm 1), per Gaussian over its observations in arrival order: z starts
     at the first unit feature with W = its weight; each next one (unit f, weight w) moves z
     along its tangent direction, z <- normalize(z + w / (W + w) * (f - (f . z) z)), W += w.
-    Observations with a zero feature or weight are skipped."""
+    Observations with a zero feature or weight are skipped. A Gaussian with weight W > 0 goes on
+    from z = prior [n, D]'s row direction (the median is incremental by nature); weight [n] is
+    read and written, norm [n] is set to 1 where z is set."""
     n, dim = first.shape[0] - 1, bank.shape[1]
     out = np.zeros((n, dim), np.float32)
     for g in prange(n):
@@ -162,7 +202,9 @@ def _streaming_median(first, order, strength, entry_offsets, slots, weights, ban
         features, norms = np.empty((k, dim)), np.empty(k)
         d = np.empty(k)
         _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
-        z, total = np.zeros(dim), 0.0
+        z, total = np.zeros(dim), weight[g]
+        if total > 0.0:
+            _prior_mean(prior[g], 1.0, z)
         for j in range(k):
             if norms[j] <= 0.0 or d[j] <= 0.0:
                 continue
@@ -174,17 +216,33 @@ def _streaming_median(first, order, strength, entry_offsets, slots, weights, ban
                 z += eta * (f - _dot(f, z) * z)
                 z /= np.sqrt(_dot(z, z))
             total += d[j]
+        weight[g] = total
+        norm[g] = 1.0 if total > 0.0 else 0.0
         out[g] = z
     return out
 
 
 def refine_mixed(
-    observations: MixedObservations, n: int, config: AggregationConfig = AggregationConfig()
+    observations: MixedObservations,
+    n: int,
+    config: AggregationConfig = AggregationConfig(),
+    state: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(F [n, D] float32, observation count [n] int64) combining each Gaussian's observations
     as ``config.combine`` says: the consistency update with config.iterations iterations, or
-    VALA's streaming median in arrival order."""
+    VALA's streaming median in arrival order.
+
+    ``state`` = (prior [n, D] float32 or [0, D], weight [n] float64, norm [n] float64) is a live
+    map's running state, updated in place: Gaussians with weight 0 (all of them when the prior
+    has no rows) are computed exactly, the others fold these observations into their prior (see
+    ``_consistency``; the median folds exactly). Without it every Gaussian is computed exactly."""
     first, order = _group_by_owner(observations.owner, n)
+    dim = observations.bank.shape[1]
+    prior, weight, norm = state if state is not None else (np.zeros((0, dim), np.float32), np.zeros(n), np.zeros(n))
+    if len(weight) != n or len(norm) != n or prior.shape not in ((n, dim), (0, dim)):
+        raise ValueError(f"state for {n} Gaussians of width {dim}: prior {prior.shape}, weight {weight.shape}")
+    if not len(prior):  # no prior: every observed Gaussian is computed exactly
+        weight[np.diff(first) > 0] = 0.0
     arrays = (
         first,
         order,
@@ -194,12 +252,13 @@ def refine_mixed(
         np.ascontiguousarray(observations.weights, np.float32),
         np.ascontiguousarray(observations.bank, np.float32),
     )
+    prior = np.ascontiguousarray(prior, np.float32)
     if config.combine == "streaming_median":
-        F = _streaming_median(*arrays)
+        F = _streaming_median(*arrays, prior, weight, norm)
     else:
         betas = np.array([config.beta_at(t) for t in range(1, config.iterations + 1)], np.float64)
         min_retained = -1.0 if config.min_retained_views is None else float(config.min_retained_views)
-        F = _consistency(*arrays, betas, float(config.eps), min_retained)
+        F = _consistency(*arrays, betas, float(config.eps), min_retained, prior, weight, norm)
     return F, np.diff(first)
 
 

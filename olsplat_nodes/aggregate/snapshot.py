@@ -155,9 +155,9 @@ KEEP_VERSIONS = 3  # older snapshots are deleted; a reader that still holds one 
 def latest_map(map_dir: str | Path) -> dict | None:
     """The record of the newest snapshot in ``map_dir`` ({version, path, file, views,
     observed_gaussians, encoder, final, bytes, write_s; the refiner adds refine_s, its pass's
-    seconds before the write}) or None when there is none yet. ``path`` is the
-    snapshot in *this* folder (from ``file``, its name), so a run folder that was copied or
-    moved reads its own snapshots."""
+    seconds before the write, and exact, false for a fold of the new views}) or None when
+    there is none yet. ``path`` is the snapshot in *this* folder (from ``file``, its name), so
+    a run folder that was copied or moved reads its own snapshots."""
     try:
         record = json.loads((Path(map_dir) / "latest.json").read_text())
     except FileNotFoundError:

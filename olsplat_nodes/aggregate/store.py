@@ -224,17 +224,22 @@ class ObservationStore:
         return obs, a["bank"]
 
     def gather(
-        self, selected: np.ndarray, segments: list[Path] | None = None, span: tuple[int, int] | None = None
+        self,
+        selected: np.ndarray,
+        segments: list[Path] | None = None,
+        span: tuple[int, int] | None = None,
+        views: tuple[int, int] | None = None,
     ) -> MixedObservations:
         """Every observation of the selected Gaussians [N] bool, view by view in store order, with
         its features as mixtures of the views' banks stacked into one [S, D] float32 bank. With
         ``span`` = (lo, stop) only Gaussians lo <= g < stop: a view's ids are ascending, so its
-        part is found by bisection instead of a scan of all of them."""
+        part is found by bisection instead of a scan of all of them. With ``views`` = (first,
+        stop) only the segments first <= index < stop."""
         segments = self.segments() if segments is None else segments
         parts: list[tuple] = []
         banks: list[np.ndarray] = []
         slot_base = 0
-        for index in range(len(segments)):
+        for index in range(*(views or (0, len(segments)))):
             if not self.usable(index, segments):
                 continue
             obs, bank = self.load(index, segments)
@@ -304,6 +309,9 @@ class ObservationStore:
         max_observations: int = 4_000_000,
         unit_float16: bool = False,
         max_gaussians: int = 262_144,
+        state: tuple[np.ndarray, np.ndarray] | None = None,
+        views: tuple[int, int] | None = None,
+        gaussians: tuple[int, int] | None = None,
     ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
@@ -315,22 +323,43 @@ class ObservationStore:
         at most ``max_gaussians`` Gaussians (a range's [n, D] results are float32), so memory
         does not grow with the flight; a Gaussian's result does not depend on the ranges.
         With ``unit_float16`` the features are kept as the snapshot stores them, unit rows in
-        float16 (2 bytes per value instead of 4: a live refiner of a large map holds N x D)."""
+        float16 (2 bytes per value instead of 4: a live refiner of a large map holds N x D).
+
+        ``state`` = (weight [N], norm [N] float64) is a live map's running state (see
+        ``refine_mixed``), written for every Gaussian computed. With ``views`` = (first, stop)
+        the pass folds only segments first..stop-1 into F and ``state`` instead (``touched`` is
+        left alone): it costs those views' observations, not the flight's; Gaussians first seen
+        in them are computed exactly, the others are approximated (the consistency update weighs
+        the new views against the current F, without re-weighing the earlier ones). With
+        ``gaussians`` = (lo, hi) the pass recomputes exactly the Gaussians lo <= g < hi that any
+        view observed (a live map's refresh of one slice), and leaves ``touched`` alone too."""
         segments = self.segments()
-        counts = self.observation_counts(segments)
-        if only_touched and F is not None:
-            selected = self.touched.copy()
-        else:
-            # every Gaussian, but one that no view observed is 0 without being computed: at the
-            # first pass of a large flight that is most of the map (10 s of a 15 s pass at 5M)
+        if views is not None:
+            if F is None or state is None:
+                raise ValueError("folding views in needs the current features and their state")
+            counts = self._counts_in(segments, *views)
             selected = counts > 0
-            if F is not None:
-                F[~selected] = 0
+        else:
+            counts = self.observation_counts(segments)
+            if gaussians is not None:
+                selected = np.zeros(self.n_gaussians, bool)
+                selected[slice(*gaussians)] = counts[slice(*gaussians)] > 0
+            elif only_touched and F is not None:
+                selected = self.touched.copy()
+            else:
+                # every Gaussian, but one that no view observed is 0 without being computed: at the
+                # first pass of a large flight that is most of the map (10 s of a 15 s pass at 5M)
+                selected = counts > 0
+                if F is not None:
+                    F[~selected] = 0
+            if state is not None:  # an exact pass: no prior (``refine_mixed`` zeroes the recomputed weights)
+                for array in state:
+                    array[counts == 0] = 0.0
         observed = np.zeros(self.n_gaussians, bool)
         out = F
         cumulative = np.cumsum(counts * selected)
-        first = 0
-        while first < self.n_gaussians:
+        first, end = gaussians or (0, self.n_gaussians)
+        while first < end:
             done_before = cumulative[first - 1] if first else 0
             stop = max(int(np.searchsorted(cumulative, done_before + max_observations, side="right")), first + 1)
             stop = min(stop, first + max_gaussians)
@@ -338,14 +367,18 @@ class ObservationStore:
             here = selected[lo:stop]
             if not here.any():
                 continue
-            observations = self.gather(selected, segments, span=(lo, stop))
+            observations = self.gather(selected, segments, span=(lo, stop), views=views)
             if not len(observations):
                 continue
             if out is None:
                 dtype = np.float16 if unit_float16 else np.float32
                 out = np.zeros((self.n_gaussians, observations.bank.shape[1]), dtype)
             local = replace(observations, owner=observations.owner - lo)  # this range's Gaussians only
-            refined, count = refine_mixed(local, stop - lo, config)
+            range_state = None
+            if state is not None:  # a fold's prior is this range's rows; an exact pass has none
+                prior = np.asarray(out[lo:stop] if views is not None else out[:0], np.float32)
+                range_state = (prior, state[0][lo:stop], state[1][lo:stop])  # written in place
+            refined, count = refine_mixed(local, stop - lo, config, range_state)
             # recomputed; unobserved ones get 0
             if unit_float16:
                 normalise_rows(refined)  # in place: ``unit_rows`` without its temporaries
@@ -354,5 +387,14 @@ class ObservationStore:
             else:
                 out[lo:stop][here] = refined[here]
             observed[lo:stop] = here & (count > 0)
-        self.touched[:] = False
+        if views is None and gaussians is None:
+            self.touched[:] = False
         return out, observed
+
+    def _counts_in(self, segments: list[Path], first: int, stop: int) -> np.ndarray:
+        """[N] int64: in how many of the usable segments first..stop-1 each Gaussian has a kept observation."""
+        counts = np.zeros(self.n_gaussians, np.int64)
+        for index in range(first, stop):
+            if self.usable(index, segments):
+                counts[np.asarray(self.load(index, segments)[0].gaussians)] += 1
+        return counts

@@ -2,7 +2,21 @@
 
 from __future__ import annotations
 
-from . import aggregate, compression, encode, frame, graph, query, raster, regions, robustness, scale, structure, tune
+from . import (
+    aggregate,
+    compression,
+    encode,
+    frame,
+    graph,
+    live,
+    query,
+    raster,
+    regions,
+    robustness,
+    scale,
+    structure,
+    tune,
+)
 
 
 def add_parser(subparsers) -> None:
@@ -16,6 +30,7 @@ def add_parser(subparsers) -> None:
     query.add_parser(targets)
     graph.add_parser(targets)
     scale.add_parser(targets)
+    live.add_parser(targets)
     compression.add_parser(targets)
     robustness.add_parser(targets)
     structure.add_parser(targets)

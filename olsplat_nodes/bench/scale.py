@@ -25,7 +25,8 @@ several nodes) once per node, so the sum over-counts; ``private`` memory (anonym
 ``peak_rss_mb`` {node: MB}, ``peak_rss_mb_sum``, ``rss_growth_mb`` {node: resident MB at the
 end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB},
 ``store_bytes_per_view``, ``snapshot_bytes``, ``refine_pass_s`` (list), ``refine_pass_views``
-(views in the map after each pass), ``refine_s_per_added_view`` (each pass over the views it
+(views in the map after each pass), ``refine_pass_exact`` (false for a fold of the new views:
+the refiner's first pass and its final one are exact), ``refine_s_per_added_view`` (each pass over the views it
 added), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms``,
 ``query_heatmap_first_p95_ms``, ``query_heatmap_repeat_p95_ms``, and ``width``, ``height``.
 """
@@ -235,6 +236,7 @@ def run(args: argparse.Namespace) -> int:
             "snapshot_bytes": int(record.get("bytes", 0)),
             "refine_pass_s": refine_pass_s,
             "refine_pass_views": [int(p["views"]) for p in ordered],
+            "refine_pass_exact": [bool(p.get("exact", True)) for p in ordered],  # False: a fold
         }
         # a pass's cost over the views it added: flat when passes grow with the views since the
         # last pass (which refiner.max_duty lets grow as passes lengthen), not with the flight
@@ -262,9 +264,10 @@ def run(args: argparse.Namespace) -> int:
             f"  store {store_bytes / 2**20:.0f} MB ({figures['store_bytes_per_view'] / 2**20:.2f} MB per view), "
             f"final snapshot {figures['snapshot_bytes'] / 2**20:.0f} MB"
         )
+        marked = zip(refine_pass_s, figures["refine_pass_views"], figures["refine_pass_exact"], strict=True)
         print(
-            "  refinement passes (s, views in the map): "
-            + ", ".join(f"{s:.1f} ({v})" for s, v in zip(refine_pass_s, figures["refine_pass_views"], strict=True))
+            "  refinement passes (s, views in the map; * exact, the others folds): "
+            + ", ".join(f"{s:.1f} ({v}{'*' if exact else ''})" for s, v, exact in marked)
         )
         print("  per view added by the pass (s): " + ", ".join(f"{s:.2f}" for s in figures["refine_s_per_added_view"]))
         times = time_queries(client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views)

@@ -2,8 +2,11 @@
 
 The store on disk is the source of truth, its settings included: the method (and every
 parameter) comes from the store's manifest that the accumulator wrote, never from this node's
-own parameters. Each pass reads the views that arrived since the last one, refines only the
-Gaussians they touched (the others keep their features), and writes
+own parameters. Each pass takes the views that arrived since the last one into the live map
+(``aggregate.LiveMap``: with ``passes: fold`` the new views are folded into the running
+features, a cost that does not grow with the flight; the first pass after a start and the final
+one are exact; ``passes: exact`` recomputes every touched Gaussian from all its views each
+time), and writes
 ``MAP_DIR/language_map_NNNNNN.npz`` atomically plus ``MAP_DIR/latest.json`` naming it (the
 late-joiner snapshot: a query server that starts later reads it, never waits for a message).
 
@@ -53,19 +56,33 @@ class RefinerNode(Node):
         topic_observations: str = "observations"
         topic_map: str = "map"
         threads: int = 1  # numba threads of the refinement (0 = one per core)
+        # live passes: "fold" the new views into the running map (flat cost; the final pass is
+        # exact) or "exact" (every touched Gaussian from all its views: grows with the flight)
+        passes: str = "fold"
+        refresh: float = 1.0  # a fold also recomputes exactly this many times its new observations
+
+    @classmethod
+    def validate(cls, params: Params, where: str) -> None:
+        from ..params import ParameterError
+
+        p = params
+        if not 0.0 < p.max_duty <= 1.0 or p.codebook < 0 or p.codebook == 1 or p.codebook > 65_534:
+            raise ParameterError(
+                f"{where}: need 0 < max_duty <= 1 and codebook 0 or 2..65534, got {p.max_duty}, {p.codebook}"
+            )
+        if p.passes not in ("fold", "exact") or not p.refresh >= 0:
+            raise ParameterError(
+                f"{where}: passes must be fold or exact and refresh >= 0, got {p.passes!r}, {p.refresh}"
+            )
 
     def setup(self) -> None:
         from ..aggregate import ObservationStore, latest_map  # heavy imports here: the launcher imports node classes
         from ..aggregate.codebook import LiveCodebook
-        from ..errors import OlsplatInputError
+        from ..aggregate.live import LiveMap
         from ..scene import read_ply
         from ..scene.ply import ply_vertex_count
 
         p = self.params
-        if not 0.0 < p.max_duty <= 1.0 or p.codebook < 0 or p.codebook == 1 or p.codebook > 65_534:
-            raise OlsplatInputError(
-                f"node {self.name!r}: need 0 < max_duty <= 1 and codebook 0 or 2..65534, got {p.max_duty}, {p.codebook}"
-            )
         self.limit_threads(p.threads)
         self.store = ObservationStore(p.store, ply_vertex_count(p.map) or len(read_ply(p.map)))
         k = p.codebook or (1024 if self.store.n_gaussians > p.codebook_above else 0)
@@ -74,9 +91,7 @@ class RefinerNode(Node):
         previous = latest_map(self.map_dir)
         self.version = previous["version"] if previous else 0
         self.record = previous
-        self.features = None  # a restarted refiner recomputes everything once
-        self.observed = None
-        self.views_done = 0
+        self.live = LiveMap(self.store, refresh=p.refresh)  # a restarted refiner recomputes everything once
         self.sub = self.own(
             Subscriber(self.context, [p.observations_in], [p.topic_observations], hwm=1000, max_bytes=CONTROL_MAX_BYTES)
         )
@@ -98,7 +113,7 @@ class RefinerNode(Node):
             end_now |= isinstance(message, EndOfStream) and not self.final  # repeats are ignored
         self.final |= end_now
         due = time.monotonic() - self.last_pass > self.wait_s
-        if end_now or (due and len(self.store) > self.views_done):
+        if end_now or (due and len(self.store) > self.live.views):
             start = time.perf_counter()
             self._refine(self.final)
             spent = time.perf_counter() - start
@@ -131,9 +146,9 @@ class RefinerNode(Node):
             return
         quarantined = self.store.quarantined
         values = self.stats.with_sockets(
-            self.sub.stats, map_version=self.version, views=self.views_done, quarantined=len(quarantined)
+            self.sub.stats, map_version=self.version, views=self.live.views, quarantined=len(quarantined)
         )
-        text = text or f"map version {self.version}, {self.views_done} views"
+        text = text or f"map version {self.version}, {self.live.views} views"
         level = 0
         if quarantined:  # the map goes on without them, but a user must hear of it
             level = 2
@@ -146,8 +161,8 @@ class RefinerNode(Node):
         from ..aggregate import LanguageMap, write_snapshot
         from ..method import read_manifest
 
-        views = self.store.touch_views(self.views_done)
-        if views == self.views_done and self.record is not None and not final:
+        views = len(self.store)
+        if views == self.live.views and self.record is not None and not final:
             return
         manifest = read_manifest(self.params.store)
         if views == 0 or manifest is None or manifest.encoder is None:
@@ -164,22 +179,16 @@ class RefinerNode(Node):
                 }
             return
         start = time.perf_counter()
-        only_touched = self.features is not None
-        changed = self.store.touched.copy() if only_touched else None  # rows this pass recomputes
-        self.features, observed = self.store.refine(
-            self.features, manifest.method.aggregation, only_touched, unit_float16=True
-        )
-        if self.features is None:
+        exact = final or self.params.passes == "exact"
+        changed = self.live.update(manifest.method.aggregation, exact)
+        if self.live.features is None or self.live.observed is None:
             return
-        if self.observed is not None:
-            observed |= self.observed  # Gaussians outside this pass keep their state
-        self.observed = observed
-        self.views_done = views
+        views, observed = self.live.views, self.live.observed
         self.version += 1
-        language_map = LanguageMap(self.features, observed, manifest.encoder)  # unit float16 rows already
+        language_map = LanguageMap(self.live.features, observed, manifest.encoder)  # unit float16 rows already
         if self.codebook is not None:
             language_map.codes, language_map.centres = self.codebook.update(
-                self.features, observed, np.ones(len(observed), bool) if changed is None else changed
+                self.live.features, observed, np.ones(len(observed), bool) if changed is None else changed
             )
         record = {
             "views": views,
@@ -187,6 +196,7 @@ class RefinerNode(Node):
             "encoder": manifest.encoder,
             "final": final,
             "refine_s": round(time.perf_counter() - start, 3),  # this pass, before the snapshot's write
+            "exact": exact or changed is None,  # False: a fold of the new views
         }
         self.record = write_snapshot(self.map_dir, self.version, language_map, record, None)
         log.info(

@@ -43,6 +43,7 @@ def warm_up_all(work: Path) -> dict[str, float]:
     from olsplat_sim.presets import PRESETS
 
     from ..aggregate import LanguageMap, ObservationStore
+    from ..aggregate.live import LiveMap
     from ..encoders.spec import encoder_from_spec
     from ..method import add_view, named_method
     from ..nodes.region_encoder import warm_up as warm_up_regions
@@ -76,13 +77,14 @@ def warm_up_all(work: Path) -> dict[str, float]:
         store = ObservationStore(work / name, len(gaussians), writer=True)
         for camera, (label_maps, bank) in zip(scene.cameras[:2], views[:2], strict=True):
             add_view(gaussians, camera, label_maps, bank, method, store)
-        # the refiner's calls: a first pass over everything, then passes over touched Gaussians
-        features, observed = store.refine(None, method.aggregation, False, unit_float16=True)
+        # the refiner's calls: a first exact pass, a fold of a new view, the final exact pass
+        live = LiveMap(store)
+        live.update(method.aggregation, exact=True)
         add_view(gaussians, scene.cameras[2], *views[2], method, store)
-        store.touch_views(2)
-        features, touched = store.refine(features, method.aggregation, True, unit_float16=True)
-        if language_map is None and features is not None:
-            language_map = LanguageMap(features, observed | touched, encoder.name)
+        live.update(method.aggregation, exact=False)
+        if language_map is None and live.features is not None and live.observed is not None:
+            language_map = LanguageMap(live.features, live.observed, encoder.name)
+        live.update(method.aggregation, exact=True)
         lap(f"per-view step + refiner, {name}")
     if language_map is None:
         raise RuntimeError(f"{scene.folder}: the tiny flight's views observed no Gaussian")

@@ -46,6 +46,8 @@ def test_bench_scale_writes_the_documented_figures(tiny, tmp_path, capsys):
     added = [b - a for a, b in zip([0, *figures["refine_pass_views"]], figures["refine_pass_views"], strict=False)]
     per_view = [s / max(a, 1) for s, a in zip(passes, added, strict=True)]
     assert figures["refine_s_per_added_view"] == pytest.approx(per_view, abs=1e-3)
+    exact = figures["refine_pass_exact"]  # the refiner folds its live passes; its first and final are exact
+    assert len(exact) == len(passes) and exact[0] and exact[-1] and final["final"] and final["exact"]
     assert figures["refine_pass_views"][-1] == 12 and figures["refine_pass_views"] == sorted(
         figures["refine_pass_views"]
     )
@@ -60,8 +62,12 @@ def test_a_bad_override_is_refused_before_anything_starts(tiny, tmp_path, capsys
     (naming the node and parameter) before any node starts, not a hang in the graph's thread."""
     scene, _ = tiny
     args = ["bench", "scale", "--scene", str(scene), "--work", str(tmp_path / "run"), "--port", str(free_port())]
-    args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--set", "query_server.heatmap_max_side=-1"]
-    assert main(args) == 1
-    err = capsys.readouterr().err
-    assert "(query_server).params: heatmap_max_side must be >= 0" in err
-    assert not (tmp_path / "run" / "logs").exists()  # no node was started
+    args += ["--launch", str(REPO / "launch" / "replay.yaml")]
+    for setting, error in [
+        ("query_server.heatmap_max_side=-1", "(query_server).params: heatmap_max_side must be >= 0"),
+        ("refiner.passes=sometimes", "(refiner).params: passes must be fold or exact and refresh >= 0"),
+        ("refiner.refresh=-1", "(refiner).params: passes must be fold or exact and refresh >= 0"),
+    ]:
+        assert main([*args, "--set", setting]) == 1
+        assert error in capsys.readouterr().err
+        assert not (tmp_path / "run" / "logs").exists()  # no node was started

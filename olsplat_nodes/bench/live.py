@@ -1,0 +1,111 @@
+"""``olsplat bench live``: how far the refiner's folded live maps drift from exact passes, and
+what each pass costs, replaying a finished store view by view.
+
+The store of ``olsplat eval`` (``SCENE/eval/METHOD/store``) is replayed as the refiner meets it:
+its segments appear ``--every`` at a time (linked into a growing store folder, nothing copied),
+and after each arrival two live maps take a pass, one folding the new views in (``passes: fold``,
+the refiner's default) and one exact (``passes: exact``). Printed per scene and method: each
+pass's seconds for both, the mean cosine between the two maps' features over the observed
+Gaussians, and the scores (mIoU, Loc@50) of both maps before the final pass (all views in,
+the most folds behind them): the largest drift a live user sees. The final pass is exact in
+both, so the final map does not drift.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("live", help="folded vs exact live refinement passes: drift and seconds")
+    parser.add_argument("--scene", required=True, type=Path, action="append", help="a scene folder (repeatable)")
+    parser.add_argument("--methods", default="outlangsplat,vala", help="methods whose eval stores to replay")
+    parser.add_argument("--every", type=int, default=10, help="views that arrive between two passes")
+    parser.add_argument("--json", type=Path, help="write the figures to this file")
+    parser.set_defaults(run=run)
+
+
+def _cosine(a: np.ndarray, b: np.ndarray, rows: np.ndarray) -> float:
+    """Mean cosine between the unit float16 rows of a and b where ``rows``."""
+    x, y = a[rows].astype(np.float32), b[rows].astype(np.float32)
+    return float(np.mean(np.sum(x * y, 1)))
+
+
+def replay(store_folder: Path, method, every: int, work: Path) -> dict:
+    """Both live maps over the store's segments, ``every`` at a time; the figures and maps."""
+    from ..aggregate import ObservationStore
+    from ..aggregate.live import LiveMap
+
+    n = _map_size(store_folder)
+    segments = ObservationStore(store_folder, n).segments()
+    (work / "views").mkdir(parents=True)
+    live = {kind: LiveMap(ObservationStore(work, n)) for kind in ("fold", "exact")}
+    figures: dict = {"views": [], "fold_s": [], "exact_s": [], "cosine": []}
+    for stop in range(every, len(segments) + every, every):
+        for segment in segments[stop - every : stop]:
+            (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
+        for kind, live_map in live.items():
+            start = time.perf_counter()
+            live_map.update(method.aggregation, exact=kind == "exact")
+            figures[f"{kind}_s"].append(round(time.perf_counter() - start, 3))
+        fold, exact = live["fold"], live["exact"]
+        assert fold.features is not None and exact.features is not None and exact.observed is not None
+        figures["views"].append(fold.views)
+        figures["cosine"].append(round(_cosine(fold.features, exact.features, exact.observed), 5))
+    return {"figures": figures, "fold": live["fold"], "exact": live["exact"]}
+
+
+def _map_size(store_folder: Path) -> int:
+    """The Gaussians of the map the store was made for: from the language map beside it."""
+    from ..aggregate.snapshot import LanguageMap
+
+    return len(LanguageMap.load(store_folder.parent / "language_map.npz"))
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..aggregate.snapshot import LanguageMap
+    from ..encoders.spec import encoder_from_spec
+    from ..errors import OlsplatInputError
+    from ..evaluate.scene_eval import evaluate_map
+    from ..method import named_method
+    from ..pipeline import Scene
+
+    if args.every < 1:
+        raise OlsplatInputError(f"--every must be at least 1, got {args.every}")
+    encoder = encoder_from_spec()
+    results: dict = {}
+    for folder in args.scene:
+        scene = Scene.open(folder)
+        for name in args.methods.split(","):
+            store = folder / "eval" / name / "store"
+            if not (store / "views").is_dir():
+                raise OlsplatInputError(
+                    f"{store}: no store; run `olsplat eval --scene {folder} --methods {name}` first"
+                )
+            with tempfile.TemporaryDirectory() as tmp:
+                out = replay(store, named_method(name), args.every, Path(tmp) / "store")
+            scores = {}
+            for kind in ("fold", "exact"):
+                live = out[kind]
+                scores[kind] = evaluate_map(scene, LanguageMap(live.features, live.observed, encoder.name), encoder)
+            f = out["figures"]
+            f.update({f"{k}_{m}": round(scores[k][m], 2) for k in scores for m in ("mIoU", "loc50")})
+            results[f"{folder.name}/{name}"] = f
+            print(f"{folder.name} {name}: {f['views'][-1]} views, a pass every {args.every}")
+            print("  fold  s: " + ", ".join(f"{s:.2f}" for s in f["fold_s"]))
+            print("  exact s: " + ", ".join(f"{s:.2f}" for s in f["exact_s"]))
+            print("  cosine fold vs exact: " + ", ".join(f"{c:.4f}" for c in f["cosine"]))
+            print(
+                f"  before the final pass: fold {f['fold_mIoU']:.2f} mIoU / {f['fold_loc50']:.2f} Loc@50, "
+                f"exact {f['exact_mIoU']:.2f} / {f['exact_loc50']:.2f}"
+            )
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+        print(f"figures -> {args.json}")
+    return 0

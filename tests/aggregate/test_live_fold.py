@@ -1,0 +1,191 @@
+"""A live map's fold: new views folded into the running features, against the numpy oracle
+(``fold_dense``), for the median against a pass over all views, and through the store."""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.aggregate import AggregationConfig, ObservationStore
+from olsplat_nodes.aggregate._reference import fold_dense, refine_dense
+from olsplat_nodes.aggregate.refine import MixedObservations, refine_mixed
+
+from .test_refine_store import _views
+
+CONFIGS = [
+    AggregationConfig(),
+    AggregationConfig(min_retained_views=None),
+    AggregationConfig(iterations=2, beta=(1.0, 3.0), min_retained_views=0.8),
+    AggregationConfig(iterations=0),
+]
+
+
+def _observations(features, strength):
+    owner, view = np.nonzero(strength)
+    return MixedObservations.dense(owner, strength[owner, view], features[owner, view])
+
+
+@pytest.mark.parametrize("config", CONFIGS)
+def test_the_fold_equals_the_dense_equations(config):
+    rng = np.random.default_rng(3)
+    n, dim = 60, 5
+    early, late = rng.normal(size=(n, 4, dim)), rng.normal(size=(n, 3, dim))
+    early[:, :3] += 2.0 * rng.normal(size=(n, 1, dim))
+    late += early[:, :1]  # the new views mostly agree with the first ones
+    seen_early = rng.uniform(0.1, 1.0, (n, 4)) * (rng.random((n, 4)) < 0.7)
+    seen_late = rng.uniform(0.1, 1.0, (n, 3)) * (rng.random((n, 3)) < 0.7)
+    seen_early[:10] = 0.0  # first seen in the new views: computed exactly
+    seen_late[10:15] = 0.0  # not in the new views: left alone
+
+    weight, norm = np.zeros(n), np.zeros(n)
+    first, _ = refine_mixed(_observations(early, seen_early), n, config, (np.zeros((0, dim), np.float32), weight, norm))
+    expected_first, expected_weight = fold_dense(np.zeros((n, dim)), np.zeros(n), early, seen_early, config)
+    np.testing.assert_allclose(first, expected_first, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(weight, expected_weight, rtol=1e-5)
+    np.testing.assert_allclose(norm, np.linalg.norm(expected_first, axis=1), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(first, refine_dense(early, seen_early, config), rtol=1e-5, atol=1e-6)
+
+    # the prior as a live refiner keeps it: unit rows (float16) and the norms
+    unit = (first / np.maximum(np.linalg.norm(first, axis=1, keepdims=True), 1e-12)).astype(np.float16)
+    rows = unit.astype(np.float64)
+    prior_mean = rows / np.maximum(np.linalg.norm(rows, axis=1, keepdims=True), 1e-12) * norm[:, None]
+    before = weight.copy()
+    folded, _ = refine_mixed(_observations(late, seen_late), n, config, (unit.astype(np.float32), weight, norm))
+    expected, expected_weight = fold_dense(prior_mean, before, late, seen_late, config)
+    moved = seen_late.any(1)
+    np.testing.assert_allclose(folded[moved], expected[moved], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(weight, expected_weight, rtol=1e-5)
+    assert not folded[~moved].any() and (weight[10:15] == before[10:15]).all()
+    # Gaussians first seen now are exact; the others differ from an exact pass over all views
+    both = np.concatenate([early, late], 1), np.concatenate([seen_early, seen_late], 1)
+    exact = refine_dense(*both, config)
+    np.testing.assert_allclose(folded[:10], exact[:10], rtol=1e-5, atol=1e-6)
+
+
+def test_the_median_folds_exactly():
+    """VALA's streaming median is incremental by nature: two folds give one pass's result."""
+    rng = np.random.default_rng(4)
+    n, dim = 50, 6
+    features, strength = rng.normal(size=(n, 6, dim)), rng.uniform(0.1, 1, (n, 6)) * (rng.random((n, 6)) < 0.7)
+    config = AggregationConfig(combine="streaming_median")
+    owner, view = np.nonzero(strength.T)[::-1]  # in arrival order: view by view
+    whole, _ = refine_mixed(MixedObservations.dense(owner, strength[owner, view], features[owner, view]), n, config)
+    weight, norm = np.zeros(n), np.zeros(n)
+    state = (np.zeros((0, dim), np.float32), weight, norm)
+    half = np.zeros_like(strength)
+    half[:, :3] = strength[:, :3]
+    first, _ = refine_mixed(_observations(features, half), n, config, state)
+    rest = strength - half
+    folded, _ = refine_mixed(_observations(features, rest), n, config, (first, weight, norm))
+    later = rest.any(1)
+    np.testing.assert_allclose(folded[later], whole[later], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(first[~later], whole[~later], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(weight, strength.sum(1), rtol=1e-6)
+
+
+def test_a_state_with_a_wrong_shape_is_refused():
+    observations = _observations(np.ones((3, 2, 4)), np.ones((3, 2)))
+    with pytest.raises(ValueError, match="state for 3 Gaussians of width 4"):
+        refine_mixed(observations, 3, AggregationConfig(), (np.zeros((2, 4), np.float32), np.zeros(3), np.zeros(3)))
+
+
+@pytest.mark.parametrize("unit_float16", [False, True])
+def test_the_store_folds_new_views_as_the_kernel_does(tmp_path, unit_float16):
+    """``refine(views=...)`` folds exactly the segments asked for, range by range, into F and the
+    state, the same as the kernel over those views' observations; an exact pass afterwards
+    equals a pass of a fresh store (the final map stays exact)."""
+    n, config = 150, AggregationConfig()
+    store = ObservationStore(tmp_path / "s", n, writer=True)
+    views = list(_views(5, n))
+    for view in views[:2]:
+        store.append(*view)
+    weight, norm = np.zeros(n), np.zeros(n)
+    F, _ = store.refine(None, config, False, unit_float16=unit_float16, state=(weight, norm))
+    for view in views[2:]:
+        store.append(*view)
+    prior, prior_weight, prior_norm = F.astype(np.float32), weight.copy(), norm.copy()
+    new = store.gather(np.ones(n, bool), views=(2, 5))
+    expected, _ = refine_mixed(new, n, config, (prior, prior_weight, prior_norm))
+    F, folded = store.refine(F, config, unit_float16=unit_float16, state=(weight, norm), views=(2, 5), max_gaussians=9)
+    assert store.touched.any()  # a fold leaves the exact pass's bookkeeping alone
+    changed = np.bincount(new.owner, minlength=n) > 0
+    np.testing.assert_array_equal(folded, changed)
+    if unit_float16:
+        expected /= np.maximum(np.linalg.norm(expected, axis=1, keepdims=True), 1e-12)
+    tolerance = 1e-3 if unit_float16 else 1e-6
+    np.testing.assert_allclose(F[changed].astype(np.float32), expected[changed], rtol=tolerance, atol=tolerance)
+    np.testing.assert_allclose(weight, prior_weight, rtol=1e-6)
+    np.testing.assert_allclose(norm, prior_norm, rtol=1e-6)
+
+    live = F.copy()
+    final, _ = store.refine(F, config, False, unit_float16=unit_float16, state=(weight, norm))
+    fresh = ObservationStore(tmp_path / "fresh", n, writer=True)
+    for view in views:
+        fresh.append(*view)
+    exact, _ = fresh.refine(None, config, False, unit_float16=unit_float16)
+    np.testing.assert_array_equal(final, exact)
+    assert not np.array_equal(live, exact)  # the fold is an approximation for Gaussians seen before
+
+    with pytest.raises(ValueError, match="needs the current features"):
+        store.refine(None, config, state=(weight, norm), views=(4, 5))
+
+
+def test_a_live_map_folds_refreshes_and_ends_exact(tmp_path):
+    """LiveMap's passes over a growing store: the first is exact; a fold changes the rows of the
+    Gaussians its views touched plus its refresh slice; a refresh budget as large as the map
+    makes a fold recompute everything exactly; the final exact pass equals an offline pass."""
+    from olsplat_nodes.aggregate.live import LiveMap
+
+    n, config = 150, AggregationConfig()
+    views = list(_views(6, n))
+    stores = {k: ObservationStore(tmp_path / k, n, writer=True) for k in ("plain", "whole", "offline")}
+    live = {"plain": LiveMap(stores["plain"], refresh=0.0), "whole": LiveMap(stores["whole"], refresh=1e9)}
+    for store in stores.values():
+        for view in views[:2]:
+            store.append(*view)
+    for live_map in live.values():
+        assert live_map.update(config, exact=False) is None  # the first pass: exact, every row
+    assert not live["plain"].update(config, exact=False).any()  # no new view: nothing to do
+    for store in stores.values():
+        for view in views[2:]:
+            store.append(*view)
+    changed = {k: m.update(config, exact=False) for k, m in live.items()}
+    new_ids = np.unique(np.concatenate([np.asarray(v[1].gaussians) for v in views[2:]]))
+    assert set(np.flatnonzero(changed["plain"])) == set(new_ids) and live["plain"].views == 6
+    offline, observed = stores["offline"].refine(None, config, False, unit_float16=True)
+    np.testing.assert_array_equal(live["whole"].features, offline)  # everything refreshed: exact
+    np.testing.assert_array_equal(live["whole"].observed, observed)
+    assert changed["whole"].sum() == observed.sum() and live["whole"].cursor == n
+    assert not np.array_equal(live["plain"].features, offline)
+    live["plain"].update(config, exact=True)  # the final pass
+    np.testing.assert_array_equal(live["plain"].features, offline)
+    np.testing.assert_array_equal(live["plain"].observed, observed)
+
+
+def test_refresh_slices_go_round_the_map(tmp_path):
+    """Each fold's refresh slice starts where the last one ended (at 0 after the map's end) and
+    holds just enough Gaussians for ``refresh`` times the new view's observations."""
+    from olsplat_nodes.aggregate.live import LiveMap
+
+    n, config = 150, AggregationConfig()
+    views = list(_views(8, n))
+    store = ObservationStore(tmp_path / "s", n, writer=True)
+    live = LiveMap(store, refresh=2.0)
+    store.append(*views[0])
+    live.update(config, exact=True)
+    slices = []
+    for view in views[1:]:
+        store.append(*view)
+        lo = live.cursor if live.cursor < n else 0
+        live.update(config, exact=False)
+        slices.append((lo, live.cursor))
+        counts = store.observation_counts()
+        budget = 2.0 * len(view[1].gaussians)
+        end = live.cursor  # the longest slice within the budget (at least one Gaussian)
+        assert counts[lo:end].sum() <= budget or end == lo + 1
+        assert end == n or counts[lo : end + 1].sum() > budget
+    for (_, end), (lo, _) in pairwise(slices):
+        assert lo == (end if end < n else 0)
+    assert any(end == n for _, end in slices)  # it went round
