@@ -112,7 +112,24 @@ def _weighted_mean(features, w, eps, out):
 @njit(inline="always")
 def _effective_views(w):
     """Kish's effective number of views, (sum w)^2 / sum w^2."""
-    return np.sum(w) ** 2 / max(np.sum(w * w), 1e-300)
+    total = squares = 0.0
+    for j in range(w.shape[0]):
+        total += w[j]
+        squares += w[j] * w[j]
+    return total**2 / max(squares, 1e-300)
+
+
+# Gaussians per parallel chunk: each chunk allocates its scratch arrays once (the size of the
+# most-observed Gaussian), not once per Gaussian (millions of small allocations per pass)
+_CHUNK = 512
+
+
+@njit(inline="always")
+def _most_observed(first):
+    most = 0
+    for g in range(first.shape[0] - 1):
+        most = max(most, first[g + 1] - first[g])
+    return most
 
 
 @njit(inline="always")
@@ -138,49 +155,54 @@ def _consistency(
     n, dim = first.shape[0] - 1, bank.shape[1]
     out = np.zeros((n, dim), np.float32)
     beta_last = betas[-1] if betas.shape[0] > 0 else 0.0
-    for g in prange(n):
-        a, k = first[g], first[g + 1] - first[g]
-        if k == 0:
-            continue
-        features, norms = np.empty((k, dim)), np.empty(k)
-        d, rho = np.empty(k), np.empty(k)
-        _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
-        F = np.empty(dim)
-        if weight[g] > 0.0:  # fold the new views into the running mean
-            _prior_mean(prior[g], norm[g], F)
-            norm_F = np.sqrt(_dot(F, F))
-            for j in range(k):  # every new view against the same prior mean: order does not matter
-                rho[j] = d[j] * np.exp(beta_last * _dot(features[j], F) / (norms[j] * norm_F + eps))
-            total = weight[g]
-            F *= total
+    most = _most_observed(first)
+    for chunk in prange((n + _CHUNK - 1) // _CHUNK):
+        all_features, all_norms = np.empty((most, dim)), np.empty(most)
+        all_d, all_rho = np.empty(most), np.empty(most)
+        F, F0 = np.empty(dim), np.empty(dim)
+        for g in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            a, k = first[g], first[g + 1] - first[g]
+            if k == 0:
+                continue
+            features, norms, d, rho = all_features[:k], all_norms[:k], all_d[:k], all_rho[:k]
+            _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
+            if weight[g] > 0.0:  # fold the new views into the running mean
+                _prior_mean(prior[g], norm[g], F)
+                norm_F = np.sqrt(_dot(F, F))
+                for j in range(k):  # every new view against the same prior mean: order does not matter
+                    rho[j] = d[j] * np.exp(beta_last * _dot(features[j], F) / (norms[j] * norm_F + eps))
+                total = weight[g]
+                F *= total
+                for j in range(k):
+                    total += rho[j]
+                    for c in range(dim):
+                        F[c] += rho[j] * features[j, c]
+                F /= total + eps
+                weight[g] = total
+                norm[g] = np.sqrt(_dot(F, F))
+                out[g] = F
+                continue
+            _weighted_mean(features, d, eps, F0)
+            F[:] = F0
+            rho[:] = d
+            for beta in betas:
+                norm_F = np.sqrt(_dot(F, F))
+                for j in range(k):
+                    cosine = _dot(features[j], F) / (norms[j] * norm_F + eps)
+                    rho[j] = d[j] * np.exp(beta * cosine)
+                _weighted_mean(features, rho, eps, F)
+            if min_retained > 0 and betas.shape[0] > 0:
+                before = _effective_views(d)
+                retained = _effective_views(rho) / max(before, 1e-300) if before > 0 else 1.0
+                if retained < min_retained:
+                    F[:] = F0
+                    rho[:] = d
+            total = 0.0
             for j in range(k):
                 total += rho[j]
-                for c in range(dim):
-                    F[c] += rho[j] * features[j, c]
-            F /= total + eps
             weight[g] = total
             norm[g] = np.sqrt(_dot(F, F))
             out[g] = F
-            continue
-        F0 = np.empty(dim)
-        _weighted_mean(features, d, eps, F0)
-        F[:] = F0
-        rho[:] = d
-        for beta in betas:
-            norm_F = np.sqrt(_dot(F, F))
-            for j in range(k):
-                cosine = _dot(features[j], F) / (norms[j] * norm_F + eps)
-                rho[j] = d[j] * np.exp(beta * cosine)
-            _weighted_mean(features, rho, eps, F)
-        if min_retained > 0 and betas.shape[0] > 0:
-            before = _effective_views(d)
-            retained = _effective_views(rho) / max(before, 1e-300) if before > 0 else 1.0
-            if retained < min_retained:
-                F[:] = F0
-                rho[:] = d
-        weight[g] = np.sum(rho)
-        norm[g] = np.sqrt(_dot(F, F))
-        out[g] = F
     return out
 
 
@@ -195,30 +217,36 @@ def _streaming_median(first, order, strength, entry_offsets, slots, weights, ban
     read and written, norm [n] is set to 1 where z is set."""
     n, dim = first.shape[0] - 1, bank.shape[1]
     out = np.zeros((n, dim), np.float32)
-    for g in prange(n):
-        a, k = first[g], first[g + 1] - first[g]
-        if k == 0:
-            continue
-        features, norms = np.empty((k, dim)), np.empty(k)
-        d = np.empty(k)
-        _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
-        z, total = np.zeros(dim), weight[g]
-        if total > 0.0:
-            _prior_mean(prior[g], 1.0, z)
-        for j in range(k):
-            if norms[j] <= 0.0 or d[j] <= 0.0:
+    most = _most_observed(first)
+    for chunk in prange((n + _CHUNK - 1) // _CHUNK):
+        all_features, all_norms, all_d = np.empty((most, dim)), np.empty(most), np.empty(most)
+        z = np.empty(dim)
+        for g in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            a, k = first[g], first[g + 1] - first[g]
+            if k == 0:
                 continue
-            f = features[j] / norms[j]
-            if total == 0.0:
-                z[:] = f
-            else:
-                eta = d[j] / (total + d[j])
-                z += eta * (f - _dot(f, z) * z)
-                z /= np.sqrt(_dot(z, z))
-            total += d[j]
-        weight[g] = total
-        norm[g] = 1.0 if total > 0.0 else 0.0
-        out[g] = z
+            features, norms, d = all_features[:k], all_norms[:k], all_d[:k]
+            _mix(features, norms, d, strength, order, a, entry_offsets, slots, weights, bank)
+            z[:] = 0.0
+            total = weight[g]
+            if total > 0.0:
+                _prior_mean(prior[g], 1.0, z)
+            for j in range(k):
+                if norms[j] <= 0.0 or d[j] <= 0.0:
+                    continue
+                if total == 0.0:
+                    for c in range(dim):
+                        z[c] = features[j, c] / norms[j]
+                else:
+                    eta = d[j] / (total + d[j])
+                    along = _dot(features[j], z) / norms[j]  # f . z with f the unit feature
+                    for c in range(dim):
+                        z[c] += eta * (features[j, c] / norms[j] - along * z[c])
+                    z /= np.sqrt(_dot(z, z))
+                total += d[j]
+            weight[g] = total
+            norm[g] = 1.0 if total > 0.0 else 0.0
+            out[g] = z
     return out
 
 

@@ -27,6 +27,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--scene", required=True, type=Path, action="append", help="a scene folder (repeatable)")
     parser.add_argument("--methods", default="outlangsplat,vala", help="methods whose eval stores to replay")
     parser.add_argument("--every", type=int, default=10, help="views that arrive between two passes")
+    parser.add_argument("--refresh", type=float, default=1.0, help="the folds' exact slice (refiner.refresh)")
     parser.add_argument("--json", type=Path, help="write the figures to this file")
     parser.set_defaults(run=run)
 
@@ -37,7 +38,7 @@ def _cosine(a: np.ndarray, b: np.ndarray, rows: np.ndarray) -> float:
     return float(np.mean(np.sum(x * y, 1)))
 
 
-def replay(store_folder: Path, method, every: int, work: Path) -> dict:
+def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 1.0) -> dict:
     """Both live maps over the store's segments, ``every`` at a time; the figures and maps."""
     from ..aggregate import ObservationStore
     from ..aggregate.live import LiveMap
@@ -45,7 +46,7 @@ def replay(store_folder: Path, method, every: int, work: Path) -> dict:
     n = _map_size(store_folder)
     segments = ObservationStore(store_folder, n).segments()
     (work / "views").mkdir(parents=True)
-    live = {kind: LiveMap(ObservationStore(work, n)) for kind in ("fold", "exact")}
+    live = {kind: LiveMap(ObservationStore(work, n), refresh=refresh) for kind in ("fold", "exact")}
     figures: dict = {"views": [], "fold_s": [], "exact_s": [], "cosine": []}
     for stop in range(every, len(segments) + every, every):
         for segment in segments[stop - every : stop]:
@@ -76,8 +77,8 @@ def run(args: argparse.Namespace) -> int:
     from ..method import named_method
     from ..pipeline import Scene
 
-    if args.every < 1:
-        raise OlsplatInputError(f"--every must be at least 1, got {args.every}")
+    if args.every < 1 or not args.refresh >= 0:
+        raise OlsplatInputError(f"need --every >= 1 and --refresh >= 0, got {args.every}, {args.refresh}")
     encoder = encoder_from_spec()
     results: dict = {}
     for folder in args.scene:
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{store}: no store; run `olsplat eval --scene {folder} --methods {name}` first"
                 )
             with tempfile.TemporaryDirectory() as tmp:
-                out = replay(store, named_method(name), args.every, Path(tmp) / "store")
+                out = replay(store, named_method(name), args.every, Path(tmp) / "store", args.refresh)
             scores = {}
             for kind in ("fold", "exact"):
                 live = out[kind]
@@ -97,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
             f = out["figures"]
             f.update({f"{k}_{m}": round(scores[k][m], 2) for k in scores for m in ("mIoU", "loc50")})
             results[f"{folder.name}/{name}"] = f
-            print(f"{folder.name} {name}: {f['views'][-1]} views, a pass every {args.every}")
+            print(f"{folder.name} {name}: {f['views'][-1]} views, a pass every {args.every}, refresh {args.refresh}")
             print("  fold  s: " + ", ".join(f"{s:.2f}" for s in f["fold_s"]))
             print("  exact s: " + ", ".join(f"{s:.2f}" for s in f["exact_s"]))
             print("  cosine fold vs exact: " + ", ".join(f"{c:.4f}" for c in f["cosine"]))

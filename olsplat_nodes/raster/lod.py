@@ -60,6 +60,13 @@ class LodTree:
     leaf: np.ndarray  # [N] int32 each Gaussian's level-1 cube
     weight: np.ndarray  # [N] float32 each Gaussian's w (opacity x area)
     node_weight: np.ndarray  # [M] float64 sum of the members' w
+    # the members of each cube, for sums cube by cube: level-1 cube j holds the Gaussians
+    # leaf_order[leaf_first[j]:leaf_first[j+1]]; cube j of a higher level holds the cubes
+    # child_order[child_first[j]:child_first[j+1]] (none for level 1)
+    leaf_order: np.ndarray  # [N] int64
+    leaf_first: np.ndarray  # [leaves + 1] int64
+    child_order: np.ndarray  # [M - top-level cubes] int64
+    child_first: np.ndarray  # [M + 1] int64
 
     def __len__(self) -> int:
         return len(self.nodes)
@@ -120,8 +127,17 @@ def _leaf_moments(means, quats, log_scales, opacity_logits, dc, leaf, n_leaves):
     return out, weights
 
 
-def _merged(moments: np.ndarray, sh_coefficients: int) -> Gaussians:
-    """Gaussians [M] from cube moment sums [M, MOMENTS] (the module docstring's rules)."""
+def _merged(moments: np.ndarray, block: int = 262_144) -> Gaussians:
+    """Gaussians [M] of SH degree 0 from cube moment sums [M, MOMENTS] (the module docstring's
+    rules), block by block: the per-cube 3x3 temporaries stay small."""
+    parts = [_merged_block(moments[a : a + block]) for a in range(0, len(moments), block)]
+    return Gaussians(**{f: np.concatenate([getattr(part, f) for part in parts]) for f in _FIELDS})
+
+
+_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+
+
+def _merged_block(moments: np.ndarray) -> Gaussians:
     total = moments[:, W]
     mean = moments[:, WX : WZ + 1] / total[:, None]
     second = np.empty((len(moments), 3, 3))
@@ -134,8 +150,7 @@ def _merged(moments: np.ndarray, sh_coefficients: int) -> Gaussians:
     scales = np.sqrt(variances)
     area = np.pi * scales[:, 1] * scales[:, 2]
     opacity = np.clip(moments[:, COVER] / area, 1e-6, MAX_OPACITY)
-    sh = np.zeros((len(moments), sh_coefficients, 3), np.float32)
-    sh[:, 0] = moments[:, WR : WB + 1] / total[:, None]
+    sh = (moments[:, WR : WB + 1] / total[:, None]).astype(np.float32)[:, None, :]
     return Gaussians(
         means=mean,
         quats=rotmats_to_quats(axes),
@@ -177,16 +192,22 @@ def build_lod(gaussians: Gaussians, config: LodConfig = LodConfig()) -> LodTree:
     for level_index, parent in enumerate(parents):  # level l's parents are level l + 1's cubes
         parent_global[starts[level_index] : starts[level_index + 1]] = parent + starts[level_index + 1]
     stacked = np.concatenate(all_moments)
+    del all_moments
     node_level = np.concatenate(levels)
+    has_parent = np.flatnonzero(parent_global >= 0)
     return LodTree(
         config=config,
-        nodes=_merged(stacked, gaussians.sh.shape[1]),
+        nodes=_merged(stacked),
         node_level=node_level,
         node_side=(config.cell_m * 2.0 ** (node_level - 1)).astype(np.float32),
         parent=parent_global,
         leaf=leaf,
         weight=weights,
         node_weight=stacked[:, W].copy(),
+        leaf_order=np.argsort(leaf, kind="stable"),
+        leaf_first=np.concatenate([[0], np.cumsum(np.bincount(leaf, minlength=len(keys)))]),
+        child_order=has_parent[np.argsort(parent_global[has_parent], kind="stable")],
+        child_first=np.concatenate([[0], np.cumsum(np.bincount(parent_global[has_parent], minlength=starts[-1]))]),
     )
 
 
@@ -216,54 +237,58 @@ def select(tree: LodTree, camera: Camera, near: float = 0.01) -> tuple[np.ndarra
     return ~covered[tree.leaf], drawn
 
 
-@njit(cache=True)
-def _leaf_feature_sums(table, rows, weights, leaf, first, out):
-    """out[leaf[i]] += weights[i] * table[rows[i - first]] for i in first .. first + len(rows)."""
-    for k in range(rows.shape[0]):
-        row = rows[k]
-        if row < 0:
-            continue
-        i = first + k
-        target = out[leaf[i]]
-        w = weights[i]
-        for d in range(table.shape[1]):
-            target[d] += w * table[row, d]
+def _group_means(values_of, weights, order, first, group_weight, out, block: int = 131_072) -> None:
+    """out[j] = sum over the members m = order[first[j]:first[j+1]] of weights[m] values_of(m)
+    / group_weight[j], for the groups j of ``out`` (first [len(out) + 1] absolute positions in
+    order), ``block`` groups at a time: their members' float32 values and one sum per group."""
+    for a in range(0, len(out), block):
+        b = min(a + block, len(out))
+        members = order[first[a] : first[b]]
+        values = values_of(members) * weights[members, None].astype(np.float32)
+        sums = np.add.reduceat(values, first[a:b] - first[a], axis=0)  # every cube has a member
+        out[a:b] = sums / group_weight[a:b, None]
 
 
-def node_features(tree: LodTree, table: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
-    """[M, D] float32: each cube's w-weighted mean of its members' features, Gaussian g's being
-    table[rows[g]] (table [N, D] and rows None: row g), zero where the row is -1. Read in
-    blocks of 262,144 Gaussians, widened to float32 (a float16 table stays float16)."""
-    n = len(tree.leaf)
-    sums = np.zeros((len(tree), table.shape[1]), np.float64)
-    leaves = int(np.sum(tree.node_level == 1))  # level 1 comes first
-    centres = None if rows is None else np.ascontiguousarray(table, np.float32)  # a codebook: widened once
-    block = 262_144
-    for first in range(0, n, block):
-        last = min(first + block, n)
-        if centres is None:
-            part, part_rows = np.ascontiguousarray(table[first:last], np.float32), np.arange(last - first)
-        else:
-            assert rows is not None
-            part, part_rows = centres, np.asarray(rows[first:last], np.int64)
-        _leaf_feature_sums(part, part_rows, tree.weight, tree.leaf, first, sums[:leaves])
-    for level in range(2, tree.config.levels + 1):  # a cube's sums are its children's
-        children = np.flatnonzero(tree.node_level == level - 1)
-        np.add.at(sums, tree.parent[children], sums[children])
-    return (sums / tree.node_weight[:, None]).astype(np.float32)
+def node_features(tree: LodTree, table: np.ndarray, rows: np.ndarray | None, dtype=np.float32) -> np.ndarray:
+    """[M, D] ``dtype``: each cube's w-weighted mean of its members' features, Gaussian g's being
+    table[rows[g]] (table [N, D] and rows None: row g), zero where the row is -1. Cube by cube
+    in blocks (a level-1 cube from its Gaussians, a higher one from its eight children's means
+    and weights), in float32 sums: the only array the size of the cubes is the result (float16:
+    2 bytes per value, 450 MB for the large map's 3.5M cubes at D = 64)."""
+    out = np.empty((len(tree), table.shape[1]), dtype)
+    leaves = len(tree.leaf_first) - 1  # level 1 comes first
+    if rows is None:
+        values_of = lambda members: np.asarray(table[members], np.float32)  # noqa: E731
+    else:
+        padded = np.concatenate([np.asarray(table, np.float32), np.zeros((1, table.shape[1]), np.float32)])
+        values_of = lambda members: padded[rows[members]]  # noqa: E731 (row -1: the zero row)
+    _group_means(values_of, tree.weight, tree.leaf_order, tree.leaf_first, tree.node_weight, out[:leaves])
+    for level in range(2, tree.config.levels + 1):  # a cube's mean from its children's (levels are stacked)
+        at = np.flatnonzero(tree.node_level == level)
+        lo, hi = int(at[0]), int(at[-1]) + 1
+        _group_means(
+            lambda members: np.asarray(out[members], np.float32),
+            tree.node_weight,
+            tree.child_order,
+            tree.child_first[lo : hi + 1],
+            tree.node_weight[lo:hi],
+            out[lo:hi],
+        )
+    return out
 
 
 def with_nodes(gaussians: Gaussians, tree: LodTree) -> Gaussians:
     """[N + M] the map's Gaussians followed by the cubes' merged ones: what a level-of-detail
-    render draws from, with ``drawn`` as its ``active`` mask (higher SH coefficients of the
-    merged ones are 0; extras are not carried)."""
+    heatmap draws from, with ``drawn`` as its ``active`` mask. SH degree 0 (the DC colour only:
+    heatmaps composite features, not colours; degree 3 would be 1.7 GB for the large map);
+    extras are not carried."""
     nodes = tree.nodes
     return Gaussians(
         means=np.concatenate([gaussians.means, nodes.means]),
         quats=np.concatenate([gaussians.quats, nodes.quats]),
         log_scales=np.concatenate([gaussians.log_scales, nodes.log_scales]),
         opacity_logits=np.concatenate([gaussians.opacity_logits, nodes.opacity_logits]),
-        sh=np.concatenate([gaussians.sh, nodes.sh]),
+        sh=np.concatenate([gaussians.sh[:, :1], nodes.sh]),
     )
 
 
@@ -278,8 +303,8 @@ def with_node_features(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The feature table and rows of ``with_nodes``'s Gaussians, from the map's (table [N, D]
     with rows None, or a codebook's centres [K, D] with rows [N]) and the cubes' features
-    ``merged`` [M, D] (``node_features``), stored in the table's dtype."""
-    combined = np.concatenate([table, merged.astype(table.dtype)])
+    ``merged`` [M, D] (``node_features``), stored in the cubes' dtype."""
+    combined = np.concatenate([np.asarray(table, merged.dtype), merged])
     if rows is None:
         return combined, None
     return combined, np.concatenate([rows, len(table) + np.arange(len(merged), dtype=rows.dtype)])
@@ -297,9 +322,12 @@ class LodMap:
     rows: np.ndarray | None  # [N + M] int32 or None
 
     @staticmethod
-    def of(tree: LodTree, gaussians_with_nodes: Gaussians, table: np.ndarray, rows: np.ndarray | None) -> LodMap:
-        """From the map's features (table [N, D] with rows None, or centres [K, D] with rows [N])."""
-        combined, combined_rows = with_node_features(table, rows, node_features(tree, table, rows))
+    def of(
+        tree: LodTree, gaussians_with_nodes: Gaussians, table: np.ndarray, rows: np.ndarray | None, dtype=np.float16
+    ) -> LodMap:
+        """From the map's features (table [N, D] with rows None, or centres [K, D] with rows [N]);
+        the combined table in ``dtype`` (float16: the heatmap kernel reads it as it is)."""
+        combined, combined_rows = with_node_features(table, rows, node_features(tree, table, rows, dtype))
         return LodMap(tree, gaussians_with_nodes, combined, combined_rows)
 
     def drawn(self, camera: Camera) -> np.ndarray:

@@ -174,3 +174,21 @@ def test_a_default_is_kept_on_a_tie():
     assert choose([{"mIoU": 72.41}, {"mIoU": 72.42}, {"mIoU": 72.38}]) == 0  # 0.01 is noise
     assert choose([{"mIoU": 68.4}, {"mIoU": 71.2}, {"mIoU": 71.25}, {"mIoU": 70.0}]) == 1  # 0.05 more is not a win
     assert choose([{"mIoU": 68.4}, {"mIoU": 71.2}, {"mIoU": 71.4}]) == 2
+
+
+def test_bench_live_replays_a_store_folded_and_exact(tiny, tmp_path, capsys):
+    """``bench live`` over the tiny flight's eval store: a pass every 4 views, both live maps
+    scored; with a refresh as large as the map every fold is exact, so the two maps agree."""
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny[0], scene)
+    assert main(["aggregate", "--scene", str(scene), "--out", str(scene / "eval" / "outlangsplat")]) == 0
+    capsys.readouterr()
+    args = ["bench", "live", "--scene", str(scene), "--methods", "outlangsplat", "--every", "4"]
+    assert main([*args, "--refresh", "1e9", "--json", str(tmp_path / "live.json")]) == 0
+    figures = json.loads((tmp_path / "live.json").read_text())["scene/outlangsplat"]
+    assert figures["views"] == [4, 8, 12] and len(figures["fold_s"]) == len(figures["exact_s"]) == 3
+    assert figures["cosine"] == pytest.approx([1.0, 1.0, 1.0], abs=1e-4)
+    assert figures["fold_mIoU"] == figures["exact_mIoU"] > 0
+    assert "before the final pass: fold" in capsys.readouterr().out
+    assert main([*args, "--methods", "vala"]) == 1
+    assert "no store; run `olsplat eval" in capsys.readouterr().err
