@@ -116,6 +116,9 @@ class RefinerNode(Node):
         if end_now or (due and len(self.store) > self.live.views):
             start = time.perf_counter()
             self._refine(self.final)
+            from ..pipeline.peak_memory import release_free_memory  # here: the launcher imports node classes
+
+            release_free_memory()  # a pass's temporaries, freed by its threads: not kept resident
             spent = time.perf_counter() - start
             self.stats.handled(0, spent)
             self.last_pass = time.monotonic()

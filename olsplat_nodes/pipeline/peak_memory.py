@@ -30,3 +30,19 @@ def peak_rss_mb() -> float:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def release_free_memory() -> bool:
+    """Hand the heap's free pages back to the system (glibc's ``malloc_trim``); False where there
+    is no glibc. A long-lived node that makes large temporaries from several threads (a refiner
+    pass) otherwise keeps their freed pages in its resident set: the large flight's refiner sat
+    ~300 MB higher between passes after its 150th view than before, with nothing more in use."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        return bool(libc.malloc_trim(0)) if libc is not None else False
+    except (OSError, AttributeError):
+        return False
