@@ -376,15 +376,15 @@ class ObservationStore:
             # this range's selected Gaussians only, numbered from 0: the kernels' per-Gaussian
             # arrays and the copies in and out are the size of the selection, not of the range
             whole = bool(here.all())  # a full pass, or a range wholly selected: slices, no index
-            rows: slice | np.ndarray = slice(lo, stop) if whole else lo + np.flatnonzero(here)
+            picked = lo + np.flatnonzero(here)
+            rows: slice | np.ndarray = slice(lo, stop) if whole else picked
             owner = observations.owner - lo if whole else (np.cumsum(here) - 1)[observations.owner - lo]
-            selected_here = stop - lo if whole else len(rows)
             range_state = None
             if state is not None:  # a fold's prior is the selected rows; an exact pass has none
                 prior = np.asarray(out[rows] if views is not None else out[:0], np.float32)
                 range_state = (prior, state[0][rows], state[1][rows])  # slices: written in place
-            refined, count = refine_mixed(replace(observations, owner=owner), selected_here, config, range_state)
-            if state is not None and not whole:  # index copies: written back
+            refined, count = refine_mixed(replace(observations, owner=owner), len(picked), config, range_state)
+            if state is not None and range_state is not None and not whole:  # index copies: written back
                 state[0][rows], state[1][rows] = range_state[1], range_state[2]
             if unit_float16:
                 normalise_rows(refined)  # in place: ``unit_rows`` without its temporaries

@@ -131,10 +131,13 @@ def _merged(moments: np.ndarray, block: int = 262_144) -> Gaussians:
     """Gaussians [M] of SH degree 0 from cube moment sums [M, MOMENTS] (the module docstring's
     rules), block by block: the per-cube 3x3 temporaries stay small."""
     parts = [_merged_block(moments[a : a + block]) for a in range(0, len(moments), block)]
-    return Gaussians(**{f: np.concatenate([getattr(part, f) for part in parts]) for f in _FIELDS})
-
-
-_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+    return Gaussians(
+        means=np.concatenate([part.means for part in parts]),
+        quats=np.concatenate([part.quats for part in parts]),
+        log_scales=np.concatenate([part.log_scales for part in parts]),
+        opacity_logits=np.concatenate([part.opacity_logits for part in parts]),
+        sh=np.concatenate([part.sh for part in parts]),
+    )
 
 
 def _merged_block(moments: np.ndarray) -> Gaussians:
