@@ -53,6 +53,8 @@ EXAMPLES = {
     "bench regions": "olsplat bench regions --scene small0",
     "bench encode": "olsplat bench encode --scene small0",
     "bench aggregate": "olsplat bench aggregate --scene small0",
+    "bench live": "olsplat eval --scene small1 --methods outlangsplat,vala\n"
+    "olsplat bench live --scene small1 --methods outlangsplat,vala --every 10 --json live.json",
     "bench frame": "olsplat bench frame --scene small0 --json frame.json",
     "bench query": "olsplat bench query --scene small0",
     "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json",
