@@ -42,6 +42,7 @@ class LiveMap:
     views: int = 0
     refresh: float = 1.0
     cursor: int = 0  # the next refresh slice starts at this Gaussian
+    counted: int = 0  # the store's observations when the last refresh slice was chosen
 
     def __post_init__(self) -> None:
         self.weight = np.zeros(self.store.n_gaussians)
@@ -57,6 +58,7 @@ class LiveMap:
             self.features, observed = self.store.refine(
                 self.features, config, self.features is not None, unit_float16=True, state=(self.weight, self.norm)
             )
+            self.counted = int(self.store.observation_counts().sum())  # the next fold's budget counts from here
         else:
             changed = np.zeros(self.store.n_gaussians, bool)
             if stop == self.views:
@@ -66,7 +68,7 @@ class LiveMap:
                 self.features, config, unit_float16=True, state=state, views=(self.views, stop)
             )
             changed[:] = observed
-            span = self._refresh_span(self.views, stop)
+            span = self._refresh_span()
             if span is not None:
                 self.features, refreshed = self.store.refine(
                     self.features, config, unit_float16=True, state=state, gaussians=span
@@ -79,17 +81,16 @@ class LiveMap:
         self.views = stop
         return changed
 
-    def _refresh_span(self, first: int, stop: int) -> tuple[int, int] | None:
-        """The next slice (lo, hi) of Gaussians to recompute exactly after folding segments
-        first..stop-1 in: from the cursor, as many of the map's observations as ``refresh``
-        times those segments hold (at least one Gaussian); None when refresh is 0."""
-        segments = self.store.segments()
-        budget = self.refresh * sum(
-            len(self.store.load(i, segments)[0].gaussians) for i in range(first, stop) if self.store.usable(i, segments)
-        )
+    def _refresh_span(self) -> tuple[int, int] | None:
+        """The next slice (lo, hi) of Gaussians to recompute exactly after a fold: from the
+        cursor, as many of the map's observations as ``refresh`` times those the fold took in
+        (the growth of the store's running count since the last fold; at least one Gaussian);
+        None when refresh is 0."""
+        counts = self.store.observation_counts()
+        total = int(counts.sum())
+        budget, self.counted = self.refresh * (total - self.counted), total
         if budget <= 0:
             return None
-        counts = self.store.observation_counts(segments)
         if self.cursor >= len(counts):
             self.cursor = 0
         lo = self.cursor

@@ -293,9 +293,7 @@ class ObservationStore:
         store's running count, which each call brings up to date from the segments it has not
         counted yet; a segment found usable stays so, and segments are only ever added)."""
         segments = self.segments() if segments is None else segments
-        for index in range(self.counted, len(segments)):
-            if self.usable(index, segments):
-                self.counts[np.asarray(self.load(index, segments)[0].gaussians)] += 1  # once per view
+        self._count_into(self.counts, segments, self.counted, len(segments))
         self.counted = max(self.counted, len(segments))
         view = self.counts.view()
         view.flags.writeable = False
@@ -396,8 +394,11 @@ class ObservationStore:
 
     def _counts_in(self, segments: list[Path], first: int, stop: int) -> np.ndarray:
         """[N] int64: in how many of the usable segments first..stop-1 each Gaussian has a kept observation."""
-        counts = np.zeros(self.n_gaussians, np.int64)
+        return self._count_into(np.zeros(self.n_gaussians, np.int64), segments, first, stop)
+
+    def _count_into(self, counts: np.ndarray, segments: list[Path], first: int, stop: int) -> np.ndarray:
+        """counts [N] += 1 for each Gaussian with a kept observation in each usable segment first..stop-1."""
         for index in range(first, stop):
             if self.usable(index, segments):
-                counts[np.asarray(self.load(index, segments)[0].gaussians)] += 1
+                counts[np.asarray(self.load(index, segments)[0].gaussians)] += 1  # once per view
         return counts
