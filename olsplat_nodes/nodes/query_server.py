@@ -464,6 +464,7 @@ class QueryServerNode(Node):
     def _lod_map(self, features):
         """The level of detail of the prior map with ``features`` (a map version's), in the
         background: the cubes are made once (~20 s for 5M Gaussians), the features per version."""
+        from ..raster.cull import cells_of
         from ..raster.lod import LodConfig, LodMap, build_lod, with_nodes
 
         with self.lod_lock:
@@ -471,6 +472,7 @@ class QueryServerNode(Node):
                 start = time.perf_counter()
                 tree = build_lod(self.gaussians, LodConfig(max_px=self.params.heatmap_lod_px))
                 self.lod_cubes = (tree, with_nodes(self.gaussians, tree))
+                cells_of(self.lod_cubes[1])  # its frustum cull's index, before the first heatmap
                 log.info("level of detail: %d cubes in %.1f s", len(tree), time.perf_counter() - start)
             tree, gaussians = self.lod_cubes
         return LodMap.of(tree, gaussians, features.table, features.rows)

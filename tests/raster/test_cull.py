@@ -1,0 +1,82 @@
+"""Frustum culling by cells (raster/cull.py): a render with the cull is the render without it,
+for cameras inside, above, beside and away from a town of Gaussians (some with huge scales, some
+with non-finite fields), and every Gaussian the projection keeps is a candidate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.raster import RasterConfig, cull, project, rasterize
+from olsplat_nodes.scene import Camera, intrinsics, look_at
+
+from ..conftest import random_gaussians
+
+
+@pytest.fixture(scope="module")
+def town():
+    gaussians = random_gaussians(6000, 1, seed=11, spread=40.0)
+    gaussians.log_scales[:] = np.log(np.random.default_rng(3).uniform(0.05, 0.6, (len(gaussians), 3)))
+    gaussians.log_scales[:20] = np.log(30.0)  # a few huge ones: their cells stay visible from afar
+    gaussians.means[20:23] = np.nan  # the kernel culls non-finite centres and scales
+    gaussians.log_scales[23:25] = np.inf
+    return gaussians
+
+
+def cameras() -> list[Camera]:
+    K = intrinsics(300.0, 300.0, 160.0, 120.0)
+    poses = [
+        look_at([0.0, 0.0, 80.0], [0.0, 0.0, 0.0], (0.0, 1.0, 0.0)),  # nadir from above
+        look_at([-20.0, -60.0, 30.0], [10.0, 10.0, 0.0]),  # oblique, most of the town in view
+        look_at([35.0, 35.0, 5.0], [60.0, 60.0, 0.0]),  # at the corner, looking out: little in view
+        look_at([0.0, 0.0, 2.0], [5.0, 3.0, 0.0]),  # inside the town: cells straddle the near plane
+        look_at([0.0, 0.0, 80.0], [0.0, 0.0, 200.0], (0.0, 1.0, 0.0)),  # looking up: nothing
+    ]
+    wide = intrinsics(90.0, 90.0, 160.0, 120.0)  # a wide field of view: the Jacobian clamp matters
+    return [Camera(f"c{i}", 320, 240, K, pose) for i, pose in enumerate(poses)] + [
+        Camera("wide", 320, 240, wide, look_at([5.0, -30.0, 15.0], [0.0, 0.0, 0.0]))
+    ]
+
+
+@pytest.fixture
+def always_cull(monkeypatch):
+    monkeypatch.setattr(cull, "CULL_MIN", 0)
+
+
+def test_every_kept_gaussian_is_a_candidate_and_most_others_are_not(town, always_cull):
+    index = cull.cells_of(town)
+    assert index is not None and len(index) > 50
+    assert index is cull.cells_of(town)  # made once per map
+    config = RasterConfig()
+    culled_some = False
+    for camera in cameras():
+        kept = project(town, camera, config, cull=False).radii > 0
+        candidates = index.candidates(camera, config)
+        assert not np.any(kept & ~candidates), camera.name
+        culled_some |= candidates.sum() < 0.5 * len(town)
+    assert culled_some  # the test means something: some views cull most of the map
+
+
+def test_a_render_with_the_cull_is_the_render_without_it(town, always_cull):
+    features = np.random.default_rng(4).normal(size=(len(town), 8)).astype(np.float32)
+    queries = np.eye(8, dtype=np.float32)[:3]
+    for camera in cameras():
+        culled = project(town, camera, RasterConfig())
+        whole = project(town, camera, RasterConfig(), cull=False)
+        np.testing.assert_array_equal(culled.radii, whole.radii)
+        np.testing.assert_array_equal(culled.records, whole.records)
+        np.testing.assert_array_equal(culled.tile_rects, whole.tile_rects)
+        a = rasterize(town, camera, features=features, want_topk=False, feature_queries=queries)
+        b = rasterize(town, camera, want_topk=True)
+        assert a.n_visible == b.n_visible == int((whole.radii > 0).sum())
+    active = np.random.default_rng(5).random(len(town)) < 0.5  # with a level of detail's subset too
+    camera = cameras()[1]
+    both = project(town, camera, RasterConfig(), active=active)
+    alone = project(town, camera, RasterConfig(), active=active, cull=False)
+    np.testing.assert_array_equal(both.radii, alone.radii)
+    assert not np.any(both.radii[~active])
+
+
+def test_a_small_map_is_projected_whole(town):
+    assert len(town) < cull.CULL_MIN
+    assert cull.cells_of(town) is None
