@@ -272,15 +272,33 @@ def _voxel_keys(points, lowest, eps, dims):
 
 
 def _touching_pairs(keys: np.ndarray, dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every pair of occupied voxels that touch, once: two [E] int64 voxel index arrays."""
-    firsts, seconds = [], []
-    for i, j, k in _HALF_NEIGHBOURS:
-        wanted = keys + (i * dims[1] + j) * dims[2] + k  # sorted, as keys are
-        at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
-        hit = keys[at] == wanted
-        firsts.append(np.flatnonzero(hit))
-        seconds.append(at[hit])
-    return np.concatenate(firsts), np.concatenate(seconds)
+    """Every pair of occupied voxels that touch, once: two [E] int64 voxel index arrays (for
+    each of the 13 half-neighbour offsets in turn, by the first voxel)."""
+    offsets = (_HALF_NEIGHBOURS[:, 0] * dims[1] + _HALF_NEIGHBOURS[:, 1]) * dims[2] + _HALF_NEIGHBOURS[:, 2]
+    return _pairs_at(keys, offsets)
+
+
+@njit(cache=True)
+def _pairs_at(keys, offsets):
+    """(first, second): every (v, w) with keys[w] == keys[v] + offset, for each offset in turn;
+    keys ascending, so one merge walk per offset (13 binary searches per voxel took 12-14 ms for
+    the 30k voxels of a 600k-point selection; this, 5 ms)."""
+    n = keys.shape[0]
+    first = np.empty(n * offsets.shape[0], np.int64)
+    second = np.empty(n * offsets.shape[0], np.int64)
+    m = 0
+    for o in range(offsets.shape[0]):
+        w = 0
+        for v in range(n):
+            wanted = keys[v] + offsets[o]
+            while w < n and keys[w] < wanted:
+                w += 1
+            if w == n:
+                break
+            if keys[w] == wanted:
+                first[m], second[m] = v, w
+                m += 1
+    return first[:m].copy(), second[:m].copy()
 
 
 @njit(cache=True)

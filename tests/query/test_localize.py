@@ -253,3 +253,24 @@ def test_a_crowded_half_cell_makes_core_points_and_a_spread_voxel_does_not():
     crowded = np.vstack([[0.0, 0.0, 0.0], rng.uniform(0.0, 0.49, (19, 3))])
     (one,) = instances_in_3d(crowded, np.arange(20), eps, 20)
     assert one.gaussians == 20
+
+
+def test_touching_voxel_pairs_are_the_binary_searches():
+    """The merge walk finds the pairs 13 binary searches per voxel find, in the same order."""
+    from olsplat_nodes.query.localize import _HALF_NEIGHBOURS, _touching_pairs
+
+    rng = np.random.default_rng(8)
+    dims = np.array([40, 50, 12])
+    ijk = rng.integers(1, dims - 1, (3000, 3))
+    keys = np.unique((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2])
+    firsts, seconds = [], []
+    for i, j, k in _HALF_NEIGHBOURS:
+        wanted = keys + (i * dims[1] + j) * dims[2] + k
+        at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+        hit = keys[at] == wanted
+        firsts.append(np.flatnonzero(hit))
+        seconds.append(at[hit])
+    first, second = _touching_pairs(keys, dims)
+    assert len(first) > 1000
+    np.testing.assert_array_equal(first, np.concatenate(firsts))
+    np.testing.assert_array_equal(second, np.concatenate(seconds))
