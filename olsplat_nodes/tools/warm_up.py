@@ -51,6 +51,8 @@ def warm_up_all(work: Path) -> dict[str, float]:
     from ..pipeline.scene_folder import view_features
     from ..query.answer import answer_query
     from ..query.heatmap import FeatureImages
+    from ..raster import RasterConfig
+    from ..raster.cull import CellIndex
     from ..regions import RegionConfig
     from ..scene import read_ply
 
@@ -88,6 +90,7 @@ def warm_up_all(work: Path) -> dict[str, float]:
         lap(f"per-view step + refiner, {name}")
     if language_map is None:
         raise RuntimeError(f"{scene.folder}: the tiny flight's views observed no Gaussian")
+    CellIndex.build(gaussians).candidates(scene.cameras[0], RasterConfig())  # a large map's frustum cull
     images = FeatureImages(64 * 2**20)
     for _ in range(2):  # the first renders the view, the second is answered from the cache
         answer_query(language_map, gaussians, encoder, "road", camera=scene.cameras[0], images=images, image_key=0)
