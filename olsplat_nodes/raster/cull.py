@@ -60,18 +60,25 @@ class CellIndex:
     @staticmethod
     def build(gaussians: Gaussians, cell_m: float | None = None) -> CellIndex:
         means, log_scales = gaussians.means, gaussians.log_scales
-        lowest, highest, finite = _finite_bounds(means, log_scales)
-        if finite == 0:
+        # the grid spans the bulk of the map (0.1-99.9 % of an even sample of the centres): a
+        # trainer's far floaters go to the border cubes, whose boxes hold them (any grouping is
+        # exact, since each cube's box and scale are its members'), and do not stretch the cubes
+        rows = np.arange(0, len(means), max(1, len(means) // 200_000))
+        if not np.isfinite(means[rows]).all() or not np.isfinite(log_scales[rows]).all():
+            rows = rows[np.isfinite(means[rows]).all(1) & np.isfinite(log_scales[rows]).all(1)]
+            if len(rows) == 0:  # a sample of only non-finite rows: the grid from every finite one
+                rows = np.flatnonzero(np.isfinite(means).all(1) & np.isfinite(log_scales).all(1))
+        if len(rows) == 0:
             empty = np.zeros((0, 3))
             return CellIndex(1.0, np.zeros(0, np.int32), np.zeros(1, np.int64), empty, empty, np.zeros(0), len(means))
+        lowest, highest = np.percentile(means[rows].astype(np.float64), [0.1, 99.9], axis=0)
         if cell_m is None:
             cell_m = max(MIN_CELL_M, float(max(highest[0] - lowest[0], highest[1] - lowest[1])) / COLUMNS)
         dims = np.floor((highest - lowest) / cell_m).astype(np.int64) + 1
-        if float(np.prod(dims.astype(np.float64))) > MAX_CELLS:  # far outliers: coarser cubes, as many
-            cell_m *= float(np.cbrt(np.prod(dims.astype(np.float64)) / MAX_CELLS)) * 1.01
+        while float(np.prod(dims.astype(np.float64))) > MAX_CELLS:  # a tall bulk: coarser cubes
+            cell_m *= 1.5
             dims = np.floor((highest - lowest) / cell_m).astype(np.int64) + 1
-        order, start = _by_cell(means, log_scales, lowest, float(cell_m), dims, finite)
-        low, high, scale_max = _cell_bounds(means, log_scales, order, start)
+        order, start, low, high, scale_max = _by_cell(means, log_scales, lowest, float(cell_m), dims)
         return CellIndex(float(cell_m), order, start, low, high, scale_max, len(means))
 
     def __len__(self) -> int:
@@ -112,83 +119,56 @@ class CellIndex:
 
 
 @njit(cache=True)
-def _finite_bounds(means, log_scales):
-    """(lowest [3], highest [3] float64, how many): the bounds of the centres of the Gaussians
-    with finite centres and scales."""
-    lowest = np.full(3, np.inf)
-    highest = np.full(3, -np.inf)
-    count = 0
-    for g in range(means.shape[0]):
-        if not _finite(means, log_scales, g):
-            continue
-        count += 1
-        for d in range(3):
-            x = np.float64(means[g, d])
-            lowest[d] = min(lowest[d], x)
-            highest[d] = max(highest[d], x)
-    return lowest, highest, count
-
-
-@njit(cache=True)
-def _finite(means, log_scales, g) -> bool:
-    ok = True
-    for d in range(3):
-        ok &= np.isfinite(means[g, d]) and np.isfinite(log_scales[g, d])
-    return ok
-
-
-@njit(cache=True)
-def _by_cell(means, log_scales, lowest, cell_m, dims, finite):
-    """(order [finite] int32 Gaussians by cube, start [C + 1] of the non-empty cubes): a counting
-    sort on the cube's (i, j, k), stable (map order within a cube)."""
+def _by_cell(means, log_scales, lowest, cell_m, dims):
+    """A counting sort of the Gaussians with finite centres and scales by cube (i, j, k), each
+    clamped to the grid, stable (map order within a cube): (order [N'] int32, start [C + 1] of
+    the C non-empty cubes, and per cube low [C, 3], high [C, 3], scale_max [C] of its members,
+    summed in map order: no gather)."""
     bins = dims[0] * dims[1] * dims[2]
     keys = np.full(means.shape[0], -1, np.int64)
     counts = np.zeros(bins + 1, np.int64)
     for g in range(means.shape[0]):
-        if not _finite(means, log_scales, g):
+        finite = True
+        for d in range(3):
+            finite &= np.isfinite(means[g, d]) and np.isfinite(log_scales[g, d])
+        if not finite:
             continue
-        i = min(np.int64((np.float64(means[g, 0]) - lowest[0]) / cell_m), dims[0] - 1)
-        j = min(np.int64((np.float64(means[g, 1]) - lowest[1]) / cell_m), dims[1] - 1)
-        k = min(np.int64((np.float64(means[g, 2]) - lowest[2]) / cell_m), dims[2] - 1)
-        keys[g] = (i * dims[1] + j) * dims[2] + k
-        counts[keys[g] + 1] += 1
+        key = np.int64(0)
+        for d in range(3):
+            at = np.floor((np.float64(means[g, d]) - lowest[d]) / cell_m)
+            key = key * dims[d] + np.int64(min(max(at, 0.0), dims[d] - 1.0))
+        keys[g] = key
+        counts[key + 1] += 1
+    cube_of = np.full(bins, -1, np.int32)
     occupied = 0
     for b in range(bins):
-        occupied += counts[b + 1] > 0
+        if counts[b + 1] > 0:
+            cube_of[b] = occupied
+            occupied += 1
         counts[b + 1] += counts[b]
-    order = np.empty(finite, np.int32)
     start = np.empty(occupied + 1, np.int64)
-    c = 0
     for b in range(bins):
-        if counts[b + 1] > counts[b]:
-            start[c] = counts[b]
-            c += 1
-    start[occupied] = finite
+        if cube_of[b] >= 0:
+            start[cube_of[b]] = counts[b]
+    start[occupied] = counts[bins]
+    order = np.empty(counts[bins], np.int32)
+    low = np.full((occupied, 3), np.inf)
+    high = np.full((occupied, 3), -np.inf)
+    scale_max = np.zeros(occupied)
     for g in range(means.shape[0]):
-        if keys[g] >= 0:
-            order[counts[keys[g]]] = g
-            counts[keys[g]] += 1
-    return order, start
-
-
-@njit(cache=True)
-def _cell_bounds(means, log_scales, order, start):
-    """Per cube: (low [C, 3], high [C, 3], scale_max [C]) of its members order[start[c]:start[c + 1]]."""
-    n = start.shape[0] - 1
-    low = np.full((n, 3), np.inf)
-    high = np.full((n, 3), -np.inf)
-    scale_max = np.zeros(n)
-    for c in range(n):
-        for i in range(start[c], start[c + 1]):
-            g = order[i]
-            largest = -np.inf
-            for d in range(3):
-                x = np.float64(means[g, d])
-                low[c, d] = min(low[c, d], x)
-                high[c, d] = max(high[c, d], x)
-                largest = max(largest, np.float64(log_scales[g, d]))
-            scale_max[c] = max(scale_max[c], np.exp(largest))
-    return low, high, scale_max
+        if keys[g] < 0:
+            continue
+        order[counts[keys[g]]] = g
+        counts[keys[g]] += 1
+        c = cube_of[keys[g]]
+        largest = -np.inf
+        for d in range(3):
+            x = np.float64(means[g, d])
+            low[c, d] = min(low[c, d], x)
+            high[c, d] = max(high[c, d], x)
+            largest = max(largest, np.float64(log_scales[g, d]))
+        scale_max[c] = max(scale_max[c], np.exp(largest))
+    return order, start, low, high, scale_max
 
 
 @njit(cache=True, parallel=True)

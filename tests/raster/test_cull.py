@@ -4,6 +4,8 @@ with non-finite fields), and every Gaussian the projection keeps is a candidate.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -75,6 +77,21 @@ def test_a_render_with_the_cull_is_the_render_without_it(town, always_cull):
     alone = project(town, camera, RasterConfig(), active=active, cull=False)
     np.testing.assert_array_equal(both.radii, alone.radii)
     assert not np.any(both.radii[~active])
+
+
+def test_far_floaters_do_not_stretch_the_cubes(town, always_cull):
+    """A trainer's floaters kilometres away go to the border cubes: the cubes keep the size of
+    the town's bulk, a view out of the town still culls most of the map, and the renders are unchanged."""
+    floating = dataclasses.replace(town, means=town.means.copy(), extras={})
+    floating.means[30:34] = [[5e4, 0.0, 10.0], [-3e3, 2e5, 0.0], [0.0, 0.0, -7e4], [10.0, 10.0, 9e5]]
+    index = cull.cells_of(floating)
+    assert index is not None and index.cell_m == pytest.approx(cull.cells_of(town).cell_m, rel=0.1)
+    config = RasterConfig()
+    for camera in cameras():
+        whole = project(floating, camera, config, cull=False)
+        np.testing.assert_array_equal(project(floating, camera, config).records, whole.records)
+        assert not np.any((whole.radii > 0) & ~index.candidates(camera, config))
+    assert index.candidates(cameras()[2], config).sum() < 0.5 * len(floating)  # looking out of the town
 
 
 def test_a_small_map_is_projected_whole(town):
