@@ -80,7 +80,7 @@ def warm_up(gaussians: Gaussians, method: Method, feature_dim: int = 8) -> float
     20,000 of its Gaussians), so that numba compiles its kernels (or loads them from its cache)
     now and not on the first frame of a flight: on a fresh install that is ~8 s, in which a
     live camera's frames are lost. Nothing is stored. A large map's cell index for frustum
-    culling (``raster/cull.py``) is made now too (0.5 s for 5.2M Gaussians). Returns the seconds
+    culling (``raster/cull.py``) is made now too (0.6 s for 5.2M Gaussians). Returns the seconds
     it took."""
     from ..raster.cull import CellIndex, cells_of
     from ..scene import intrinsics, look_at
