@@ -1,8 +1,9 @@
 """The ``olsplat`` command. Each subcommand lives in its own module under ``tools/``/``bench/``.
 
-One error path: anticipated failures (``OlsplatInputError``, and the operating system's
-``OSError``: a missing file, a folder where a file was expected, no permission, a full disk)
-print one line naming the file or option and exit 1; anything else is a bug: its traceback
+One error path: anticipated failures (``OlsplatInputError``, ``RunFailed`` -- a run of the
+graph that did not get there -- and the operating system's ``OSError``: a missing file, a folder
+where a file was expected, no permission, a full disk) print one line naming the file, option
+or logs and exit 1; anything else is a bug: its traceback
 is printed with a line saying so, and the exit code is 1 as well.
 """
 
@@ -13,7 +14,7 @@ import os
 import sys
 import traceback
 
-from .errors import EXIT_FAILED, EXIT_INTERRUPTED, OlsplatInputError
+from .errors import EXIT_FAILED, EXIT_INTERRUPTED, OlsplatInputError, RunFailed
 
 EPILOG = """examples:
   olsplat demo --out out                           the whole pipeline on a generated flight
@@ -162,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # the reader of our output went away (`| head`): nothing to say to it
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
         return EXIT_FAILED
-    except (OlsplatInputError, OSError) as exc:
+    except (OlsplatInputError, RunFailed, OSError) as exc:
         print(f"olsplat {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:

@@ -1,4 +1,4 @@
-"""Errors that mean "the user gave us something we cannot use".
+"""Errors that mean "the user gave us something we cannot use" or "the run did not get there".
 
 The CLI prints these as one line (no traceback) and exits non-zero; anything else is a bug
 and keeps its traceback.
@@ -20,6 +20,12 @@ class SceneFormatError(OlsplatInputError):
         self.path = str(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+
+class RunFailed(RuntimeError):
+    """A run of the node graph ended without what it was started for (e.g. a benchmark's flight
+    aggregated no view, or the query server refused its queries): an outcome to report, not a
+    bug. The message says what happened and where the run's logs are."""
 
 
 # Process exit codes of nodes, the launcher and the CLI.

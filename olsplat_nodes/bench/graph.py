@@ -62,10 +62,9 @@ def run(args: argparse.Namespace) -> int:
 
     import zmq
 
-    from ..aggregate.snapshot import latest_map
     from ..launcher import Supervisor, load_launch
     from ..transport import QueryClient
-    from .ground_link import report_queries, sample_status, time_queries
+    from .ground_link import final_map, report_queries, sample_status, time_queries
 
     scene = args.scene.resolve()
     run_dir = args.work or Path(tempfile.mkdtemp(prefix="olsplat_bench_graph_"))
@@ -94,12 +93,13 @@ def run(args: argparse.Namespace) -> int:
     client = QueryClient(zmq.Context.instance(), endpoint, timeout_s=60.0)
     samples: dict[str, list[dict]] = {}
     start = time.monotonic()
+    succeeded = False
     try:
         record = None
-        while record is None or not record["final"]:
+        while record is None:
             time.sleep(2.0)
-            if sample_status(client, samples) is not None:
-                record = latest_map(run_dir / "map")
+            sample_status(client, samples)
+            record = final_map(supervisor, thread, run_dir)
         seconds = time.monotonic() - start
         # the ingest's counts are final in the heartbeat it sends after it saw the final map
         # (then it exits); the 2 s sampling above may have missed it
@@ -155,10 +155,11 @@ def run(args: argparse.Namespace) -> int:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(figures, indent=1))
             print(f"  figures -> {args.json}")
+        succeeded = True
     finally:
         client.close()
         supervisor.request_stop(0)
         thread.join(30)
-        if not args.work:
+        if not args.work and succeeded:  # a failed run's logs stay, for its error message
             shutil.rmtree(run_dir, ignore_errors=True)
     return 0

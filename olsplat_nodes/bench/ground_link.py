@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import RunFailed
+
 
 def percentiles(seconds: list[float]) -> str:
     ms = 1000 * np.asarray(seconds)
@@ -36,6 +38,32 @@ def sample_status(client, samples: dict[str, list[dict]]):
     return status
 
 
+def final_map(supervisor, thread, run_dir: Path) -> dict | None:
+    """The run's final map record (``latest.json``), or None while the flight goes on. Raises
+    RunFailed when no final map can come: the launch has ended (``thread``, running
+    ``supervisor.run``), or the ingest has finished without one. The ingest exits 0 only after
+    the refiner announced the final map, which the refiner writes first; so a finished ingest
+    and no final snapshot mean the stream ended with no view aggregated (every frame dropped,
+    or none in the source)."""
+    from ..aggregate.snapshot import latest_map
+
+    record = latest_map(run_dir / "map")
+    if record is not None and record.get("final"):
+        return record
+    logs = run_dir / "logs"
+    if not thread.is_alive():
+        raise RunFailed(f"the launch ended before the final map; see {logs}")
+    if supervisor.states.get("ingest") == "finished":
+        record = latest_map(run_dir / "map")  # the ingest may have ended since the first look
+        if record is not None and record.get("final"):
+            return record
+        raise RunFailed(
+            "the ingest ended its stream and no view was aggregated: the source has no frame, or every "
+            f"frame was dropped (a lossy stream faster than the graph); see {logs}"
+        )
+    return None
+
+
 QUERY_KINDS = {
     "relevance": "relevance",
     "heatmap": "heatmap",
@@ -52,7 +80,7 @@ def time_queries(
 ) -> dict[str, list[float]]:
     """Round-trip seconds per kind (``QUERY_KINDS``) of ``relevance`` queries without a view and
     ``heatmaps`` queries spread over the first ``heatmap_views`` views of the run, each text
-    one of the scene's labels with the others as negatives. Raises RuntimeError on a refusal.
+    one of the scene's labels with the others as negatives. Raises RunFailed on a refusal.
     Waits first (up to 60 s) until the query server has loaded the run's newest map: the
     refiner writes it before the server hears of it (announcement, or its 2 s look at
     ``latest.json``), and a query in between is answered ``no_map`` or from an older version."""
@@ -69,7 +97,7 @@ def time_queries(
         if status is not None and status.map_version >= newest["version"]:
             break
         if time.monotonic() > deadline:
-            raise RuntimeError(f"the query server did not load map version {newest['version']} within 60 s")
+            raise RunFailed(f"the query server did not load map version {newest['version']} within 60 s")
         time.sleep(0.2)
     labels, queries = load_queries(scene)
     texts = label_texts(labels, queries)
@@ -93,7 +121,7 @@ def time_queries(
         )
         seconds = time.perf_counter() - start
         if reply.status != "ok":
-            raise RuntimeError(f"query {text!r}: {reply.status}: {reply.message}")
+            raise RunFailed(f"query {text!r}: {reply.status}: {reply.message}")
         times[kind].append(seconds)
         if kind == "heatmap":
             times["heatmap_first" if i == 0 else "heatmap_repeat"].append(seconds)

@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     from ..scene import read_cameras
     from ..scene.ply import ply_vertex_count
     from ..transport import QueryClient
-    from .ground_link import report_queries, sample_status, time_queries
+    from .ground_link import final_map, report_queries, sample_status, time_queries
 
     scene = args.scene.resolve()
     run_dir = args.work or Path(tempfile.mkdtemp(prefix="olsplat_bench_scale_"))
@@ -190,19 +190,19 @@ def run(args: argparse.Namespace) -> int:
     passes: dict[int, dict] = {}
     startup_s = None
     last_progress = 0.0
+    succeeded = False
     try:
         record = None
-        while record is None or not record.get("final"):
+        while record is None:
             time.sleep(0.5)
-            if not thread.is_alive():
-                raise RuntimeError(f"the launch ended before the final map; see {run_dir / 'logs'}")
             if startup_s is None:
                 status = sample_status(client, samples)
                 if status is not None and set(NODES) <= {n["node"] for n in status.nodes}:
                     startup_s = time.monotonic() - start
-            record = latest_map(run_dir / "map")
-            if record is not None and "refine_s" in record:
-                passes[record["version"]] = record
+            record = final_map(supervisor, thread, run_dir)
+            newest = record or latest_map(run_dir / "map")
+            if newest is not None and "refine_s" in newest:
+                passes[newest["version"]] = newest
             if time.monotonic() - last_progress > 30:
                 last_progress = time.monotonic()
                 done = views_stored()
@@ -279,11 +279,12 @@ def run(args: argparse.Namespace) -> int:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(figures, indent=1))
             print(f"  figures -> {args.json}")
+        succeeded = True
     finally:
         watch.stop.set()
         client.close()
         supervisor.request_stop(0)
         thread.join(30)
-        if not args.work:
+        if not args.work and succeeded:  # a failed run's logs stay, for its error message
             shutil.rmtree(run_dir, ignore_errors=True)
     return 0

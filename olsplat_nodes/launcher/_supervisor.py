@@ -79,6 +79,12 @@ class Supervisor:
         return {s.node.name: s.child.process.pid for s in self._slots
                 if s.state == "running" and isinstance(s.child, ProcessChild) and s.child.process}  # fmt: skip
 
+    @property
+    def states(self) -> dict[str, str]:
+        """Each node's supervision state (new, running, waiting, finished, failed, stopped): a
+        tool can tell a node that ended for good from one being restarted."""
+        return {s.node.name: s.state for s in self._slots}
+
     def check(self) -> dict:
         """The checks ``run`` makes before any node starts, on their own: every configuration
         error (LaunchFileError naming the file and key) and the memory estimate (a flight that

@@ -5,6 +5,7 @@ shared and noisy; only what must hold whatever the load)."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -48,3 +49,23 @@ def test_a_bad_override_is_refused_before_anything_starts(tiny, tmp_path, capsys
     err = capsys.readouterr().err
     assert "(query_server).params: heatmap_max_side must be >= 0" in err
     assert not (tmp_path / "run" / "logs").exists()  # no node was started
+
+
+@pytest.mark.timeout(120)
+def test_a_stream_that_aggregates_no_view_is_one_error_not_a_hang(tiny, tmp_path, capsys):
+    """A replay with no frame (as one whose every frame a lossy stream dropped): the refiner
+    announces a final map of no view and the ingest exits; the bench says so and points at the
+    logs, which it keeps, instead of waiting for a map that will never be written."""
+    from olsplat_nodes.sources.replay_log import write_mcap
+
+    scene, _ = tiny
+    empty = tmp_path / "empty.mcap"
+    assert write_mcap(empty, []) == 0
+    args = ["bench", "graph", "--scene", str(scene), "--port", str(free_port())]
+    args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--set", f"ingest.source={empty}"]
+    assert main(args) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no view was aggregated" in err[0], err
+    logs = Path(err[0].rsplit("see ", 1)[1])
+    assert "all 0 frames delivered" in (logs / "ingest.log").read_text()
+    shutil.rmtree(logs.parent)  # the bench's own temporary run folder, kept for the message
