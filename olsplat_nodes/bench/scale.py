@@ -29,6 +29,9 @@ end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB
 the refiner's first pass and its final one are exact), ``refine_s_per_added_view`` (each pass over the views it
 added), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms``,
 ``query_heatmap_first_p95_ms``, ``query_heatmap_repeat_p95_ms``, and ``width``, ``height``.
+
+``--queries-only --work DIR``: only the queries again, on a run kept with ``--work DIR``
+(``requery.py``).
 """
 
 from __future__ import annotations
@@ -62,6 +65,12 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"), help="the launch file to run")
     parser.add_argument("--port", type=int, default=5612, help="the query server's TCP port")
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
+    parser.add_argument(
+        "--queries-only",
+        action="store_true",
+        help="no flight: launch only the query server on the final map of a run kept with --work DIR, "
+        "and time the queries again (bench/requery.py)",
+    )
     parser.add_argument("--json", type=Path, help="also write the figures here (keys: see the module docstring)")
     parser.add_argument(
         "--set",
@@ -78,14 +87,15 @@ def add_parser(subparsers) -> None:
 _READY = re.compile(r" (\S+) ready: ([0-9.]+) s after its process started")
 
 
-def node_ready_s(logs: Path) -> dict[str, float]:
+def node_ready_s(logs: Path, latest: bool = False) -> dict[str, float]:
     """{node: seconds from its process's start to the end of its set-up}, each node's first
-    start, from the "ready" lines of the launch's node logs (``nodes.base.Node.run``)."""
+    start (``latest``: its latest), from the "ready" lines of the launch's node logs
+    (``nodes.base.Node.run``)."""
     ready: dict[str, float] = {}
     for log_file in sorted(logs.glob("*.log")):
         for line in log_file.read_text(errors="replace").splitlines():
             found = _READY.search(line)
-            if found and found[1] not in ready:
+            if found and (latest or found[1] not in ready):
                 ready[found[1]] = float(found[2])
     return ready
 
@@ -143,6 +153,10 @@ class MemoryWatch:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.queries_only:
+        from .requery import run as queries_only
+
+        return queries_only(args)
     import zmq
 
     from ..aggregate.snapshot import latest_map

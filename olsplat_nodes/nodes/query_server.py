@@ -504,6 +504,8 @@ class QueryServerNode(Node):
             map_views=int(self.map_record.get("views", 0)),
             map_observed=self.map_observed,
             map_final=int(bool(self.map_record.get("final", False))),
+            # 1 once the warm-up has made the voxel index: 3D instances at full speed from then on
+            query_index_ready=int(self.voxel_index is not None),
         )
         values["bad_messages"] = (
             self.stats.counts["bad_messages"]

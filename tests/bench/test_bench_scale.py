@@ -55,6 +55,32 @@ def test_bench_scale_writes_the_documented_figures(tiny, tmp_path, capsys):
         assert figures[key] > 0
     assert "12 views of" in capsys.readouterr().out
 
+    # the same run's queries again without the flight: only its query server, on its final map
+    again = tmp_path / "queries.json"
+    args = ["bench", "scale", "--scene", str(scene), "--queries", "3", "--heatmap-queries", "2", "--queries-only"]
+    args += ["--heatmap-views", "1", "--work", str(tmp_path / "run"), "--json", str(again)]
+    args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port())]
+    assert main(args) == 0
+    requeried = json.loads(again.read_text())
+    assert requeried["queries_only"] and requeried["views"] == 12 and requeried["gaussians"] == figures["gaussians"]
+    assert set(requeried["peak_rss_mb"]) == {"query_server"} and requeried["startup_s"] > 0
+    for key in ("query_relevance_p95_ms", "query_heatmap_p95_ms", "query_heatmap_first_p95_ms"):
+        assert requeried[key] > 0
+    assert json.loads((tmp_path / "run" / "map" / "latest.json").read_text()) == final  # the run is only read
+    logs = (tmp_path / "run" / "logs" / "query_server.log").read_text()
+    assert logs.count(" ready: ") == 2  # the run's query server, then this one's
+
+
+@pytest.mark.timeout(60)
+def test_queries_only_needs_a_kept_run(tiny, tmp_path, capsys):
+    """``--queries-only`` on a folder with no final map is one error naming it, before any node starts."""
+    scene, _ = tiny
+    args = ["bench", "scale", "--scene", str(scene), "--queries-only", "--work", str(tmp_path / "nothing")]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "nothing: no final map" in err and "bench scale --work DIR" in err
+    assert not (tmp_path / "nothing" / "logs").exists()
+
 
 @pytest.mark.timeout(60)
 def test_a_bad_override_is_refused_before_anything_starts(tiny, tmp_path, capsys):
