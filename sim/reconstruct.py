@@ -29,7 +29,13 @@ from .scene import TruthScene
 class ReconstructionSpec:
     missing: float = 0.03  # fraction of Gaussians dropped
     merged: float = 0.04  # fraction merged into a neighbour
-    floaters: float = 0.015  # floaters added, as a fraction of the map
+    floaters: float = 0.015  # floaters added, as a fraction of the map ...
+    # ... but at most this many per m² of the town (the small preset's is 0.26): a denser map is not
+    # a foggier one. A trainer prunes floaters that would show in its own training views; tied to
+    # the count alone, the large preset (4.3x the small one's Gaussians per m²) had 1.1 per m²,
+    # the top-weight Gaussian on most roof, tree and car pixels, fogging its training views
+    # (README, issue 19). inf: the fraction alone
+    floaters_max_per_m2: float = 0.3
     position_jitter: float = 0.25  # std, in units of the mean Gaussian spacing
     log_scale_jitter: float = 0.25  # std of the log-scale error
     opacity_logit_jitter: float = 0.6  # std of the opacity-logit error
@@ -114,7 +120,7 @@ def reconstruct(truth: TruthScene, spec: ReconstructionSpec, rng: np.random.Gene
     category, instance, label = (np.concatenate([a, a[source]]) for a in (category, instance, label))
 
     # floaters: loose, translucent blobs in the air between the town and the cameras
-    k = int(spec.floaters * n)
+    k = int(min(spec.floaters * n, spec.floaters_max_per_m2 * truth.size_m**2))
     half = truth.size_m / 2
     f_means = np.c_[rng.uniform(-half, half, (k, 2)), rng.uniform(2.0, 45.0, k)]
     f_sh = np.zeros((k, 4, 3))

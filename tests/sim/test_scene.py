@@ -46,6 +46,16 @@ def test_reconstruction_degrades_but_keeps_labels():
         assert (truth.label[near] == recon.label[i]).any()
 
 
+def test_floaters_per_m2_are_capped_not_the_fraction_of_a_dense_map():
+    """A map dense in Gaussians gets floaters by the area of its town, not by its count: at most
+    ``floaters_max_per_m2`` (a fixed fraction of a dense map would fog every view)."""
+    truth = generate_scene(20_000, 40.0, seed=1)  # 12.5 Gaussians per m²
+    capped = reconstruct(truth, ReconstructionSpec(floaters_max_per_m2=0.1), np.random.default_rng(0))
+    assert (capped.label == -1).sum() == int(0.1 * 40.0**2) == 160  # not 0.015 x 20,000 = 300
+    free = reconstruct(truth, ReconstructionSpec(floaters_max_per_m2=float("inf")), np.random.default_rng(0))
+    assert (free.label == -1).sum() == int(0.015 * len(truth.gaussians))
+
+
 def test_reconstruction_still_renders_the_scene():
     """The degraded map looks like the scene: colours and labels rendered from it match the truth's."""
     from olsplat_nodes.query import render_feature_map
