@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+from numba import njit, prange
 
 from ..scene import Camera, Gaussians
 from . import heatmap_native, topk_native
@@ -24,13 +26,27 @@ class RenderResult:
     # (with feature_queries: [H, W, Q] the cosine of that feature with each query)
     topk_ids: np.ndarray | None  # [H, W, topk_max] int32 Gaussian indices by weight, -1 padded
     topk_weights: np.ndarray | None  # [H, W, topk_max] float32 alpha*T weights, 0 padded
-    means2d: np.ndarray  # [N, 2] float32 projected centres (u, v) in pixels, pixel centres at +0.5; 0 if culled
-    radii: np.ndarray  # [N] int32 screen radius in pixels; 0 = culled (never rasterized)
+    projected: Projected  # the Gaussians on screen (a culled map's candidates only: see means2d, radii)
+    n_gaussians: int  # N, the map's
     n_evaluations: int  # Gaussian-pixel pairs evaluated (the sigma computed)
     n_tile_pairs: int  # pairs a per-pixel tile-list loop (gsplat classic) evaluates for the same image
     n_intersections: int  # Gaussian-tile pairs after binning
     n_visible: int  # Gaussians that survived projection
     seconds: dict[str, float]  # wall time per stage: project, bin, composite
+
+    @cached_property
+    def _aligned(self) -> Projected:
+        return self.projected.aligned(self.n_gaussians)  # made when asked for: most callers never do
+
+    @property
+    def means2d(self) -> np.ndarray:
+        """[N, 2] float32 projected centres (u, v) in pixels, pixel centres at +0.5; 0 if culled."""
+        return self._aligned.means2d
+
+    @property
+    def radii(self) -> np.ndarray:
+        """[N] int32 screen radius in pixels; 0 = culled (never rasterized)."""
+        return self._aligned.radii
 
 
 def rasterize(
@@ -97,6 +113,8 @@ def rasterize(
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
     clock = [time.perf_counter()]
     projected: Projected = project(gaussians, camera, config, active)
+    if projected.ids is not None and features is not None:  # rows of the candidates only: their features by id
+        rows = rows[projected.ids] if len(rows) else projected.ids.astype(np.int32)
     clock.append(time.perf_counter())
     order, offsets, slots = bin_tiles(projected.depths, projected.radii, projected.tile_rects, tiles_x, tiles_y)
     clock.append(time.perf_counter())
@@ -129,6 +147,8 @@ def rasterize(
             np.asarray(background, np.float32), queries,
             rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit, rows,
         )  # fmt: skip
+    if want_topk and projected.ids is not None:
+        _to_map_ids(topk_ids, projected.ids)
     clock.append(time.perf_counter())
     return RenderResult(
         rgb=rgb,
@@ -137,11 +157,21 @@ def rasterize(
         features=out_features if features is not None else None,
         topk_ids=topk_ids if want_topk else None,
         topk_weights=topk_weights if want_topk else None,
-        means2d=projected.means2d,
-        radii=projected.radii,
+        projected=projected,
+        n_gaussians=n,
         n_evaluations=int(evals[:, 0].sum()),
         n_tile_pairs=int(evals[:, 1].sum()),
         n_intersections=len(slots),
         n_visible=int((projected.radii > 0).sum()),
         seconds=dict(zip(("project", "bin", "composite"), np.diff(clock).tolist(), strict=True)),
     )
+
+
+@njit(parallel=True, cache=True)
+def _to_map_ids(topk_ids: np.ndarray, ids: np.ndarray) -> None:
+    """In place: Top-K entries that are rows of a culled projection become the Gaussians' own
+    indices, ids [M] int64; -1 (no entry) stays."""
+    flat = topk_ids.reshape(-1)
+    for e in prange(flat.shape[0]):
+        if flat[e] >= 0:
+            flat[e] = ids[flat[e]]

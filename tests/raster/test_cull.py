@@ -59,24 +59,56 @@ def test_every_kept_gaussian_is_a_candidate_and_most_others_are_not(town, always
     assert culled_some  # the test means something: some views cull most of the map
 
 
-def test_a_render_with_the_cull_is_the_render_without_it(town, always_cull):
-    features = np.random.default_rng(4).normal(size=(len(town), 8)).astype(np.float32)
+def _renders(town, camera, features, rows, queries, active=None) -> list:
+    """A heatmap render (dense features and table rows) and a Top-K render of ``camera``."""
+    return [
+        rasterize(town, camera, features=features, want_topk=False, feature_queries=queries, active=active),
+        rasterize(town, camera, features=features[:5], feature_rows=rows, want_topk=False, feature_queries=queries),
+        rasterize(town, camera, features=features, want_topk=True, active=active),
+        rasterize(town, camera, want_topk=True, active=active),
+    ]
+
+
+def _same(a, b) -> None:
+    for name in ("rgb", "alpha", "depth", "features", "topk_ids", "topk_weights", "means2d", "radii"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            np.testing.assert_array_equal(x, y, err_msg=name)
+    assert a.n_visible == b.n_visible and a.n_evaluations == b.n_evaluations
+
+
+def test_a_render_with_the_cull_is_the_render_without_it(town, always_cull, monkeypatch):
+    """The culled projection has rows for the candidates only; aligned with the map they are
+    the whole projection's, and every render from them (features by id or by table row,
+    heatmaps, Top-K ids and weights, centres and radii) is the same, with a level of detail's
+    subset of the map too."""
+    rng = np.random.default_rng(4)
+    features = rng.normal(size=(len(town), 8)).astype(np.float32)
+    rows = rng.integers(-1, 5, len(town)).astype(np.int32)
     queries = np.eye(8, dtype=np.float32)[:3]
+    active = rng.random(len(town)) < 0.5  # a level of detail's subset
+    culled_renders = []
     for camera in cameras():
         culled = project(town, camera, RasterConfig())
         whole = project(town, camera, RasterConfig(), cull=False)
-        np.testing.assert_array_equal(culled.radii, whole.radii)
-        np.testing.assert_array_equal(culled.records, whole.records)
-        np.testing.assert_array_equal(culled.tile_rects, whole.tile_rects)
-        a = rasterize(town, camera, features=features, want_topk=False, feature_queries=queries)
-        b = rasterize(town, camera, want_topk=True)
-        assert a.n_visible == b.n_visible == int((whole.radii > 0).sum())
-    active = np.random.default_rng(5).random(len(town)) < 0.5  # with a level of detail's subset too
-    camera = cameras()[1]
-    both = project(town, camera, RasterConfig(), active=active)
-    alone = project(town, camera, RasterConfig(), active=active, cull=False)
-    np.testing.assert_array_equal(both.radii, alone.radii)
-    assert not np.any(both.radii[~active])
+        assert culled.ids is not None and len(culled.ids) <= len(town) and whole.ids is None
+        aligned = culled.aligned(len(town))
+        np.testing.assert_array_equal(aligned.radii, whole.radii)
+        np.testing.assert_array_equal(aligned.records, whole.records)
+        np.testing.assert_array_equal(aligned.tile_rects, whole.tile_rects)
+        both = project(town, camera, RasterConfig(), active=active).aligned(len(town))
+        np.testing.assert_array_equal(
+            both.radii, project(town, camera, RasterConfig(), active=active, cull=False).radii
+        )
+        assert not np.any(both.radii[~active])
+        culled_renders.append(_renders(town, camera, features, rows, queries, active if camera.name == "c1" else None))
+    monkeypatch.setattr(cull, "CULL_MIN", 10**9)  # the same renders, projected whole
+    for camera, renders in zip(cameras(), culled_renders, strict=True):
+        wholes = _renders(town, camera, features, rows, queries, active if camera.name == "c1" else None)
+        assert wholes[0].projected.ids is None
+        for a, b in zip(renders, wholes, strict=True):
+            _same(a, b)
 
 
 def test_far_floaters_do_not_stretch_the_cubes(town, always_cull):
@@ -89,7 +121,7 @@ def test_far_floaters_do_not_stretch_the_cubes(town, always_cull):
     config = RasterConfig()
     for camera in cameras():
         whole = project(floating, camera, config, cull=False)
-        np.testing.assert_array_equal(project(floating, camera, config).records, whole.records)
+        np.testing.assert_array_equal(project(floating, camera, config).aligned(len(floating)).records, whole.records)
         assert not np.any((whole.radii > 0) & ~index.candidates(camera, config))
     assert index.candidates(cameras()[2], config).sum() < 0.5 * len(floating)  # looking out of the town
 
