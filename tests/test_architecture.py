@@ -7,6 +7,8 @@ lazy ones inside functions, followed transitively.
   the nodes, the sources, the transport, the launcher and the telemetry without ``olsplat_sim``.
   Only the command-line tools, the benchmarks and the offline evaluation may.
 - The core never touches a socket: no zmq below the nodes and the transport.
+- Ray is an optional extra: only ``olsplat_nodes.cluster`` imports it, and only the command-line
+  tools import that package.
 """
 
 from __future__ import annotations
@@ -135,3 +137,13 @@ def test_the_nodes_start_without_torch():
     code = f"import importlib, sys\nfor m in {modules!r}: importlib.import_module(m)\nprint('torch' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False", result.stdout + result.stderr
+
+
+def test_only_the_cluster_package_imports_ray():
+    for name in MODULES:
+        if name.startswith("olsplat_nodes.cluster"):
+            continue
+        direct = {m.split(".")[0] for m in _imports(name)}
+        assert "ray" not in direct, f"{name} imports ray: only olsplat_nodes.cluster may (an optional extra)"
+        cluster = sorted(m for m in _imports(name) if m.startswith("olsplat_nodes.cluster"))
+        assert not cluster or name.startswith("olsplat_nodes.tools"), f"{name} imports {cluster[0]}"

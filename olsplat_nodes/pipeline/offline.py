@@ -11,9 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..aggregate import LanguageMap, ObservationStore
+from ..aggregate import LanguageMap
+from ..aggregate.tiles import TiledStore, TileGrid, Tiling
 from ..errors import OlsplatInputError
-from ..method import Method, add_view
+from ..method import Method
+from ..method.view_step import view_observations
 from ..scene import Camera, Gaussians, read_ply
 from ..structure.branch import StructuralBranch, StructureConfig
 from ..structure.points import StructuralPoints
@@ -48,31 +50,75 @@ def aggregate_scene(
     codebook: int | None = None,
     features_of: Callable[[Camera], tuple] | None = None,
     structure: StructureConfig | None = None,
+    tile_m: float = 0.0,
 ) -> dict:
     """Aggregate every view into a language map at ``out/language_map.npz`` (in the codebook
     form with ``codebook`` centres when given); returns timing figures. ``features_of(camera)``
     gives a view's (label maps, bank per level); default: ``view_features`` with ``encoder``.
-    With ``structure``, region banks are fused with the 3D branch before aggregation."""
-    gaussians = read_ply(scene.ply)
-    store = ObservationStore(out / "store", len(gaussians), writer=True)
+    With ``structure``, region banks are fused with the 3D branch before aggregation. With
+    ``tile_m`` > 0 the store is kept per ground tile of that size (``aggregate/tiles.py``):
+    the same map."""
+    return aggregate_flights([scene], method, encoder, out, progress, codebook, features_of, structure, tile_m)
+
+
+def flight_view_name(flight: int, flights: int, camera: Camera) -> str:
+    """A view's name in the store: its camera's, or with several flights ``f<flight>/<name>``
+    (two flights of one area may name their frames alike; each view must be recorded once)."""
+    return camera.name if flights == 1 else f"f{flight}/{camera.name}"
+
+
+def same_prior_map(scenes: list[Scene]) -> Gaussians:
+    """The prior map the flights share (the first scene's); OlsplatInputError naming the scene
+    whose map differs: flights go into one language map only over the same Gaussians."""
+    gaussians = read_ply(scenes[0].ply)
+    for other in scenes[1:]:
+        theirs = read_ply(other.ply)
+        if len(theirs) != len(gaussians) or not np.array_equal(theirs.means, gaussians.means):
+            raise OlsplatInputError(
+                f"{other.ply}: not the prior map of {scenes[0].ply} ({len(theirs):,} against "
+                f"{len(gaussians):,} Gaussians, or other centres): flights are aggregated into one "
+                "map only over the same map"
+            )
+    return gaussians
+
+
+def aggregate_flights(
+    scenes: list[Scene],
+    method: Method,
+    encoder,
+    out: Path,
+    progress: Callable[[list[Camera]], Iterable[Camera]] | None = None,
+    codebook: int | None = None,
+    features_of: Callable[[Camera], tuple] | None = None,
+    structure: StructureConfig | None = None,
+    tile_m: float = 0.0,
+) -> dict:
+    """``aggregate_scene`` over several flights of one prior map, into one language map: every
+    view of every flight, flight after flight, recorded once under ``flight_view_name``."""
+    gaussians = same_prior_map(scenes)
+    store = TiledStore(out / "store", Tiling.of(gaussians.means, TileGrid(tile_m)), writer=True)
     if len(store):
         raise OlsplatInputError(f"{out / 'store'} already holds {len(store)} views: choose a new --out")
     start = time.perf_counter()
-    branch = _structural_branch(scene, gaussians, structure) if structure else None
-    cameras = progress(scene.cameras) if progress else scene.cameras
-    for camera in cameras:
-        label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
-        add_view(gaussians, camera, label_maps, bank, method, store, branch)
+    for flight, scene in enumerate(scenes):
+        branch = _structural_branch(scene, gaussians, structure) if structure else None
+        cameras = progress(scene.cameras) if progress else scene.cameras
+        for camera in cameras:
+            label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
+            observations, stacked, _stages = view_observations(gaussians, camera, label_maps, bank, method, branch)
+            store.append(flight_view_name(flight, len(scenes), camera), observations, stacked)
     # unit float16 rows range by range, as the live refiner keeps them (bit-identical to unit_rows
     # of the float32 result, without its [N, D] float32 array and copy: 2.7 GB for the large map)
-    features, observed = store.refine(None, method.aggregation, only_touched=False, unit_float16=True)
+    features, observed = store.refine(method.aggregation)
     if features is None:
-        raise OlsplatInputError(f"{scene.folder}: no view observed any Gaussian")
+        raise OlsplatInputError(f"{', '.join(str(s.folder) for s in scenes)}: no view observed any Gaussian")
     LanguageMap(features, observed, encoder.name).save(out / "language_map.npz", codebook)
     seconds = time.perf_counter() - start
+    views = sum(len(scene.cameras) for scene in scenes)
     return {
         "seconds": seconds,
-        "views_per_second": len(scene.cameras) / seconds,
+        "views_per_second": views / seconds,
         "peak_rss_mb": peak_rss_mb(),
         "observed_gaussians": int(observed.sum()),
+        "tiles": len(store.tiling),
     }

@@ -10,7 +10,14 @@ def add_parser(subparsers) -> None:
     from .method_names import DEFAULT_ENCODER, METHOD_NAMES
 
     agg = subparsers.add_parser("aggregate", help="aggregate a scene's views into a language map")
-    agg.add_argument("--scene", required=True, type=Path, help="a scene folder (olsplat sim make, or images + COLMAP)")
+    agg.add_argument(
+        "--scene",
+        required=True,
+        type=Path,
+        action="append",
+        help="a scene folder (olsplat sim make, or images + COLMAP); repeat it for several flights over one prior "
+        "map, aggregated into one map",
+    )
     agg.add_argument(
         "--method",
         default="outlangsplat",
@@ -38,17 +45,33 @@ def add_parser(subparsers) -> None:
         metavar="K",
         help="store the map as K-centre codebook codes (~100x smaller; K=1024 is a good choice)",
     )
+    agg.add_argument(
+        "--tile-m",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="keep the store per ground tile of M metres (x-y cells of the map's frame; default 0: one tile); "
+        "the same map, a tile per Ray actor with --cluster",
+    )
+    agg.add_argument(
+        "--cluster",
+        metavar="ADDRESS",
+        help="run on a Ray cluster (pip install olsplat[cluster]): 'auto' (the one `ray start` runs here, else a "
+        "local one on 127.0.0.1) or ray://HOST:PORT",
+    )
     agg.set_defaults(run=run_aggregate)
 
 
 def run_aggregate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from ..aggregate.tiles import TileGrid
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..method import MethodParams
     from ..params import parse_assignments, parse_params
-    from ..pipeline import Scene, aggregate_scene
+    from ..pipeline import Scene
+    from ..pipeline.offline import aggregate_flights
     from .outputs import output_folder
 
     output_folder(args.out)  # before the work: a bad --out is one line at the start
@@ -57,16 +80,47 @@ def run_aggregate(args: argparse.Namespace) -> int:
         raise OlsplatInputError("--set method=...: choose the method with --method")
     settings["method"] = args.method
     method = parse_params(MethodParams, settings, "--set").resolve("--set")  # before any work
-    scene = Scene.open(args.scene)
-    encoder = encoder_from_spec(args.encoders, args.weights)
+    scenes = [Scene.open(folder) for folder in args.scene]
     if args.codebook is not None and not 2 <= args.codebook <= 65_534:
         raise OlsplatInputError(f"--codebook must be between 2 and 65534 centres, got {args.codebook}")
-    stats = aggregate_scene(
-        scene, method, encoder, args.out, lambda xs: tqdm(xs, desc=args.method, unit="view"), args.codebook
-    )
+    TileGrid(args.tile_m)  # a bad size is one line before any work
+    views = sum(len(scene.cameras) for scene in scenes)
+    if args.cluster:
+        try:
+            from ..cluster.ray_aggregate import aggregate_on_ray
+        except ImportError as exc:
+            raise OlsplatInputError(f"--cluster needs Ray: pip install 'olsplat[cluster]' ({exc})") from exc
+        bar = tqdm(total=views, desc=args.method, unit="view")
+
+        def advance(done: int, _total: int) -> None:
+            bar.update(done - bar.n)
+
+        stats = aggregate_on_ray(
+            scenes,
+            method,
+            (args.encoders, args.weights),
+            args.out,
+            args.tile_m,
+            args.cluster,
+            args.codebook,
+            advance,
+        )
+        bar.close()
+    else:
+        encoder = encoder_from_spec(args.encoders, args.weights)
+        stats = aggregate_flights(
+            scenes,
+            method,
+            encoder,
+            args.out,
+            lambda xs: tqdm(xs, desc=args.method, unit="view"),
+            args.codebook,
+            tile_m=args.tile_m,
+        )
     print(
-        f"{args.method}: {len(scene.cameras)} views in {stats['seconds']:.1f} s "
-        f"({stats['views_per_second']:.2f} views/s), peak memory {stats['peak_rss_mb']:.0f} MB, "
+        f"{args.method}: {views} views of {len(scenes)} flight(s), {stats['tiles']} tile(s), in "
+        f"{stats['seconds']:.1f} s ({stats['views_per_second']:.2f} views/s), "
+        f"peak memory {stats['peak_rss_mb']:.0f} MB, "
         f"{stats['observed_gaussians']:,} Gaussians observed -> {args.out}"
     )
     return 0

@@ -1,0 +1,117 @@
+"""The aggregation on a real local Ray cluster (bound to 127.0.0.1): two flights into one tiled
+map equal to the single machine's, and a tile actor killed mid-run changes nothing."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.aggregate import LanguageMap, ObservationStore
+from olsplat_nodes.encoders.spec import DEFAULT_SPEC, encoder_from_spec
+from olsplat_nodes.method import named_method
+from olsplat_nodes.pipeline import Scene
+from olsplat_nodes.pipeline.offline import aggregate_flights
+
+# before Ray is imported: its servers listen on the loopback address only (see ``connect``)
+os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+ray = pytest.importorskip("ray", reason="olsplat[cluster] is not installed")
+from olsplat_nodes.cluster.ray_aggregate import aggregate_on_ray  # noqa: E402
+
+pytestmark = [pytest.mark.cluster, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_cluster():
+    """One local cluster for the module (its worker processes, once warm, serve every run)."""
+    from olsplat_nodes.cluster.ray_aggregate import connect
+
+    assert connect("auto") == ["127.0.0.1"]  # a cluster of this computer, on its loopback address only
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def flights(tiny, tmp_path_factory):
+    """Two flights over the tiny town's one prior map: the flight and the same town flown again
+    under another folder (the simulator's ``--flight-seed`` makes a different path; here the
+    point is one map from two folders of views). Five views each, encodings cached."""
+    from olsplat_nodes.pipeline import view_features
+
+    work = tmp_path_factory.mktemp("flights")
+    scenes = []
+    for name in ("a", "b"):
+        shutil.copytree(tiny[0], work / name)
+        scene = Scene.open(work / name)
+        scene = Scene(scene.folder, scene.ply, scene.cameras[:5] if name == "a" else scene.cameras[5:10])
+        for camera in scene.cameras:  # the cache, so that the cluster's workers do not encode
+            view_features(scene, camera, encoder_from_spec())
+        scenes.append(scene)
+    expected = aggregate_flights(scenes, named_method("outlangsplat"), encoder_from_spec(), work / "single")
+    assert expected["tiles"] == 1
+    return scenes, LanguageMap.load(work / "single" / "language_map.npz")
+
+
+def _same_map(got: LanguageMap, expected: LanguageMap) -> None:
+    """Equal to float16 rounding: a tile records its views in the order they arrive, so a
+    Gaussian's sums may be added in another order than the single machine's."""
+    np.testing.assert_array_equal(got.observed, expected.observed)
+    np.testing.assert_allclose(
+        np.asarray(got.features, np.float32), np.asarray(expected.features, np.float32), atol=2e-3
+    )
+
+
+def _views_per_tile(store) -> list[list[str]]:
+    return [ObservationStore(p, 1).names() for p in sorted(store.iterdir()) if (p / "views").is_dir()]
+
+
+@pytest.mark.parametrize("tile_m", [0.0, 100.0])
+def test_two_flights_on_ray_make_the_single_machine_map(flights, tmp_path, tile_m):
+    scenes, expected = flights
+    stats = aggregate_on_ray(scenes, named_method("outlangsplat"), (DEFAULT_SPEC, None), tmp_path, tile_m, "auto")
+    assert stats["tiles"] == (1 if tile_m == 0 else 4) and len(stats["actor_peak_rss_mb"]) == stats["tiles"]
+    assert stats["nodes"] == ["127.0.0.1"]
+    _same_map(LanguageMap.load(tmp_path / "language_map.npz"), expected)
+    names = {f"f{i}/{c.name}" for i, s in enumerate(scenes) for c in s.cameras}
+    per_tile = _views_per_tile(tmp_path / "store") if tile_m else [ObservationStore(tmp_path / "store", 1).names()]
+    for views in per_tile:  # each view once in each tile it touched
+        assert len(views) == len(set(views)) and set(views) <= names
+    assert set().union(*map(set, per_tile)) == names
+
+
+def test_a_tile_actor_killed_mid_run_is_restarted_from_its_shard(flights, tmp_path):
+    """SIGKILL the process of the tile holding the most of the town once it has recorded a
+    view and views remain: Ray restarts the actor, which opens its shard again; the views in
+    flight are sent again and recorded once; the map is the uninterrupted one."""
+    scenes, expected = flights
+    killed: dict[str, object] = {}
+
+    def kill_one(actors) -> None:
+        where = dict((folder, pid) for pid, folder in ray.get([actor.where.remote() for actor in actors]))
+
+        def watch() -> None:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline:
+                for folder, pid in where.items():
+                    views = len(list((Path(folder) / "views").glob("0*")))
+                    if views >= 1:
+                        killed.update(folder=folder, views_then=views)
+                        os.kill(pid, signal.SIGKILL)
+                        return
+                time.sleep(0.05)
+
+        threading.Thread(target=watch, daemon=True).start()
+
+    aggregate_on_ray(
+        scenes, named_method("outlangsplat"), (DEFAULT_SPEC, None), tmp_path, 100.0, "auto", on_start=kill_one
+    )
+    assert killed, "no tile recorded a view before the run ended: nothing was killed"
+    _same_map(LanguageMap.load(tmp_path / "language_map.npz"), expected)
+    views = ObservationStore(str(killed["folder"]), 1).names()
+    assert len(views) == len(set(views)) > int(killed["views_then"])  # recorded after the restart too, once each
