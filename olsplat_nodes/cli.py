@@ -38,7 +38,8 @@ EXAMPLES = {
     "encode": "olsplat encode --scene scene --png\n"
     "olsplat encode --scene scene --encoders enc/remoteclip,enc/georsclip --weights 0.6,0.4",
     "aggregate": "olsplat aggregate --scene scene --out maps/ols\nolsplat aggregate --scene scene --method projection "
-    "--out maps/proj --set topk_max=24",
+    "--out maps/proj --set topk_max=24\n"
+    "olsplat aggregate --scene flight1 --scene flight2 --tile-m 100 --cluster auto --out maps/city",
     "eval": "olsplat eval --scene small31 --scene small32 --methods outlangsplat,projection,vala",
     "launch": "olsplat launch launch/replay.yaml --run-dir out/run --set ingest.source=scene/replay.mcap "
     "--set launch.map=scene/map/point_cloud.ply",
@@ -63,6 +64,7 @@ EXAMPLES = {
     "bench robustness": "olsplat bench robustness --scene small31 --confusion 0,0.15,0.3,0.45 --md robust.md",
     "bench tune": "olsplat bench tune --scene small1001 --scene small1002 --json tune.json",
     "bench structure": "olsplat bench structure --scene small0",
+    "bench cluster": "olsplat bench cluster --scene medium0 --tile-m 0,100 --workers 1,2 --work /tmp/bc --json c.json",
     "record": "olsplat record --source scene/replay.mcap --out session.mcap --frames 20\n"
     "olsplat record --source-kind exif_folder --source photos/ --out photos.mcap",
 }

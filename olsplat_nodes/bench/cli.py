@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from . import (
     aggregate,
+    cluster,
     compression,
     encode,
     frame,
@@ -30,6 +31,7 @@ def add_parser(subparsers) -> None:
     query.add_parser(targets)
     graph.add_parser(targets)
     scale.add_parser(targets)
+    cluster.add_parser(targets)
     live.add_parser(targets)
     compression.add_parser(targets)
     robustness.add_parser(targets)

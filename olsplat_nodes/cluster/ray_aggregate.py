@@ -41,11 +41,11 @@ from ..scene import Camera, Gaussians, read_ply
 _ONE_THREAD = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def connect(address: str) -> list[str]:
+def connect(address: str, num_cpus: int | None = None) -> list[str]:
     """Join the Ray cluster at ``address`` ("auto": the one ``ray start`` runs on this computer,
-    else a local one started now, on 127.0.0.1 only; "ray://HOST:PORT": a Ray client
-    connection); the addresses of its nodes. An address that does not answer is one
-    OlsplatInputError. Usage statistics are never sent."""
+    else a local one started now, on 127.0.0.1 only, with ``num_cpus`` worker slots (None: one
+    per core); "ray://HOST:PORT": a Ray client connection); the addresses of its nodes. An
+    address that does not answer is one OlsplatInputError. Usage statistics are never sent."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     # Ray's own switch for a computer that is not part of a network cluster: its servers then
     # listen on the loopback address only (read when Ray is first imported)
@@ -58,12 +58,25 @@ def connect(address: str) -> list[str]:
             try:
                 ray.init(address="auto", runtime_env=runtime_env, log_to_driver=False)
             except ConnectionError:  # no cluster on this computer: a local one, for this run
-                ray.init(address="local", include_dashboard=False, runtime_env=runtime_env, log_to_driver=False)
+                ray.init(
+                    address="local",
+                    num_cpus=num_cpus,
+                    include_dashboard=False,
+                    runtime_env=runtime_env,
+                    log_to_driver=False,
+                )
         else:
             ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
     except (ConnectionError, ValueError, RuntimeError) as exc:
         raise OlsplatInputError(f"--cluster {address}: cannot join the Ray cluster: {exc}") from exc
     return sorted({node["NodeManagerAddress"] for node in ray.nodes() if node["Alive"]})
+
+
+def leave() -> None:
+    """Leave the cluster joined by ``connect`` (a local one started there stops)."""
+    import ray
+
+    ray.shutdown()
 
 
 @lru_cache(maxsize=2)
@@ -87,9 +100,10 @@ def _encoder(spec: str, weights: str | None):
 
 def observe_and_record(
     folder: str, camera: Camera, name: str, tile_m: float, method: Method, encoder: tuple[str, str | None], shards: list
-) -> int:
+) -> tuple[int, float]:
     """One view (``camera`` of the scene at ``folder``) observed and its parts recorded in their
-    tiles under ``name``; the number of tiles that took it now (a retried view: fewer)."""
+    tiles under ``name``; (the number of tiles that took it now, fewer for a retried view; this
+    worker process's peak resident set in MB)."""
     import ray
 
     scene = _scene(folder)
@@ -97,7 +111,8 @@ def observe_and_record(
     label_maps, bank = view_features(scene, camera, _encoder(*encoder))
     observations, stacked, _ = view_observations(gaussians, camera, label_maps, bank, method)
     parts = split_view(tiling, observations, stacked)
-    return sum(ray.get([shards[t].record.remote(name, part, rows) for t, (part, rows) in parts.items()]))
+    added = sum(ray.get([shards[t].record.remote(name, part, rows) for t, (part, rows) in parts.items()]))
+    return added, peak_rss_mb()
 
 
 class RayTileShard(TileShard):
@@ -129,7 +144,8 @@ def aggregate_on_ray(
     caller has joined one already (then that one is used, and kept). ``encoder`` is (spec,
     weights) as the CLI takes them; each worker makes its own. ``progress(done, total)`` after
     each view; ``on_start(actors)`` once the tile actors exist (the tests use it to kill one).
-    Returns figures, as ``aggregate_flights``, with each actor's peak resident set and the nodes."""
+    Returns figures, as ``aggregate_flights``, with each tile actor's peak resident set, the
+    highest of the view tasks' worker processes, and the cluster's node addresses."""
     import ray
 
     gaussians = same_prior_map(scenes)
@@ -156,10 +172,11 @@ def aggregate_on_ray(
             for f, scene in enumerate(scenes)
             for camera in scene.cameras
         ]
-        total = len(pending)
+        total, worker_peak = len(pending), 0.0
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            ray.get(done)  # a task's own error (bad input) stops the run here, with its message
+            _added, peak = ray.get(done[0])  # a task's own error (bad input) stops the run here, with its message
+            worker_peak = max(worker_peak, peak)
             if progress is not None:
                 progress(total - len(pending), total)
         features, observed = union_of(tiling, ray.get([actor.refine.remote(method.aggregation) for actor in actors]))
@@ -176,6 +193,7 @@ def aggregate_on_ray(
         "views_per_second": total / seconds,
         "peak_rss_mb": peak_rss_mb(),
         "actor_peak_rss_mb": peaks,
+        "worker_peak_rss_mb": worker_peak,
         "observed_gaussians": int(np.count_nonzero(observed)),
         "tiles": len(tiling),
         "nodes": nodes,
