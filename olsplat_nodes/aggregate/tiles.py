@@ -14,8 +14,9 @@ observations only, and each tile keeps them in view order, so the union of the t
 the single-store map of the same views, row for row.
 
 Folders: ``<folder>/tiles.json`` (the grid and the tiles) and one store per tile at
-``<folder>/<tile name>/`` (``x<ix>_y<iy>``); with one tile the store is ``<folder>`` itself, as a
-single-machine run has always laid it out.
+``<folder>/<tile name>/`` (``x<ix>_y<iy>``), with the tile's own map ``language_map.npz`` (tile
+rows) once refined; with one tile the store is ``<folder>`` itself, as a single-machine run has
+always laid it out, and its map is the run's map.
 """
 
 from __future__ import annotations
@@ -31,9 +32,11 @@ from ..durable import write_atomic
 from ..errors import OlsplatInputError
 from .config import AggregationConfig
 from .observe import ViewObservations
+from .snapshot import LanguageMap
 from .store import ObservationStore
 
 WHOLE_MAP = "whole"  # the name of the one tile when tile_m = 0
+TILE_MAP = "language_map.npz"  # a tile's own map, in its shard folder (tile rows)
 
 
 @dataclass(frozen=True)
@@ -164,10 +167,15 @@ class TileShard:
         self.names.add(name)
         return True
 
-    def refine(self, config: AggregationConfig) -> tuple[np.ndarray | None, np.ndarray]:
+    def refine(self, config: AggregationConfig, encoder: str | None = None) -> tuple[np.ndarray | None, np.ndarray]:
         """The tile's map over its rows, from every view it holds: (features [n_t, D] float16
-        unit rows, or None when it holds no observation; observed [n_t] bool)."""
-        return self.store.refine(None, config, only_touched=False, unit_float16=True)
+        unit rows, or None when it holds no observation; observed [n_t] bool). With ``encoder``
+        (the features' encoder name) it is also written as the tile's own language map,
+        ``<shard>/language_map.npz``, which a tiled query reads one tile at a time."""
+        features, observed = self.store.refine(None, config, only_touched=False, unit_float16=True)
+        if encoder is not None and features is not None:
+            LanguageMap(features, observed, encoder).save(self.store.folder / TILE_MAP)
+        return features, observed
 
 
 class TiledStore:
@@ -196,10 +204,12 @@ class TiledStore:
         parts = split_view(self.tiling, observations, bank)
         return [tile for tile, (part, part_bank) in parts.items() if self.shards[tile].record(name, part, part_bank)]
 
-    def refine(self, config: AggregationConfig) -> tuple[np.ndarray | None, np.ndarray]:
+    def refine(self, config: AggregationConfig, encoder: str | None = None) -> tuple[np.ndarray | None, np.ndarray]:
         """(features [N, D] float16 unit rows, 0 for the unobserved, or None when no tile
-        observed anything; observed [N] bool): every tile refined in full, the union in map rows."""
-        return union_of(self.tiling, [shard.refine(config) for shard in self.shards])
+        observed anything; observed [N] bool): every tile refined in full, the union in map rows.
+        With ``encoder`` and more than one tile, each tile's map is written too (``TileShard.refine``)."""
+        encoder = encoder if len(self.tiling) > 1 else None  # one tile: its map is the union
+        return union_of(self.tiling, [shard.refine(config, encoder) for shard in self.shards])
 
 
 def union_of(tiling: Tiling, parts: list[tuple[np.ndarray | None, np.ndarray]]) -> tuple[np.ndarray | None, np.ndarray]:

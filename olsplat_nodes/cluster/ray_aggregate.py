@@ -179,7 +179,10 @@ def aggregate_on_ray(
             worker_peak = max(worker_peak, peak)
             if progress is not None:
                 progress(total - len(pending), total)
-        features, observed = union_of(tiling, ray.get([actor.refine.remote(method.aggregation) for actor in actors]))
+        name = _encoder(*encoder).name if len(tiling) > 1 else None  # each tile's own map too (one tile: the union)
+        features, observed = union_of(
+            tiling, ray.get([actor.refine.remote(method.aggregation, name) for actor in actors])
+        )
         peaks = ray.get([actor.peak_rss_mb.remote() for actor in actors])
     finally:
         if owned:

@@ -109,7 +109,7 @@ def aggregate_flights(
             store.append(flight_view_name(flight, len(scenes), camera), observations, stacked)
     # unit float16 rows range by range, as the live refiner keeps them (bit-identical to unit_rows
     # of the float32 result, without its [N, D] float32 array and copy: 2.7 GB for the large map)
-    features, observed = store.refine(method.aggregation)
+    features, observed = store.refine(method.aggregation, encoder.name)
     if features is None:
         raise OlsplatInputError(f"{', '.join(str(s.folder) for s in scenes)}: no view observed any Gaussian")
     LanguageMap(features, observed, encoder.name).save(out / "language_map.npz", codebook)

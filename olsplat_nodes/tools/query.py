@@ -15,7 +15,13 @@ def add_parser(subparsers) -> None:
         "--cluster-radius 3",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--map", required=True, type=Path, help="language_map.npz (olsplat aggregate)")
+    parser.add_argument(
+        "--map",
+        required=True,
+        type=Path,
+        help="language_map.npz (olsplat aggregate), or the --out folder of olsplat aggregate --tile-m: then the "
+        "query goes to each tile's map in turn and their 3D instances are gathered (no view is rendered)",
+    )
     parser.add_argument("--scene", required=True, type=Path, help="the scene the map was made from")
     parser.add_argument("text", help='what to find, e.g. "red roof buildings"')
     parser.add_argument("--view", help="view to render (name or index; default: the first)")
@@ -43,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from ..pipeline import Scene
     from ..query import CANONICAL_NEGATIVES
     from ..query.answer import answer_query, encoder_for_map
+    from ..query.tiled import answer_tiled, is_tiled, tile_maps
     from ..scene import read_ply, select_view
     from ..viz import write_query_pictures
     from .outputs import output_folder
@@ -53,8 +60,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         output_folder(args.out)
     scene = Scene.open(args.scene)
-    language_map = LanguageMap.load(args.map)
     gaussians = read_ply(scene.ply)
+    tiled = args.map.is_dir() and is_tiled(args.map)
+    language_map = LanguageMap.load(tile_maps(args.map)[0] if tiled else args.map)  # a tile's: its encoder
     if args.negatives:
         negatives = [t.strip() for t in args.negatives.split(",") if t.strip()]
     elif (scene.folder / "queries.json").exists():
@@ -66,6 +74,18 @@ def run(args: argparse.Namespace) -> int:
     if not ((args.cluster_radius is None or args.cluster_radius > 0) and args.min_points >= 1):
         raise OlsplatInputError(
             f"--cluster-radius must be > 0 and --min-points >= 1, got {args.cluster_radius} and {args.min_points}"
+        )
+    if tiled:
+        return _print_tiled(
+            answer_tiled(
+                args.map,
+                gaussians,
+                encoder_for_map(language_map),
+                text,
+                negatives,
+                args.cluster_radius,
+                args.min_points,
+            )
         )
     answer = answer_query(
         language_map,
@@ -82,12 +102,7 @@ def run(args: argparse.Namespace) -> int:
         f'"{text}": {answer.chosen_count:,} Gaussians pick it over {len(answer.negatives)} negatives; '
         f"{len(answer.instances)} instances in 3D"
     )
-    for i, inst in enumerate(answer.instances[:20]):
-        c, lo, hi = inst.centre, inst.box_min, inst.box_max
-        print(
-            f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} "
-            f"x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
-        )
+    _print_instances(answer.instances)
     if answer.unknown_words:
         words = ", ".join(f'"{w}"' for w in answer.unknown_words)
         print(
@@ -103,4 +118,25 @@ def run(args: argparse.Namespace) -> int:
             args.out, camera.name, text, scene.image(camera), answer.heatmap, answer.alpha, answer.mask, answer.regions
         )
         print(f"pictures -> {', '.join(str(p) for p in paths)}")
+    return 0
+
+
+def _print_instances(instances) -> None:
+    for i, inst in enumerate(instances[:20]):
+        c, lo, hi = inst.centre, inst.box_min, inst.box_max
+        print(
+            f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} "
+            f"x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
+        )
+
+
+def _print_tiled(answer) -> int:
+    """A tiled map's answer: the gathered instances, then each tile's share."""
+    print(
+        f'"{answer.text}": {answer.chosen:,} Gaussians pick it over {len(answer.negatives)} negatives; '
+        f"{len(answer.instances)} instances in 3D, from {len(answer.tiles)} tiles"
+    )
+    _print_instances(answer.instances)
+    for name, (chosen, instances) in answer.tiles.items():
+        print(f"  tile {name}: {chosen:,} Gaussians, {instances} instances")
     return 0

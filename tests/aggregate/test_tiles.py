@@ -8,9 +8,10 @@ import shutil
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import ObservationStore, ViewObservations
+from olsplat_nodes.aggregate import LanguageMap, ObservationStore, ViewObservations
 from olsplat_nodes.aggregate.tiles import TiledStore, TileGrid, Tiling, split_view
 from olsplat_nodes.errors import OlsplatInputError
+from olsplat_nodes.pipeline.offline import aggregate_flights
 
 
 def _random_view(rng, n_map: int, kept: int, regions: int, dim: int) -> tuple[ViewObservations, np.ndarray]:
@@ -118,7 +119,6 @@ def test_two_flights_of_one_map_make_one_map_and_another_map_is_refused(tiny, tm
     from olsplat_nodes.encoders.spec import encoder_from_spec
     from olsplat_nodes.method import named_method
     from olsplat_nodes.pipeline import Scene
-    from olsplat_nodes.pipeline.offline import aggregate_flights
 
     for name in ("a", "b"):
         shutil.copytree(tiny[0], tmp_path / name, ignore=shutil.ignore_patterns("cache"))
@@ -138,3 +138,38 @@ def test_two_flights_of_one_map_make_one_map_and_another_map_is_refused(tiny, tm
         aggregate_flights(
             [scenes[0], Scene.open(tmp_path / "other")], named_method("outlangsplat"), None, tmp_path / "x"
         )
+
+
+def test_a_tiled_map_answers_a_query_tile_by_tile_as_the_whole_map(tiny, tmp_path, capsys):
+    """``olsplat query --map DIR`` on a 4-tile aggregation: every tile's map asked in turn. The
+    Gaussians that pick the text are the whole map's, exactly; each instance lies in one tile,
+    and together they hold the whole map's instances' Gaussians but those cut by a tile border
+    into parts below min_points."""
+    from olsplat_nodes.cli import main
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.method import named_method
+    from olsplat_nodes.pipeline import Scene
+    from olsplat_nodes.query.answer import answer_query, encoder_for_map
+    from olsplat_nodes.query.tiled import answer_tiled, tile_maps
+    from olsplat_nodes.scene import read_ply
+
+    scene = Scene.open(tiny[0])
+    for tile_m, out in ((100.0, tmp_path / "tiled"), (0.0, tmp_path / "whole")):
+        aggregate_flights([scene], named_method("outlangsplat"), encoder_from_spec(), out, tile_m=tile_m)
+    assert len(tile_maps(tmp_path / "tiled")) == 4 and not tile_maps(tmp_path / "whole")
+    gaussians = read_ply(scene.ply)
+    whole = LanguageMap.load(tmp_path / "whole" / "language_map.npz")
+    encoder = encoder_for_map(whole)
+    negatives = ["road", "trees", "lawn", "cars"]
+    expected = answer_query(whole, gaussians, encoder, "red roof buildings", negatives, cluster_radius=3.0)
+    got = answer_tiled(tmp_path / "tiled", gaussians, encoder, "red roof buildings", negatives, cluster_radius=3.0)
+    assert got.chosen == expected.chosen_count > 0 and len(got.tiles) == 4
+    for instance in got.instances:  # DBSCAN ran within a tile
+        low, high = np.floor(np.array(instance.box_min[:2]) / 100.0), np.floor(np.array(instance.box_max[:2]) / 100.0)
+        assert (low == high).all()
+    assert sum(i.gaussians for i in got.instances) <= expected.chosen_count
+    assert len(got.instances) >= len(expected.instances) > 0
+    args = ["--negatives", ",".join(negatives), "--cluster-radius", "3"]
+    code = main(["query", "--map", str(tmp_path / "tiled"), "--scene", str(tiny[0]), "red roof buildings", *args])
+    printed = capsys.readouterr().out
+    assert code == 0 and f"{expected.chosen_count:,} Gaussians pick it" in printed and "from 4 tiles" in printed
