@@ -39,17 +39,22 @@ def local_cluster():
 
 @pytest.fixture(scope="module")
 def flights(tiny, tmp_path_factory):
-    """Two flights over the tiny town's one prior map: the flight and the same town flown again
-    under another folder (the simulator's ``--flight-seed`` makes a different path; here the
-    point is one map from two folders of views). Five views each, encodings cached."""
+    """Two flights over the tiny town's one prior map, on disk: views 0-4 and views 5-9 of the
+    tiny flight, each folder with its own COLMAP model (the simulator's ``--flight-seed`` makes
+    a different path; here the point is one map from two folders of views). Encodings cached;
+    the expected map is the single machine's of both."""
     from olsplat_nodes.pipeline import view_features
+    from olsplat_nodes.scene import write_colmap
 
     work = tmp_path_factory.mktemp("flights")
     scenes = []
-    for name in ("a", "b"):
+    for name, views in (("a", slice(0, 5)), ("b", slice(5, 10))):
         shutil.copytree(tiny[0], work / name)
+        cameras = Scene.open(work / name).cameras[views]
+        shutil.rmtree(work / name / "sparse" / "0")
+        write_colmap(work / name / "sparse" / "0", cameras)
         scene = Scene.open(work / name)
-        scene = Scene(scene.folder, scene.ply, scene.cameras[:5] if name == "a" else scene.cameras[5:10])
+        assert [c.name for c in scene.cameras] == [c.name for c in cameras]
         for camera in scene.cameras:  # the cache, so that the cluster's workers do not encode
             view_features(scene, camera, encoder_from_spec())
         scenes.append(scene)
@@ -115,3 +120,19 @@ def test_a_tile_actor_killed_mid_run_is_restarted_from_its_shard(flights, tmp_pa
     _same_map(LanguageMap.load(tmp_path / "language_map.npz"), expected)
     views = ObservationStore(str(killed["folder"]), 1).names()
     assert len(views) == len(set(views)) > int(killed["views_then"])  # recorded after the restart too, once each
+
+
+def test_the_command_aggregates_two_flights_into_one_tiled_map_on_a_local_cluster(flights, tmp_path):
+    """``olsplat aggregate --scene A --scene B --tile-m 100 --cluster auto`` as a user runs it:
+    its own process, which joins the cluster on this computer or starts one (127.0.0.1 only)."""
+    import subprocess
+    import sys
+
+    scenes, expected = flights
+    args = ["--scene", str(scenes[0].folder), "--scene", str(scenes[1].folder), "--tile-m", "100"]
+    command = [sys.executable, "-m", "olsplat_nodes.cli", "aggregate", *args, "--cluster", "auto"]
+    result = subprocess.run([*command, "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "10 views of 2 flight(s), 4 tile(s)" in result.stdout
+    _same_map(LanguageMap.load(tmp_path / "out" / "language_map.npz"), expected)
+    assert len(list((tmp_path / "out" / "store").glob("*/language_map.npz"))) == 4  # each tile's own map
