@@ -19,7 +19,8 @@ def add_parser(subparsers) -> None:
         "make",
         help="generate a scene, fly over it, write a dataset",
         epilog="examples:\n  olsplat sim make --preset tiny --seed 0 --out scene\n"
-        "  olsplat sim make --preset small --seed 1 --out small1 --views 30",
+        "  olsplat sim make --preset small --seed 1 --out small1 --views 30\n"
+        "  olsplat sim make --preset small --seed 1 --flight-seed 7 --out small1-f7   # small1's map, another flight",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     make.add_argument(
@@ -31,7 +32,17 @@ def add_parser(subparsers) -> None:
         + " (default tiny)",
     )
     make.add_argument(
-        "--seed", type=int, default=0, help="the town and flight (default 0; seeds >= 1000 train the shipped encoders)"
+        "--seed",
+        type=int,
+        default=0,
+        help="the town, its map and its flight (default 0; seeds >= 1000 train the shipped encoders)",
+    )
+    make.add_argument(
+        "--flight-seed",
+        type=int,
+        metavar="M",
+        help="fly the town of --seed again on another path (turned, other noise; frames flight<M>_frame_NNNN.jpg): "
+        "the same map/point_cloud.ply, so that flights can be aggregated into one map (default: the seed's flight)",
     )
     make.add_argument("--out", type=Path, required=True, help="a new or empty folder for the dataset")
     make.add_argument("--force", action="store_true", help="empty --out first if it holds files")
@@ -102,13 +113,15 @@ def run_make(args: argparse.Namespace) -> int:
         raise OlsplatInputError(
             f"need --rate > 0, 5 <= --fov <= 150, --motion-blur >= 0; got {args.rate}, {args.fov}, {args.motion_blur}"
         )
+    if args.flight_seed is not None and args.flight_seed < 0:
+        raise OlsplatInputError(f"--flight-seed must be >= 0, got {args.flight_seed}")
     preset = dataclasses.replace(preset, **changes)
     empty_output_folder(args.out, args.force)
     recon = (
         ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
     )
     options = MakeOptions(SensorSpec(blur_exposure_s=args.motion_blur), recon, rate_hz=args.rate, fov_deg=args.fov)
-    make_dataset(preset, args.seed, args.out, options)
+    make_dataset(preset, args.seed, args.out, options, flight_seed=args.flight_seed)
     return 0
 
 

@@ -6,6 +6,8 @@ between a nadir lawnmower (half), an oblique lawnmower looking forward along its
 stay on the town. Oblique pitch is
 measured from nadir (0 = straight down) and drawn in [30, 60] degrees per flight.
 Timestamps advance at ``rate_hz`` from a fixed epoch, so a flight is bit-for-bit repeatable.
+Another flight over the same town (``olsplat sim make --flight-seed``) turns the whole pattern
+about the town's centre by ``turn_deg`` and names its frames with a ``name_prefix``.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ class FlightSpec:
     altitude_m: float = 80.0  # above the ground, 60-120 m in the paper's data
     rate_hz: float = 1.0  # frames per second
     oblique_deg: tuple[float, float] = (30.0, 60.0)  # pitch range of oblique views, from nadir
+    turn_deg: float = 0.0  # the pattern turned about the town's centre, counterclockwise seen from above
+    name_prefix: str = ""  # frames are named f"{name_prefix}frame_NNNN.jpg"
 
 
 @dataclass
@@ -78,8 +82,29 @@ def _orbit(n: int, ring: float, altitude: float, pitch: float, rng) -> list[tupl
     return out
 
 
+def _turned(poses: list, turn_deg: float) -> list:
+    """(kind, eye, target, up) poses, [3] vectors in metres, turned by ``turn_deg`` about the
+    vertical axis through the town's centre (counterclockwise seen from above)."""
+    t = np.radians(turn_deg)
+    rotation = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
+    return [(kind, rotation @ eye, rotation @ target, rotation @ up) for kind, eye, target, up in poses]
+
+
+def _turned_extent(extent: float, turn_deg: float, size_m: float) -> float:
+    """The lawnmowers' half-side (metres) so that their square, turned by ``turn_deg``, keeps its
+    view centres on the town: a square of half-side e turned by t reaches e (|cos t| + |sin t|)
+    along x and y, up to 1.41 e. That is on the town at the presets' altitudes and the default
+    field of view (``extent`` unchanged), beyond it with a narrow field of view (shrunk to fit)."""
+    t = np.radians(turn_deg)
+    reach = extent * (abs(np.cos(t)) + abs(np.sin(t)))
+    return extent * min(1.0, 0.5 * size_m / max(reach, 1e-9))
+
+
 def plan_flight(size_m: float, spec: FlightSpec, rng: np.random.Generator) -> list[FlightFrame]:
-    """The frames of one flight over a town of side ``size_m`` centred on the origin."""
+    """The frames of one flight over a town of side ``size_m`` centred on the origin.
+
+    ``rng`` draws the same numbers whatever ``spec.turn_deg``: a turn changes the poses, not the draws.
+    """
     focal = 0.5 * spec.width / np.tan(np.radians(spec.fov_deg) / 2)
     K = intrinsics(focal, focal, spec.width / 2, spec.height / 2)
     n_nadir = spec.n_views // 2
@@ -88,13 +113,17 @@ def plan_flight(size_m: float, spec: FlightSpec, rng: np.random.Generator) -> li
     pitch = np.radians(rng.uniform(*spec.oblique_deg))
     footprint = 2 * spec.altitude_m * np.tan(np.radians(spec.fov_deg) / 2)  # nadir view width on the ground
     extent = max(0.0, 0.5 * size_m - 0.4 * footprint)
+    if spec.turn_deg:  # unturned: not even a rotation by 0, so that the default flight keeps its bytes
+        extent = _turned_extent(extent, spec.turn_deg, size_m)
     poses = [("nadir", *p) for p in _lawnmower(n_nadir, extent, spec.altitude_m, 0.0, rng)]
     poses += [("oblique", *p) for p in _lawnmower(n_oblique, 0.8 * extent, spec.altitude_m, pitch, rng)]
     poses += [("orbit", *p) for p in _orbit(n_orbit, 0.2 * size_m, spec.altitude_m, pitch, rng)]
+    if spec.turn_deg:
+        poses = _turned(poses, spec.turn_deg)
     frames = []
     for i, (kind, eye, target, up) in enumerate(poses):
         pose = look_at(eye, target, up)
-        name = f"frame_{i:04d}.jpg"
+        name = f"{spec.name_prefix}frame_{i:04d}.jpg"
         stamp = EPOCH_NS + int(round(i * 1e9 / spec.rate_hz))
         frames.append(FlightFrame(Camera(name, spec.width, spec.height, K, pose), stamp, kind))
     return frames

@@ -10,9 +10,11 @@ Output folder (documented in sim/README.md):
     replay.mcap                the flight as a replay log (images, calibration, poses)
     truth/                     labels of every map Gaussian, the true scene and true poses
     preview/                   contact_sheet.jpg and overview.jpg
-    scene.json                 how the dataset was made (preset, seed, counts, parameters)
+    scene.json                 how the dataset was made (preset, seed, flight seed, counts, parameters)
 
-Everything is a pure function of (preset, seed, options): same inputs, same bytes.
+Everything is a pure function of (preset, seed, flight seed, options): same inputs, same bytes.
+The town and its map depend on the seed alone; a flight seed flies the same town again on
+another path (see ``_streams``), so that several flights of one map can be aggregated together.
 """
 
 from __future__ import annotations
@@ -40,6 +42,10 @@ from .scene import generate_scene
 from .sensor import SensorSpec, apply_sensor, exposure_gains, to_uint8
 
 BACKGROUND = (0.45, 0.43, 0.38)  # beyond the town: bare land, not a black void
+# A town seed S draws from the first four children of SeedSequence(S) (flight, sensor,
+# reconstruction, pose); a flight seed M from the fifth child of SeedSequence(M), so that flight
+# M shares no stream with the town or the default flight of any seed.
+FLIGHT_SEED_CHILD = 4
 
 
 @dataclass(frozen=True)
@@ -65,39 +71,71 @@ def _render_frame(gaussians, frame: FlightFrame, velocity: np.ndarray, sensor: S
     return rgb / sensor.blur_samples, result
 
 
-def _town_flight_map(preset: Preset, seed: int, options: MakeOptions):
-    """(true scene, flight frames, reconstructed map, (sensor rng, pose rng)) of (preset, seed):
-    each part drawn from its own stream of the seed, so any part can be made alone."""
+def _streams(seed: int, flight_seed: int | None) -> tuple[np.random.Generator, ...]:
+    """(flight, sensor, reconstruction, pose) generators. The reconstruction's (the map's) is the
+    seed's whatever the flight seed; a flight seed replaces the other three with its own."""
     flight_rng, sensor_rng, recon_rng, pose_rng = [
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
     ]
-    truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
-    spec = FlightSpec(
+    if flight_seed is not None:
+        flight = np.random.SeedSequence(flight_seed, spawn_key=(FLIGHT_SEED_CHILD,))
+        flight_rng, sensor_rng, pose_rng = [np.random.default_rng(s) for s in flight.spawn(3)]
+    return flight_rng, sensor_rng, recon_rng, pose_rng
+
+
+def _flight_spec(preset: Preset, options: MakeOptions, flight_seed: int | None, rng) -> FlightSpec:
+    """The flight of the preset; with a flight seed, turned by an angle drawn from ``rng`` (uniform
+    in [0, 360) degrees: other view positions and image orientations, not only other noise) and
+    with frames named ``flight<M>_frame_NNNN.jpg``, so that no two flights of a town share a name."""
+    turn_deg, prefix = (0.0, "") if flight_seed is None else (float(rng.uniform(0.0, 360.0)), f"flight{flight_seed}_")
+    return FlightSpec(
         preset.n_views,
         preset.width,
         preset.height,
         fov_deg=options.fov_deg,
         altitude_m=preset.altitude_m,
         rate_hz=options.rate_hz,
+        turn_deg=turn_deg,
+        name_prefix=prefix,
     )
+
+
+def _town_flight_map(preset: Preset, seed: int, options: MakeOptions, flight_seed: int | None = None):
+    """(true scene, flight spec, flight frames, reconstructed map, (sensor rng, pose rng)) of
+    (preset, seed, flight seed): each part drawn from its own stream, so any part can be made alone."""
+    flight_rng, sensor_rng, recon_rng, pose_rng = _streams(seed, flight_seed)
+    truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
+    spec = _flight_spec(preset, options, flight_seed, flight_rng)
     frames = plan_flight(preset.size_m, spec, flight_rng)
     recon = reconstruct(truth, options.reconstruction, recon_rng)
-    return truth, frames, recon, (sensor_rng, pose_rng)
+    return truth, spec, frames, recon, (sensor_rng, pose_rng)
 
 
-def prior_map(preset: Preset, seed: int, options: MakeOptions = MakeOptions()) -> tuple[Gaussians, np.ndarray]:
-    """The map ``make_dataset`` writes to map/point_cloud.ply for (preset, seed) and the flight's
-    true camera centres [V, 3] (metres), without rendering a frame."""
-    _, frames, recon, _ = _town_flight_map(preset, seed, options)
+def prior_map(
+    preset: Preset, seed: int, options: MakeOptions = MakeOptions(), flight_seed: int | None = None
+) -> tuple[Gaussians, np.ndarray]:
+    """The map ``make_dataset`` writes to map/point_cloud.ply for (preset, seed) (the same for every
+    flight seed) and the flight's true camera centres [V, 3] (metres), without rendering a frame."""
+    _, _, frames, recon, _ = _town_flight_map(preset, seed, options, flight_seed)
     return recon.gaussians, np.array([f.camera.center for f in frames])
 
 
-def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = MakeOptions(), log=print) -> dict:
-    """Write the dataset of ``preset`` and ``seed`` to ``out``; returns the scene.json summary."""
+def make_dataset(
+    preset: Preset,
+    seed: int,
+    out: Path,
+    options: MakeOptions = MakeOptions(),
+    log=print,
+    flight_seed: int | None = None,
+) -> dict:
+    """Write the dataset of ``preset`` and ``seed`` to ``out``; returns the scene.json summary.
+
+    ``flight_seed`` (>= 0): the same town and map, flown on another path (turned, other pose and
+    sensor noise, frames ``flight<M>_frame_NNNN.jpg``); None: the seed's own flight."""
     start = time.perf_counter()
     for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    truth, frames, recon, (sensor_rng, pose_rng) = _town_flight_map(preset, seed, options)
+    truth, spec, frames, recon, (sensor_rng, pose_rng) = _town_flight_map(preset, seed, options, flight_seed)
     log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
         f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x "
         f"{preset.size_m:.0f} m")  # fmt: skip
@@ -165,6 +203,8 @@ def make_dataset(preset: Preset, seed: int, out: Path, options: MakeOptions = Ma
     summary = {
         "preset": asdict(preset),
         "seed": seed,
+        "flight_seed": flight_seed,  # null: the seed's own flight
+        "flight_turn_deg": spec.turn_deg,
         "ground_truth_gaussians": len(truth.gaussians),
         "map_gaussians": len(recon.gaussians),
         "views": len(frames),
