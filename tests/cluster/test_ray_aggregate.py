@@ -39,25 +39,31 @@ def local_cluster():
 
 @pytest.fixture(scope="module")
 def flights(tiny, tmp_path_factory):
-    """Two flights over the tiny town's one prior map, on disk: views 0-4 and views 5-9 of the
-    tiny flight, each folder with its own COLMAP model (the simulator's ``--flight-seed`` makes
-    a different path; here the point is one map from two folders of views). Encodings cached;
-    the expected map is the single machine's of both."""
+    """Two flights over the tiny town's one prior map: the first five views of the tiny flight
+    (its folder with a COLMAP model of those views), and five views of another flight over the
+    same town (``--flight-seed 1``: another path, another noise, the same map). Encodings
+    cached; the expected map is the single machine's of both flights."""
+    from dataclasses import replace
+
     from olsplat_nodes.pipeline import view_features
     from olsplat_nodes.scene import write_colmap
+    from olsplat_sim.make import make_dataset
+    from olsplat_sim.presets import PRESETS
 
     work = tmp_path_factory.mktemp("flights")
-    scenes = []
-    for name, views in (("a", slice(0, 5)), ("b", slice(5, 10))):
-        shutil.copytree(tiny[0], work / name)
-        cameras = Scene.open(work / name).cameras[views]
-        shutil.rmtree(work / name / "sparse" / "0")
-        write_colmap(work / name / "sparse" / "0", cameras)
-        scene = Scene.open(work / name)
-        assert [c.name for c in scene.cameras] == [c.name for c in cameras]
+    shutil.copytree(tiny[0], work / "a")
+    cameras = Scene.open(work / "a").cameras[:5]
+    shutil.rmtree(work / "a" / "sparse" / "0")
+    write_colmap(work / "a" / "sparse" / "0", cameras)
+    make_dataset(replace(PRESETS["tiny"], n_views=5), 0, work / "b", log=lambda *_: None, flight_seed=1)
+    scenes = [Scene.open(work / name) for name in ("a", "b")]
+    assert (work / "a" / "map" / "point_cloud.ply").read_bytes() == (
+        work / "b" / "map" / "point_cloud.ply"
+    ).read_bytes()
+    assert [len(s.cameras) for s in scenes] == [5, 5]
+    for scene in scenes:
         for camera in scene.cameras:  # the cache, so that the cluster's workers do not encode
             view_features(scene, camera, encoder_from_spec())
-        scenes.append(scene)
     expected = aggregate_flights(scenes, named_method("outlangsplat"), encoder_from_spec(), work / "single")
     assert expected["tiles"] == 1
     return scenes, LanguageMap.load(work / "single" / "language_map.npz")
