@@ -175,7 +175,12 @@ def aggregate_on_ray(
         total, worker_peak = len(pending), 0.0
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            _added, peak = ray.get(done[0])  # a task's own error (bad input) stops the run here, with its message
+            try:
+                _added, peak = ray.get(done[0])
+            except ray.exceptions.RayTaskError as exc:  # bad input in a view (a missing photo...): its one error
+                if isinstance(exc.cause, OlsplatInputError):
+                    raise exc.cause from None
+                raise
             worker_peak = max(worker_peak, peak)
             if progress is not None:
                 progress(total - len(pending), total)

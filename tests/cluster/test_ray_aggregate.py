@@ -15,6 +15,7 @@ import pytest
 
 from olsplat_nodes.aggregate import LanguageMap, ObservationStore
 from olsplat_nodes.encoders.spec import DEFAULT_SPEC, encoder_from_spec
+from olsplat_nodes.errors import OlsplatInputError
 from olsplat_nodes.method import named_method
 from olsplat_nodes.pipeline import Scene
 from olsplat_nodes.pipeline.offline import aggregate_flights
@@ -142,3 +143,15 @@ def test_the_command_aggregates_two_flights_into_one_tiled_map_on_a_local_cluste
     assert "10 views of 2 flight(s), 4 tile(s)" in result.stdout
     _same_map(LanguageMap.load(tmp_path / "out" / "language_map.npz"), expected)
     assert len(list((tmp_path / "out" / "store").glob("*/language_map.npz"))) == 4  # each tile's own map
+
+
+def test_bad_input_in_a_view_task_is_the_one_error_that_names_the_file(flights, tmp_path):
+    scenes, _ = flights
+    shutil.copytree(scenes[0].folder, tmp_path / "a", ignore=shutil.ignore_patterns("cache"))
+    missing = tmp_path / "a" / "images" / scenes[0].cameras[2].name
+    missing.unlink()
+    with pytest.raises(OlsplatInputError) as caught:
+        aggregate_on_ray(
+            [Scene.open(tmp_path / "a")], named_method("outlangsplat"), (DEFAULT_SPEC, None), tmp_path / "out", 100.0
+        )
+    assert str(missing) in str(caught.value) and "\n" not in str(caught.value)
