@@ -6,14 +6,15 @@ node's parameters; the resolved settings go into the store's manifest, which the
 reads, so the two never disagree. A store made with other settings is refused at start.
 
 Per view: check the message against itself (label maps vs image size, regions vs feature rows,
-one encoder for the whole run), run the method's per-view step (``method.add_view``), save the
-photo and camera (``aggregate.views``) and append to the observation store; only then
-acknowledge. With ``features: 2d3d`` each view's region bank is first fused with the 3D branch
+one encoder for the whole run), run the method's per-view step (``method.view_observations``),
+save the photo and camera (``aggregate.views``) and record the view in the store, which is the
+map's one tile (``aggregate.tiles.TileShard``: the shard a tiled or Ray run records into, the
+same code); only then acknowledge. With ``features: 2d3d`` each view's region bank is first fused with the 3D branch
 (the paper's dual branch, ``structure.StructuralBranch``): its point features are made at the
 first view (from that view's camera centre), h_theta trains online as views arrive, and its
 whole state is saved (``STORE/branch.npz``) after every stored view, so a restarted node goes on
 with h as it was; the branch's settings are in the store's manifest. A view already in the
-store (by name) is acknowledged again without being added twice, so a restarted node or a
+store (by name: the shard's rule) is acknowledged again without being added twice, so a restarted node or a
 re-sent frame never double-counts. ``EndOfStream`` is forwarded
 on the observations topic after the views before it.
 """
@@ -96,7 +97,7 @@ class AccumulatorNode(Node):
         return None if structure is None else structure_record(structure)
 
     def setup(self) -> None:
-        from ..aggregate import ObservationStore  # heavy imports here: the launcher imports node classes
+        from ..aggregate.tiles import TileShard  # heavy imports here: the launcher imports node classes
         from ..method import claim_store, method_params_of, warm_up
         from ..scene import read_ply
 
@@ -105,17 +106,17 @@ class AccumulatorNode(Node):
         self.method = method_params_of(p).resolve()
         self.gaussians = read_ply(p.map)
         self.manifest = claim_store(p.store, self.method, self._structure_record(p))
-        self.store = ObservationStore(p.store, len(self.gaussians), writer=True)
+        # the store of the map's one tile: the shard a tiled or Ray run records into (aggregate/tiles.py)
+        self.shard = TileShard(p.store, len(self.gaussians), writer=True)
         self.structure = self._structure(p)
         self.branch = None  # made at the first view, or restored from the store
         self.branch_file = Path(p.store) / "branch.npz"
         if self.structure is not None and self.branch_file.exists():
             self.branch = self._restore_branch()
-        self.names = set(self.store.names())
         # before "ready": a fresh install compiles the per-view kernels here, not on a flight's first frames
         log.info("per-view kernels ready in %.1f s", warm_up(self.gaussians, self.method))
-        if self.names:
-            log.info("resuming: %d views already in %s", len(self.names), p.store)
+        if len(self.shard):
+            log.info("resuming: %d views already in %s", len(self.shard), p.store)
         limit = int(p.max_message_mb * 2**20)
         self.sub = self.own(Subscriber(self.context, [p.regions_in], [p.topic_regions], hwm=p.hwm, max_bytes=limit))
         self.pub = self.own(Publisher(self.context, p.observations_out, bind=True, hwm=100))
@@ -133,8 +134,8 @@ class AccumulatorNode(Node):
             else:
                 self.unexpected(message, p.topic_regions)
         if self.diag is not None:
-            values = self.stats.with_sockets(self.sub.stats, queue_depth=len(batch), views=len(self.names))
-            self.diag.beat(0, f"{len(self.names)} views in the store", values)
+            values = self.stats.with_sockets(self.sub.stats, queue_depth=len(batch), views=len(self.shard))
+            self.diag.beat(0, f"{len(self.shard)} views in the store", values)
         return None
 
     def _restore_branch(self):
@@ -168,10 +169,10 @@ class AccumulatorNode(Node):
 
     def _add(self, message: RegionFeatures) -> None:
         from ..aggregate import save_view
-        from ..method import add_view, write_manifest
+        from ..method import view_observations, write_manifest
 
         start = time.perf_counter()
-        duplicate = message.name in self.names
+        duplicate = message.name in self.shard.names
         kept = 0
         if not duplicate:
             try:
@@ -185,14 +186,16 @@ class AccumulatorNode(Node):
             if self.manifest.encoder is None or self.manifest.feature_dim is None:
                 self.manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
                 write_manifest(self.params.store, self.manifest)
-            save_view(self.params.views, len(self.store), camera, image)
+            save_view(self.params.views, len(self.shard.store), camera, image)
             if self.structure is not None and self.branch is None:
                 from ..structure.branch import StructuralBranch
 
                 self.branch = StructuralBranch.build(self.gaussians, camera.center[None], self.structure)
-            stages = add_view(self.gaussians, camera, label_maps, bank, self.method, self.store, self.branch)
-            kept = int(stages["kept"])
-            self.names.add(message.name)
+            observations, stacked, _ = view_observations(
+                self.gaussians, camera, label_maps, bank, self.method, self.branch
+            )
+            self.shard.record(message.name, observations, stacked)
+            kept = len(observations)
             if self.branch is not None:  # after the view is stored: a restart goes on from h as it is now
                 self._save_branch()
         added = ObservationsAdded(
@@ -202,7 +205,7 @@ class AccumulatorNode(Node):
             source_seq=message.source_seq,
             observations=kept,
             gaussians=len(self.gaussians),
-            views_in_store=len(self.names),
+            views_in_store=len(self.shard),
             duplicate=duplicate,
         )
         self.publish(self.pub, self.params.topic_observations, added)

@@ -73,14 +73,23 @@ def test_a_view_sent_again_is_recorded_once_and_another_tiling_is_refused(tmp_pa
 
 
 @pytest.fixture(scope="module")
-def tiny_views(tiny):
+def tiny_copy(tiny, tmp_path_factory):
+    """A private copy of the tiny flight: its encode cache is written here, never into the
+    session's shared folder (whose bytes ``tests/sim`` checks)."""
+    copy = tmp_path_factory.mktemp("tiles") / "scene"
+    shutil.copytree(tiny[0], copy, ignore=shutil.ignore_patterns("cache"))
+    return copy
+
+
+@pytest.fixture(scope="module")
+def tiny_views(tiny_copy):
     """The tiny flight's views, observed once: [(name, observations, stacked bank)]."""
     from olsplat_nodes.encoders.spec import encoder_from_spec
     from olsplat_nodes.method import named_method, view_observations
     from olsplat_nodes.pipeline import Scene, view_features
     from olsplat_nodes.scene import read_ply
 
-    scene = Scene.open(tiny[0])
+    scene = Scene.open(tiny_copy)
     gaussians, method, encoder = read_ply(scene.ply), named_method("outlangsplat"), encoder_from_spec()
     views = []
     for camera in scene.cameras:
@@ -140,7 +149,7 @@ def test_two_flights_of_one_map_make_one_map_and_another_map_is_refused(tiny, tm
         )
 
 
-def test_a_tiled_map_answers_a_query_tile_by_tile_as_the_whole_map(tiny, tmp_path, capsys):
+def test_a_tiled_map_answers_a_query_tile_by_tile_as_the_whole_map(tiny_copy, tmp_path, capsys):
     """``olsplat query --map DIR`` on a 4-tile aggregation: every tile's map asked in turn. The
     Gaussians that pick the text are the whole map's, exactly; each instance lies in one tile,
     and together they hold the whole map's instances' Gaussians but those cut by a tile border
@@ -153,7 +162,7 @@ def test_a_tiled_map_answers_a_query_tile_by_tile_as_the_whole_map(tiny, tmp_pat
     from olsplat_nodes.query.tiled import answer_tiled, tile_maps
     from olsplat_nodes.scene import read_ply
 
-    scene = Scene.open(tiny[0])
+    scene = Scene.open(tiny_copy)
     for tile_m, out in ((100.0, tmp_path / "tiled"), (0.0, tmp_path / "whole")):
         aggregate_flights([scene], named_method("outlangsplat"), encoder_from_spec(), out, tile_m=tile_m)
     assert len(tile_maps(tmp_path / "tiled")) == 4 and not tile_maps(tmp_path / "whole")
@@ -170,6 +179,6 @@ def test_a_tiled_map_answers_a_query_tile_by_tile_as_the_whole_map(tiny, tmp_pat
     assert sum(i.gaussians for i in got.instances) <= expected.chosen_count
     assert len(got.instances) >= len(expected.instances) > 0
     args = ["--negatives", ",".join(negatives), "--cluster-radius", "3"]
-    code = main(["query", "--map", str(tmp_path / "tiled"), "--scene", str(tiny[0]), "red roof buildings", *args])
+    code = main(["query", "--map", str(tmp_path / "tiled"), "--scene", str(tiny_copy), "red roof buildings", *args])
     printed = capsys.readouterr().out
     assert code == 0 and f"{expected.chosen_count:,} Gaussians pick it" in printed and "from 4 tiles" in printed

@@ -52,7 +52,7 @@ def flights(tiny, tmp_path_factory):
     from olsplat_sim.presets import PRESETS
 
     work = tmp_path_factory.mktemp("flights")
-    shutil.copytree(tiny[0], work / "a")
+    shutil.copytree(tiny[0], work / "a", ignore=shutil.ignore_patterns("cache"))
     cameras = Scene.open(work / "a").cameras[:5]
     shutil.rmtree(work / "a" / "sparse" / "0")
     write_colmap(work / "a" / "sparse" / "0", cameras)
