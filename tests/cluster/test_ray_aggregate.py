@@ -98,8 +98,9 @@ def test_two_flights_on_ray_make_the_single_machine_map(flights, tmp_path, tile_
 
 
 def test_a_tile_actor_killed_mid_run_is_restarted_from_its_shard(flights, tmp_path):
-    """SIGKILL the process of the first tile actor that has recorded a view, mid-run: Ray restarts the actor, which opens its shard again; the views in
-    flight are sent again and recorded once; the map is the uninterrupted one."""
+    """SIGKILL the process of the first tile actor that has recorded a view, mid-run: Ray
+    restarts the actor, which opens its shard again; the views in flight are sent again and
+    recorded once; the map is the uninterrupted one."""
     scenes, expected = flights
     killed: dict[str, object] = {}
 
