@@ -69,6 +69,13 @@ def connect(address: str, num_cpus: int | None = None) -> list[str]:
             ray.init(address=address, runtime_env=runtime_env, log_to_driver=False)
     except (ConnectionError, ValueError, RuntimeError) as exc:
         raise OlsplatInputError(f"--cluster {address}: cannot join the Ray cluster: {exc}") from exc
+    return node_addresses()
+
+
+def node_addresses() -> list[str]:
+    """The addresses of the joined cluster's live nodes."""
+    import ray
+
     return sorted({node["NodeManagerAddress"] for node in ray.nodes() if node["Alive"]})
 
 
@@ -152,7 +159,7 @@ def aggregate_on_ray(
     tiling = Tiling.of(gaussians.means, TileGrid(tile_m))
     check_manifest(out / "store", tiling, write=True)
     owned = not ray.is_initialized()  # a caller that joined a cluster itself keeps it after the run
-    nodes = connect(address) if owned else sorted({n["NodeManagerAddress"] for n in ray.nodes() if n["Alive"]})
+    nodes = connect(address) if owned else node_addresses()
     start = time.perf_counter()
     try:
         shard = ray.remote(max_restarts=-1, max_task_retries=-1, num_cpus=0)(RayTileShard)

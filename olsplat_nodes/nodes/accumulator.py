@@ -9,13 +9,13 @@ Per view: check the message against itself (label maps vs image size, regions vs
 one encoder for the whole run), run the method's per-view step (``method.view_observations``),
 save the photo and camera (``aggregate.views``) and record the view in the store, which is the
 map's one tile (``aggregate.tiles.TileShard``: the shard a tiled or Ray run records into, the
-same code); only then acknowledge. With ``features: 2d3d`` each view's region bank is first fused with the 3D branch
-(the paper's dual branch, ``structure.StructuralBranch``): its point features are made at the
-first view (from that view's camera centre), h_theta trains online as views arrive, and its
-whole state is saved (``STORE/branch.npz``) after every stored view, so a restarted node goes on
+same code); only then acknowledge. With ``features: 2d3d`` each view's region bank is first
+fused with the 3D branch (the paper's dual branch, ``structure.StructuralBranch``): its point
+features are made at the first view (from that view's camera centre), h_theta trains online as
+views arrive, and its whole state is saved (``STORE/branch.npz``) after every stored view, so a restarted node goes on
 with h as it was; the branch's settings are in the store's manifest. A view already in the
-store (by name: the shard's rule) is acknowledged again without being added twice, so a restarted node or a
-re-sent frame never double-counts. ``EndOfStream`` is forwarded
+store (by name: the shard's rule) is acknowledged again without being added twice, so a
+restarted node or a re-sent frame never double-counts. ``EndOfStream`` is forwarded
 on the observations topic after the views before it.
 """
 

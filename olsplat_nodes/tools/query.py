@@ -62,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
     scene = Scene.open(args.scene)
     gaussians = read_ply(scene.ply)
     tiled = args.map.is_dir() and is_tiled(args.map)
+    if tiled and not tile_maps(args.map):
+        raise OlsplatInputError(f"{args.map}: a tiled map whose tiles hold no map yet (was its aggregation stopped?)")
     language_map = LanguageMap.load(tile_maps(args.map)[0] if tiled else args.map)  # a tile's: its encoder
     if args.negatives:
         negatives = [t.strip() for t in args.negatives.split(",") if t.strip()]
