@@ -120,20 +120,29 @@ class VoxelIndex:
     lowest: np.ndarray  # [3] the grid's origin, metres
     dims: np.ndarray  # [3] int64 key radix
     order: np.ndarray  # [N'] int64 Gaussians (finite centres only) by voxel key
-    keys: np.ndarray  # [N'] int64 their keys, ascending
-    points: np.ndarray  # [N', 3] float64 their centres in this order: a selection is then a
-    # sequential compress of these rows, not a random gather of means (a third of a query's
-    # clustering time on a 5M map); 24 bytes per Gaussian
+    voxel_keys: np.ndarray  # [V] int64 the occupied voxels' keys, ascending
+    voxel_start: np.ndarray  # [V + 1] int64 voxel v's Gaussians at order[voxel_start[v]:voxel_start[v + 1]]
+    points: np.ndarray  # [N', 3] their centres in this order, in the means' own float type (float32
+    # for a PLY's: 12 bytes per Gaussian, widened exactly as a query copies them): a selection is
+    # then a sequential compress of these rows, not a random gather of means
 
     @staticmethod
     def build(means: np.ndarray, eps: float) -> VoxelIndex:
+        means = np.asarray(means)
         finite = np.flatnonzero(np.isfinite(means).all(1))
-        points = np.asarray(means, np.float64)[finite]
+        points = means[finite] if means.dtype == np.float32 else means[finite].astype(np.float64)
         lowest, highest = _bounds(points) if len(points) else (np.zeros(3), np.zeros(3))
+        lowest, highest = lowest.astype(np.float64), highest.astype(np.float64)
         dims = np.floor((highest - lowest) / eps).astype(np.int64) + 3
         keys = _voxel_keys(points, lowest, float(eps), dims)
         order = np.argsort(keys, kind="stable")
-        return VoxelIndex(float(eps), lowest, dims, finite[order].astype(np.int64), keys[order], points[order])
+        keys = keys[order]
+        new = np.ones(len(keys), bool)
+        np.not_equal(keys[1:], keys[:-1], out=new[1:])
+        voxel_start = np.append(np.flatnonzero(new), len(keys)).astype(np.int64)
+        return VoxelIndex(
+            float(eps), lowest, dims, finite[order].astype(np.int64), keys[new], voxel_start, points[order]
+        )
 
 
 def instances_in_3d(
@@ -169,7 +178,7 @@ def instances_in_3d(
         if count < max(min_points, 1):
             return []
         # a copy (the clustering reorders it in place), grouped by voxel
-        points, keys, start = _grouped(take, count, index.points, index.keys)
+        points, keys, start = _grouped(take, count, index.points, index.voxel_keys, index.voxel_start)
         dims, lowest = index.dims, index.lowest
     else:
         points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
@@ -197,26 +206,50 @@ def _in_order(selected, order):
     return take, count
 
 
-@njit(cache=True)
-def _grouped(take, count, points, keys):
-    """The taken rows of (points [N', 3], keys [N'] ascending): (points [count, 3], distinct
-    keys [V], start [V + 1] with voxel v's points at start[v]:start[v + 1])."""
+# Runs of the index's voxels per parallel chunk in ``_grouped`` (many more chunks than threads:
+# even loads).
+GROUP_CHUNKS = 64
+
+
+@njit(cache=True, parallel=True)
+def _grouped(take, count, points, voxel_keys, voxel_start):
+    """The taken rows of an index (``VoxelIndex``: points [N', 3], voxels' keys [V] and start
+    [V + 1]) by ``take`` [N'] bool: (points [count, 3] float64, distinct keys [V'], start [V' + 1]
+    with voxel v's points at start[v]:start[v + 1]).
+
+    In parallel over chunks of the voxels, in two passes: each chunk counts its taken rows and
+    the voxels holding some, then writes them at its offsets. (Sequential, with a key per
+    Gaussian read, it took 13-15 ms of a 0.9M-point query on a 5M map.)"""
+    n = voxel_keys.shape[0]
+    chunks = max(1, min(GROUP_CHUNKS, n))
+    size = (n + chunks - 1) // chunks
+    taken = np.zeros(chunks + 1, np.int64)
+    voxels = np.zeros(chunks + 1, np.int64)
+    for c in prange(chunks):
+        for v in range(c * size, min(n, (c + 1) * size)):
+            here = 0
+            for i in range(voxel_start[v], voxel_start[v + 1]):
+                here += take[i]
+            taken[c + 1] += here
+            voxels[c + 1] += here > 0
+    taken = np.cumsum(taken)
+    voxels = np.cumsum(voxels)
     out = np.empty((count, 3))
-    distinct = np.empty(count, np.int64)
-    start = np.empty(count + 1, np.int64)
-    m = 0
-    v = 0
-    for i in range(take.shape[0]):
-        if not take[i]:
-            continue
-        if v == 0 or keys[i] != distinct[v - 1]:
-            distinct[v] = keys[i]
-            start[v] = m
-            v += 1
-        out[m, 0], out[m, 1], out[m, 2] = points[i, 0], points[i, 1], points[i, 2]
-        m += 1
-    start[v] = m
-    return out, distinct[:v].copy(), start[: v + 1].copy()
+    distinct = np.empty(voxels[chunks], np.int64)
+    start = np.empty(voxels[chunks] + 1, np.int64)
+    start[voxels[chunks]] = taken[chunks]
+    for c in prange(chunks):
+        r, w = taken[c], voxels[c]
+        for v in range(c * size, min(n, (c + 1) * size)):
+            first = r
+            for i in range(voxel_start[v], voxel_start[v + 1]):
+                if take[i]:
+                    out[r, 0], out[r, 1], out[r, 2] = points[i, 0], points[i, 1], points[i, 2]
+                    r += 1
+            if r > first:
+                distinct[w], start[w] = voxel_keys[v], first
+                w += 1
+    return out, distinct, start
 
 
 def _floats(row: np.ndarray) -> tuple[float, float, float]:
@@ -399,22 +432,33 @@ def _core(points, start, begin, around, low, high, reach2, min_points, lowest, e
     """[M] bool: DBSCAN's core test, at least min_points points (itself included) within eps,
     counted over the point's own and touching voxels (its whole eps-ball).
 
-    Shortcut, exact: a voxel's eight half-side cells have a diagonal of sqrt(3)/2 eps < eps, so
-    every point of a cell holding min_points points is core without a distance (on the dense
-    roofs and roads of a survey map, most points; a third of a 700k-point query's time)."""
+    Shortcut, exact: split a voxel into its eight half-side cells and take each cell's box (of
+    its points); when every corner of a cell's box is within eps of a point, so is every point of
+    that cell, and the counts of such cells add up without a distance each. A point's own cell
+    always qualifies (its diagonal is sqrt(3)/2 eps < eps); on the flat lawns and roads of a
+    survey map a point's own cell and the two beside it usually do, and hold min_points (two
+    thirds of the points of a 0.9M-point "lawn" query, where the own cell alone made a third
+    core; the core test was half of that query's time)."""
     core = np.zeros(points.shape[0], np.bool_)
     n = start.shape[0] - 1
     # voxels are independent here: in parallel, by runs of VOXEL_RUN voxels
     for run in prange((n + VOXEL_RUN - 1) // VOXEL_RUN):
         cell = np.zeros(8, np.int64)
+        near_cell = np.zeros(8, np.int64)
+        box = np.empty((8, 6))
         for v in range(run * VOXEL_RUN, min(n, (run + 1) * VOXEL_RUN)):
-            _core_of_voxel(points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, core)
+            _core_of_voxel(
+                points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, near_cell, box, core
+            )
     return core
 
 
 @njit(cache=True)
-def _core_of_voxel(points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, core):
-    """``_core`` for voxel v's points (cell: an [8] scratch array)."""
+def _core_of_voxel(
+    points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, near_cell, box, core
+):
+    """``_core`` for voxel v's points (scratch arrays: cell [8] counts, near_cell [8] counts
+    within eps of a whole cell, box [8, 6] boxes, low then high)."""
     half = 0.5 * eps
     block = 0
     for i in range(begin[v], begin[v + 1]):
@@ -425,11 +469,29 @@ def _core_of_voxel(points, start, begin, around, low, high, reach2, min_points, 
         # the voxel's corner: its points share floor((p - lowest) / eps) (``_voxel_keys``)
         corner = np.floor((points[start[v]] - lowest) / eps) * eps + lowest
         cell[:] = 0
+        box[:, :3] = np.inf
+        box[:, 3:] = -np.inf
         for p in range(start[v], start[v + 1]):
-            cell[_half_cell(points[p], corner, half)] += 1
+            c = _half_cell(points, p, corner, half)
+            cell[c] += 1
+            for d in range(3):
+                box[c, d] = min(box[c, d], points[p, d])
+                box[c, 3 + d] = max(box[c, 3 + d], points[p, d])
+        for a in range(8):  # whole cells first: every point of cell a is within eps of cell b's
+            near_cell[a] = 0
+            for b in range(8):
+                if cell[a] > 0 and cell[b] > 0 and _farthest2_boxes(box, a, b) <= reach2:
+                    near_cell[a] += cell[b]
         for p in range(start[v], start[v + 1]):
-            if cell[_half_cell(points[p], corner, half)] >= min_points:
+            c = _half_cell(points, p, corner, half)
+            if near_cell[c] >= min_points:
                 core[p] = True
+                continue
+            near = 0  # then the point itself against each cell
+            for b in range(8):
+                if cell[b] > 0 and _farthest2(points, p, box, b) <= reach2:
+                    near += cell[b]
+            core[p] = near >= min_points
     for p in range(start[v], start[v + 1]):
         if core[p]:
             continue
@@ -443,13 +505,37 @@ def _core_of_voxel(points, start, begin, around, low, high, reach2, min_points, 
 
 
 @njit(cache=True)
-def _half_cell(point, corner, half) -> int:
+def _farthest2(points, p, box, c) -> float:
+    """Squared distance from point p to the farthest corner of box[c] ([6]: low, high), computed
+    as ``_count_near`` computes a point's: rounding is monotonic, so no point of the box comes
+    out farther than this bound. (Indices, not row views: a view costs two atomic reference
+    counts, which were most of the core test's time.)"""
+    x, y, z = points[p, 0], points[p, 1], points[p, 2]
+    dx = max(x - box[c, 0], box[c, 3] - x)
+    dy = max(y - box[c, 1], box[c, 4] - y)
+    dz = max(z - box[c, 2], box[c, 5] - z)
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True)
+def _farthest2_boxes(box, a, b) -> float:
+    """Squared distance between the farthest corners of box[a] and box[b] ([6]: low, high), an
+    upper bound of any point of one to any point of the other as ``_count_near`` computes it
+    (per axis p - q <= high_a - low_b exactly, and rounding is monotonic)."""
+    dx = max(box[a, 3] - box[b, 0], box[b, 3] - box[a, 0])
+    dy = max(box[a, 4] - box[b, 1], box[b, 4] - box[a, 1])
+    dz = max(box[a, 5] - box[b, 2], box[b, 5] - box[a, 2])
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True)
+def _half_cell(points, p, corner, half) -> int:
     """Which of its voxel's eight half-side cells (0..7) a point lies in; a point on the far
     face (rounding) counts in the outer cell, so two points of one cell are never more than
     sqrt(3) * half apart."""
     cell = 0
     for d in range(3):
-        if point[d] - corner[d] >= half:
+        if points[p, d] - corner[d] >= half:
             cell |= 1 << d
     return cell
 

@@ -274,3 +274,70 @@ def test_touching_voxel_pairs_are_the_binary_searches():
     assert len(first) > 1000
     np.testing.assert_array_equal(first, np.concatenate(firsts))
     np.testing.assert_array_equal(second, np.concatenate(seconds))
+
+
+def lawn(rng) -> tuple[np.ndarray, float, int]:
+    """Flat patches whose density (4-40 centres per m^2) straddles the core test's threshold at
+    eps = 1.5 m, min_points = 20, some tilted, with a few points lifted off them: many voxels
+    where whole half-side cells, single points against cells, or only distances decide."""
+    parts = []
+    for _ in range(6):
+        corner, size = rng.uniform(0, 40, 2), rng.uniform(3, 10, 2)
+        n = int(rng.uniform(4, 40) * size.prod())
+        xy = corner + rng.uniform(0, 1, (n, 2)) * size
+        tilt = rng.uniform(-0.5, 0.5, 2)
+        parts.append(np.c_[xy, rng.uniform(0, 5) + (xy - corner) @ tilt + rng.normal(0, 0.02, n)])
+    parts.append(rng.uniform((0, 0, 0), (50, 50, 8), (200, 3)))
+    return np.vstack(parts), 1.5, 20
+
+
+def clumps(rng) -> tuple[np.ndarray, float, int]:
+    """Isolated voxels (eps = 1, 3 m apart, so no neighbour adds to a count) each holding 2-4
+    tight blobs of 15-30 points in all at random places in the voxel: whether a point is core
+    turns on exactly which blobs of its voxel lie within eps, the case where a wrong bound on a
+    half-side cell's box would count a blob too many."""
+    parts = [np.zeros((1, 3))]  # pins the grid at the origin
+    for i in range(1, 9):
+        for j in range(1, 9):
+            sizes = rng.multinomial(int(rng.integers(15, 31)), np.ones(int(rng.integers(2, 5))) / 4)
+            for size in sizes[sizes > 0]:
+                centre = np.array([3.0 * i, 3.0 * j, 0.0]) + rng.uniform(0.06, 0.94, 3)
+                parts.append(centre + rng.uniform(-0.05, 0.05, (size, 3)))
+    return np.vstack(parts), 1.0, 12
+
+
+@pytest.mark.parametrize("scene", [lattice, road, noise, roofs, lawn, clumps])
+@pytest.mark.parametrize("seed", range(4))
+def test_core_points_are_dbscans(scene, seed):
+    """The core test with its shortcuts (whole half-side cells, a point against a cell's box)
+    gives every point DBSCAN's verdict: min_points within eps, counted by brute force."""
+    from olsplat_nodes.query.localize import _boxes, _core, _neighbourhoods, _touching_pairs, _voxelise
+
+    points, eps, min_points = scene(np.random.default_rng(seed))
+    points, keys, start, dims, lowest = _voxelise(points.astype(np.float64), eps)
+    begin, around = _neighbourhoods(len(keys), *_touching_pairs(keys, dims))
+    low, high = _boxes(points, start, start[1:])
+    core = _core(points, start, begin, around, low, high, eps * eps, min_points, lowest, eps)
+    within = np.stack([((points - p) ** 2).sum(1) <= eps * eps for p in points]).sum(1)
+    np.testing.assert_array_equal(core, within >= min_points)
+    assert 0 < core.sum() < len(points)  # both verdicts occur
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_selection_in_index_order_is_grouped_by_voxel(seed):
+    """``_grouped`` (two parallel passes over chunks of the index's voxels) against numpy: the
+    taken rows in order, widened to float64, and each voxel that holds one once."""
+    from olsplat_nodes.query.localize import _grouped
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.choice([1, 7, 63, 64, 65, 1000, 5000]))
+    keys = np.sort(rng.integers(0, max(2, n // int(rng.choice([1, 5, 200]))), n)).astype(np.int64)
+    voxel_keys, voxel_start = np.unique(keys, return_index=True)
+    points = rng.normal(size=(n, 3)).astype(rng.choice([np.float32, np.float64]))
+    take = rng.random(n) < rng.choice([0.0, 0.05, 0.5, 1.0])
+    out, distinct, start = _grouped(take, int(take.sum()), points, voxel_keys, np.append(voxel_start, n))
+    assert out.dtype == np.float64
+    np.testing.assert_array_equal(out, points[take])
+    expected_keys, first = np.unique(keys[take], return_index=True)
+    np.testing.assert_array_equal(distinct, expected_keys)
+    np.testing.assert_array_equal(start, np.append(first, take.sum()))
