@@ -12,7 +12,8 @@ answered from the server's cache of rendered features, and both are reported).
 
 ``--json FILE`` writes ``frames_sent``, ``frames_aggregated``, ``frames_dropped``,
 ``views_per_s`` (aggregated per second of stream: frames_aggregated / (frames_sent / rate)),
-``seconds`` (until the final map), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms`` (all
+``seconds`` (until the final map), ``query_relevance_p95_ms`` (and ``query_relevance_server_p95_ms``,
+the server's own time), ``query_heatmap_p95_ms`` (all
 heatmap queries), ``query_heatmap_first_p95_ms`` and ``query_heatmap_repeat_p95_ms`` (first and
 later queries on a view), ``query_heatmap_first_server_p95_ms`` (the server's own time for
 the first ones), and

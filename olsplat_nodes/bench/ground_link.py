@@ -66,11 +66,12 @@ def final_map(supervisor, thread, run_dir: Path) -> dict | None:
 
 QUERY_KINDS = {
     "relevance": "relevance",
+    # the query server's own time (QueryReply.seconds) for each kind below: the rest of a round
+    # trip is the reply's encoding, the link and the decoding
+    "relevance_server": "relevance",
     "heatmap": "heatmap",
     "heatmap_first": "heatmap, first query on its view",
     "heatmap_repeat": "heatmap, next queries on the view",
-    # the query server's own time for those first queries (QueryReply.seconds): the rest of a
-    # round trip is the reply's encoding, the link and the decoding
     "heatmap_first_server": "heatmap, first query on its view",
 }
 
@@ -123,6 +124,8 @@ def time_queries(
         if reply.status != "ok":
             raise RunFailed(f"query {text!r}: {reply.status}: {reply.message}")
         times[kind].append(seconds)
+        if kind == "relevance":
+            times["relevance_server"].append(reply.seconds)
         if kind == "heatmap":
             times["heatmap_first" if i == 0 else "heatmap_repeat"].append(seconds)
             if i == 0:

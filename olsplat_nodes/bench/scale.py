@@ -27,8 +27,10 @@ end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB
 ``store_bytes_per_view``, ``snapshot_bytes``, ``refine_pass_s`` (list), ``refine_pass_views``
 (views in the map after each pass), ``refine_pass_exact`` (false for a fold of the new views:
 the refiner's first pass and its final one are exact), ``refine_s_per_added_view`` (each pass over the views it
-added), ``query_relevance_p95_ms``, ``query_heatmap_p95_ms``,
-``query_heatmap_first_p95_ms``, ``query_heatmap_repeat_p95_ms``, and ``width``, ``height``.
+added), ``query_relevance_p95_ms`` (round trip) and ``query_relevance_server_p95_ms`` (the
+query server's own time), ``query_heatmap_p95_ms``, ``query_heatmap_first_p95_ms``,
+``query_heatmap_repeat_p95_ms``, ``query_heatmap_first_server_p95_ms``, and ``width``,
+``height``.
 
 ``--queries-only --work DIR``: only the queries again, on a run kept with ``--work DIR``
 (``requery.py``).

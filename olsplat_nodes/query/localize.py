@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 # One of each +/- pair of the 26 neighbour offsets: searching keys + offset for all 13 finds
 # every touching pair of occupied voxels once.
@@ -189,7 +189,7 @@ def instances_in_3d(
         points, keys, start, dims, lowest = _voxelise(points, eps)  # points now sorted by voxel
     first, second = _touching_pairs(keys, dims)
     cluster = _cluster_points(points, start, first, second, float(eps), int(min_points), lowest)  # [M]
-    count, low, high, total = _cluster_stats(points, cluster, len(keys))
+    count, low, high, total = _cluster_stats(points, cluster, len(keys), get_num_threads())
     order = np.flatnonzero(count >= max(min_points, 1))
     order = order[np.argsort(-count[order], kind="stable")]  # largest first; ties by lowest voxel
     return [Instance3D(_floats(low[c]), _floats(high[c]), _floats(total[c] / count[c]), int(count[c])) for c in order]
@@ -379,22 +379,14 @@ def _box(points, lo, hi):
 
 
 @njit(cache=True, parallel=True)
-def _boxes(points, start, end):
-    """(low [V, 3], high [V, 3]): the box of each voxel's points[start[v]:end[v]]."""
-    n = end.shape[0]
-    low = np.empty((n, 3))
-    high = np.empty((n, 3))
-    for v in prange(n):
-        low[v], high[v] = _box(points, start[v], end[v])
-    return low, high
-
-
-@njit(cache=True, parallel=True)
 def _cores_first(points, start, core):
-    """[V] core points per voxel; reorders each voxel's points (and ``core``) in place so that
-    its core points come first."""
+    """([V] core points per voxel, low [V, 3], high [V, 3]: the box of each voxel's core points,
+    inverted when it has none); reorders each voxel's points (and ``core``) in place so that its
+    core points come first. The boxes are made while the voxel's points are in cache."""
     n = start.shape[0] - 1
     cores = np.zeros(n, np.int64)
+    low = np.empty((n, 3))
+    high = np.empty((n, 3))
     for v in prange(n):
         for p in range(start[v], start[v + 1]):
             if core[p]:
@@ -403,7 +395,8 @@ def _cores_first(points, start, core):
                     points[p, d], points[q, d] = points[q, d], points[p, d]
                 core[p], core[q] = core[q], core[p]
                 cores[v] += 1
-    return cores
+        low[v], high[v] = _box(points, start[v], start[v] + cores[v])
+    return cores, low, high
 
 
 @njit(cache=True)
@@ -428,7 +421,7 @@ def _count_near(points, p, lo, hi, low, high, reach2, enough) -> int:
 
 
 @njit(cache=True, parallel=True)
-def _core(points, start, begin, around, low, high, reach2, min_points, lowest, eps):
+def _core(points, start, begin, around, reach2, min_points, lowest, eps):
     """[M] bool: DBSCAN's core test, at least min_points points (itself included) within eps,
     counted over the point's own and touching voxels (its whole eps-ball).
 
@@ -436,62 +429,77 @@ def _core(points, start, begin, around, low, high, reach2, min_points, lowest, e
     its points); when every corner of a cell's box is within eps of a point, so is every point of
     that cell, and the counts of such cells add up without a distance each. A point's own cell
     always qualifies (its diagonal is sqrt(3)/2 eps < eps); on the flat lawns and roads of a
-    survey map a point's own cell and the two beside it usually do, and hold min_points (two
-    thirds of the points of a 0.9M-point "lawn" query, where the own cell alone made a third
-    core; the core test was half of that query's time)."""
+    survey map a point's own cell and the two beside it usually do, and hold min_points (96 %
+    of the points of a 0.9M-point "lawn" query, where the own cell alone decided a third and
+    the core test was half of that query's time). The other points count distances, in a
+    second pass that prunes far voxels by their boxes (made in the first)."""
     core = np.zeros(points.shape[0], np.bool_)
     n = start.shape[0] - 1
-    # voxels are independent here: in parallel, by runs of VOXEL_RUN voxels
-    for run in prange((n + VOXEL_RUN - 1) // VOXEL_RUN):
+    low = np.empty((n, 3))
+    high = np.empty((n, 3))
+    runs = (n + VOXEL_RUN - 1) // VOXEL_RUN
+    # voxels are independent in each pass: in parallel, by runs of VOXEL_RUN voxels
+    for run in prange(runs):
         cell = np.zeros(8, np.int64)
         near_cell = np.zeros(8, np.int64)
         box = np.empty((8, 6))
         for v in range(run * VOXEL_RUN, min(n, (run + 1) * VOXEL_RUN)):
-            _core_of_voxel(
-                points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, near_cell, box, core
-            )
+            low[v], high[v] = _box(points, start[v], start[v + 1])
+            _whole_cells(points, start, begin, around, reach2, min_points, lowest, eps, v, cell, near_cell, box, core)
+    for run in prange(runs):
+        for v in range(run * VOXEL_RUN, min(n, (run + 1) * VOXEL_RUN)):
+            _core_by_distances(points, start, begin, around, low, high, reach2, min_points, v, core)
     return core
 
 
 @njit(cache=True)
-def _core_of_voxel(
-    points, start, begin, around, low, high, reach2, min_points, lowest, eps, v, cell, near_cell, box, core
-):
-    """``_core`` for voxel v's points (scratch arrays: cell [8] counts, near_cell [8] counts
-    within eps of a whole cell, box [8, 6] boxes, low then high)."""
-    half = 0.5 * eps
+def _whole_cells(points, start, begin, around, reach2, min_points, lowest, eps, v, cell, near_cell, box, core):
+    """``_core``'s shortcut for voxel v's points (scratch arrays: cell [8] counts, near_cell [8]
+    counts within eps of a whole cell, box [8, 6] boxes, low then high)."""
+    if start[v + 1] - start[v] < min_points:
+        return  # the shortcut counts this voxel's points only
     block = 0
     for i in range(begin[v], begin[v + 1]):
         block += start[around[i] + 1] - start[around[i]]
     if block < min_points:
         return  # no point here can have min_points within eps
-    if start[v + 1] - start[v] >= min_points:
-        # the voxel's corner: its points share floor((p - lowest) / eps) (``_voxel_keys``)
-        corner = np.floor((points[start[v]] - lowest) / eps) * eps + lowest
-        cell[:] = 0
-        box[:, :3] = np.inf
-        box[:, 3:] = -np.inf
-        for p in range(start[v], start[v + 1]):
-            c = _half_cell(points, p, corner, half)
-            cell[c] += 1
-            for d in range(3):
-                box[c, d] = min(box[c, d], points[p, d])
-                box[c, 3 + d] = max(box[c, 3 + d], points[p, d])
-        for a in range(8):  # whole cells first: every point of cell a is within eps of cell b's
-            near_cell[a] = 0
-            for b in range(8):
-                if cell[a] > 0 and cell[b] > 0 and _farthest2_boxes(box, a, b) <= reach2:
-                    near_cell[a] += cell[b]
-        for p in range(start[v], start[v + 1]):
-            c = _half_cell(points, p, corner, half)
-            if near_cell[c] >= min_points:
-                core[p] = True
-                continue
-            near = 0  # then the point itself against each cell
-            for b in range(8):
-                if cell[b] > 0 and _farthest2(points, p, box, b) <= reach2:
-                    near += cell[b]
-            core[p] = near >= min_points
+    half = 0.5 * eps
+    # the voxel's corner: its points share floor((p - lowest) / eps) (``_voxel_keys``)
+    corner = np.floor((points[start[v]] - lowest) / eps) * eps + lowest
+    cell[:] = 0
+    box[:, :3] = np.inf
+    box[:, 3:] = -np.inf
+    for p in range(start[v], start[v + 1]):
+        c = _half_cell(points, p, corner, half)
+        cell[c] += 1
+        for d in range(3):
+            box[c, d] = min(box[c, d], points[p, d])
+            box[c, 3 + d] = max(box[c, 3 + d], points[p, d])
+    for a in range(8):  # whole cells first: every point of cell a is within eps of cell b's
+        near_cell[a] = 0
+        for b in range(8):
+            if cell[a] > 0 and cell[b] > 0 and _farthest2_boxes(box, a, b) <= reach2:
+                near_cell[a] += cell[b]
+    for p in range(start[v], start[v + 1]):
+        c = _half_cell(points, p, corner, half)
+        if near_cell[c] >= min_points:
+            core[p] = True
+            continue
+        near = 0  # then the point itself against each cell
+        for b in range(8):
+            if cell[b] > 0 and _farthest2(points, p, box, b) <= reach2:
+                near += cell[b]
+        core[p] = near >= min_points
+
+
+@njit(cache=True)
+def _core_by_distances(points, start, begin, around, low, high, reach2, min_points, v, core):
+    """``_core``'s test by distances for voxel v's points that the shortcut left undecided."""
+    block = 0
+    for i in range(begin[v], begin[v + 1]):
+        block += start[around[i] + 1] - start[around[i]]
+    if block < min_points:
+        return
     for p in range(start[v], start[v + 1]):
         if core[p]:
             continue
@@ -550,10 +558,9 @@ def _cluster_points(points, start, first, second, eps, min_points, lowest):
     n = start.shape[0] - 1
     reach2 = eps * eps
     begin, around = _neighbourhoods(n, first, second)
-    low, high = _boxes(points, start, start[1:])
-    core = _core(points, start, begin, around, low, high, reach2, min_points, lowest, eps)
-    cores = _cores_first(points, start, core)  # voxel v's core points: points[start[v]:start[v] + cores[v]]
-    low, high = _boxes(points, start, start[:-1] + cores)
+    core = _core(points, start, begin, around, reach2, min_points, lowest, eps)
+    # voxel v's core points: points[start[v]:start[v] + cores[v]], their box low[v], high[v]
+    cores, low, high = _cores_first(points, start, core)
 
     parent = np.arange(n)
     for e in range(first.shape[0]):
@@ -602,21 +609,34 @@ def _labels(points, start, begin, around, cores, low, high, reach2, root):
     return cluster
 
 
-@njit(cache=True)
-def _cluster_stats(points: np.ndarray, cluster_of: np.ndarray, n: int):
-    """Per cluster label 0..n-1: (point count [n], min [n, 3], max [n, 3], sum [n, 3]); -1 skipped."""
-    count = np.zeros(n, np.int64)
-    low = np.full((n, 3), np.inf)
-    high = np.full((n, 3), -np.inf)
-    total = np.zeros((n, 3))
-    for p in range(points.shape[0]):
-        c = cluster_of[p]
-        if c < 0:
-            continue
-        count[c] += 1
-        for d in range(3):
-            x = points[p, d]
-            low[c, d] = min(low[c, d], x)
-            high[c, d] = max(high[c, d], x)
-            total[c, d] += x
+@njit(cache=True, parallel=True)
+def _cluster_stats(points: np.ndarray, cluster_of: np.ndarray, n: int, parts: int):
+    """Per cluster label 0..n-1: (point count [n], min [n, 3], max [n, 3], sum [n, 3]); -1 skipped.
+
+    In parallel: ``parts`` shares of the points (one per thread) into their own [n] sums, then
+    added up in order (the sums' rounding depends on ``parts``, not on the timing)."""
+    parts = max(1, min(parts, points.shape[0]))
+    size = (points.shape[0] + parts - 1) // parts
+    counts = np.zeros((parts, n), np.int64)
+    lows = np.full((parts, n, 3), np.inf)
+    highs = np.full((parts, n, 3), -np.inf)
+    totals = np.zeros((parts, n, 3))
+    for part in prange(parts):
+        for p in range(part * size, min(points.shape[0], (part + 1) * size)):
+            c = cluster_of[p]
+            if c < 0:
+                continue
+            counts[part, c] += 1
+            for d in range(3):
+                x = points[p, d]
+                lows[part, c, d] = min(lows[part, c, d], x)
+                highs[part, c, d] = max(highs[part, c, d], x)
+                totals[part, c, d] += x
+    count = counts[0].copy()
+    low, high, total = lows[0].copy(), highs[0].copy(), totals[0].copy()
+    for part in range(1, parts):
+        count += counts[part]
+        low = np.minimum(low, lows[part])
+        high = np.maximum(high, highs[part])
+        total += totals[part]
     return count, low, high, total

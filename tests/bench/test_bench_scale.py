@@ -53,6 +53,9 @@ def test_bench_scale_writes_the_documented_figures(tiny, tmp_path, capsys):
     )
     for key in ("query_relevance_p95_ms", "query_heatmap_p95_ms", "query_heatmap_first_p95_ms"):
         assert figures[key] > 0
+    # the server's own time is part of the round trip
+    assert 0 < figures["query_relevance_server_p95_ms"] <= figures["query_relevance_p95_ms"]
+    assert 0 < figures["query_heatmap_first_server_p95_ms"] <= figures["query_heatmap_first_p95_ms"]
     assert "12 views of" in capsys.readouterr().out
 
     # the same run's queries again without the flight: only its query server, on its final map
@@ -64,7 +67,7 @@ def test_bench_scale_writes_the_documented_figures(tiny, tmp_path, capsys):
     requeried = json.loads(again.read_text())
     assert requeried["queries_only"] and requeried["views"] == 12 and requeried["gaussians"] == figures["gaussians"]
     assert set(requeried["peak_rss_mb"]) == {"query_server"} and requeried["startup_s"] > 0
-    for key in ("query_relevance_p95_ms", "query_heatmap_p95_ms", "query_heatmap_first_p95_ms"):
+    for key in ("query_relevance_p95_ms", "query_relevance_server_p95_ms", "query_heatmap_p95_ms"):
         assert requeried[key] > 0
     assert json.loads((tmp_path / "run" / "map" / "latest.json").read_text()) == final  # the run is only read
     logs = (tmp_path / "run" / "logs" / "query_server.log").read_text()

@@ -311,13 +311,12 @@ def clumps(rng) -> tuple[np.ndarray, float, int]:
 def test_core_points_are_dbscans(scene, seed):
     """The core test with its shortcuts (whole half-side cells, a point against a cell's box)
     gives every point DBSCAN's verdict: min_points within eps, counted by brute force."""
-    from olsplat_nodes.query.localize import _boxes, _core, _neighbourhoods, _touching_pairs, _voxelise
+    from olsplat_nodes.query.localize import _core, _neighbourhoods, _touching_pairs, _voxelise
 
     points, eps, min_points = scene(np.random.default_rng(seed))
     points, keys, start, dims, lowest = _voxelise(points.astype(np.float64), eps)
     begin, around = _neighbourhoods(len(keys), *_touching_pairs(keys, dims))
-    low, high = _boxes(points, start, start[1:])
-    core = _core(points, start, begin, around, low, high, eps * eps, min_points, lowest, eps)
+    core = _core(points, start, begin, around, eps * eps, min_points, lowest, eps)
     within = np.stack([((points - p) ** 2).sum(1) <= eps * eps for p in points]).sum(1)
     np.testing.assert_array_equal(core, within >= min_points)
     assert 0 < core.sum() < len(points)  # both verdicts occur
