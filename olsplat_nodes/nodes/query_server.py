@@ -251,7 +251,12 @@ class QueryServerNode(Node):
                 look_at(centre + np.array([0.0, 0.0, 100.0]), centre, (0.0, 1.0, 0.0)),
             )
             render_feature_map(self.gaussians, np.zeros((len(self.gaussians), 1), np.float32), camera)
-            self.voxel_index = VoxelIndex.build(self.gaussians.means, self.cluster_radius)
+            index = VoxelIndex.build(self.gaussians.means, self.cluster_radius)
+            # the index's own path (its centres in the map's float type) compiled before it serves
+            instances_in_3d(
+                self.gaussians.means, np.arange(min(1000, len(self.gaussians))), self.cluster_radius, index=index
+            )
+            self.voxel_index = index
             log.info("query kernels and the voxel index ready in %.1f s", time.perf_counter() - start)
         except Exception:  # a warm-up failure must not take the server down; the query will say more
             log.exception("warm-up failed")

@@ -51,6 +51,7 @@ def warm_up_all(work: Path) -> dict[str, float]:
     from ..pipeline.scene_folder import view_features
     from ..query.answer import answer_query
     from ..query.heatmap import FeatureImages
+    from ..query.localize import VoxelIndex, default_cluster_radius
     from ..regions import RegionConfig
     from ..scene import read_ply
 
@@ -92,5 +93,14 @@ def warm_up_all(work: Path) -> dict[str, float]:
     images = FeatureImages(64 * 2**20)
     for _ in range(2):  # the first renders the view, the second is answered from the cache
         answer_query(language_map, gaussians, encoder, "road", camera=scene.cameras[0], images=images, image_key=0)
+    radius = default_cluster_radius(gaussians.means)  # as the query server clusters: through its voxel index
+    answer_query(
+        language_map,
+        gaussians,
+        encoder,
+        "road",
+        cluster_radius=radius,
+        voxel_index=VoxelIndex.build(gaussians.means, radius),
+    )
     lap("query, relevance and heatmap")
     return stages
