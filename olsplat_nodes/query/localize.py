@@ -14,8 +14,9 @@ touching ones, and every search looks at those 27 voxels only (points sorted by 
 key; touching voxels found by binary search on the keys):
 
 1. Core points, DBSCAN's own test and the noise rule: at least ``min_points`` selected centres,
-   itself included, within ``eps``. Counting stops at ``min_points``, and voxels whose 27-voxel
-   block holds fewer points are skipped outright, so dense data costs little.
+   itself included, within ``eps``. Whole half-side cells of a voxel that lie within ``eps``
+   count without a distance each (``_core``), counting stops at ``min_points``, and voxels whose
+   27-voxel block holds fewer points are skipped outright, so dense data costs little.
 2. Clusters: voxels holding core points are linked when they touch and a core point of one lies
    within ``eps`` of a core point of the other (union-find over voxels; a pair already joined
    through other voxels is not looked at). The one departure from DBSCAN: all core points of a
@@ -178,7 +179,7 @@ def instances_in_3d(
         if count < max(min_points, 1):
             return []
         # a copy (the clustering reorders it in place), grouped by voxel
-        points, keys, start = _grouped(take, count, index.points, index.voxel_keys, index.voxel_start)
+        points, keys, start = _grouped(take, index.points, index.voxel_keys, index.voxel_start)
         dims, lowest = index.dims, index.lowest
     else:
         points = np.asarray(means)[selected].astype(np.float64)  # [M, 3]
@@ -212,10 +213,10 @@ GROUP_CHUNKS = 64
 
 
 @njit(cache=True, parallel=True)
-def _grouped(take, count, points, voxel_keys, voxel_start):
+def _grouped(take, points, voxel_keys, voxel_start):
     """The taken rows of an index (``VoxelIndex``: points [N', 3], voxels' keys [V] and start
-    [V + 1]) by ``take`` [N'] bool: (points [count, 3] float64, distinct keys [V'], start [V' + 1]
-    with voxel v's points at start[v]:start[v + 1]).
+    [V + 1]) by ``take`` [N'] bool: (points [M, 3] float64 for the M taken, distinct keys [V'],
+    start [V' + 1] with voxel v's points at start[v]:start[v + 1]).
 
     In parallel over chunks of the voxels, in two passes: each chunk counts its taken rows and
     the voxels holding some, then writes them at its offsets. (Sequential, with a key per
@@ -234,7 +235,7 @@ def _grouped(take, count, points, voxel_keys, voxel_start):
             voxels[c + 1] += here > 0
     taken = np.cumsum(taken)
     voxels = np.cumsum(voxels)
-    out = np.empty((count, 3))
+    out = np.empty((taken[chunks], 3))
     distinct = np.empty(voxels[chunks], np.int64)
     start = np.empty(voxels[chunks] + 1, np.int64)
     start[voxels[chunks]] = taken[chunks]

@@ -334,7 +334,7 @@ def test_a_selection_in_index_order_is_grouped_by_voxel(seed):
     voxel_keys, voxel_start = np.unique(keys, return_index=True)
     points = rng.normal(size=(n, 3)).astype(rng.choice([np.float32, np.float64]))
     take = rng.random(n) < rng.choice([0.0, 0.05, 0.5, 1.0])
-    out, distinct, start = _grouped(take, int(take.sum()), points, voxel_keys, np.append(voxel_start, n))
+    out, distinct, start = _grouped(take, points, voxel_keys, np.append(voxel_start, n))
     assert out.dtype == np.float64
     np.testing.assert_array_equal(out, points[take])
     expected_keys, first = np.unique(keys[take], return_index=True)
