@@ -457,13 +457,8 @@ def _core(points, start, begin, around, reach2, min_points, lowest, eps):
 def _whole_cells(points, start, begin, around, reach2, min_points, lowest, eps, v, cell, near_cell, box, core):
     """``_core``'s shortcut for voxel v's points (scratch arrays: cell [8] counts, near_cell [8]
     counts within eps of a whole cell, box [8, 6] boxes, low then high)."""
-    if start[v + 1] - start[v] < min_points:
-        return  # the shortcut counts this voxel's points only
-    block = 0
-    for i in range(begin[v], begin[v + 1]):
-        block += start[around[i] + 1] - start[around[i]]
-    if block < min_points:
-        return  # no point here can have min_points within eps
+    if start[v + 1] - start[v] < min_points or _block(start, begin, around, v) < min_points:
+        return  # the shortcut counts this voxel's points only; the block: no point can be core
     half = 0.5 * eps
     # the voxel's corner: its points share floor((p - lowest) / eps) (``_voxel_keys``)
     corner = np.floor((points[start[v]] - lowest) / eps) * eps + lowest
@@ -494,13 +489,19 @@ def _whole_cells(points, start, begin, around, reach2, min_points, lowest, eps, 
 
 
 @njit(cache=True)
-def _core_by_distances(points, start, begin, around, low, high, reach2, min_points, v, core):
-    """``_core``'s test by distances for voxel v's points that the shortcut left undecided."""
+def _block(start, begin, around, v) -> int:
+    """Points in voxel v and the occupied voxels touching it: all that can lie within eps."""
     block = 0
     for i in range(begin[v], begin[v + 1]):
         block += start[around[i] + 1] - start[around[i]]
-    if block < min_points:
-        return
+    return block
+
+
+@njit(cache=True)
+def _core_by_distances(points, start, begin, around, low, high, reach2, min_points, v, core):
+    """``_core``'s test by distances for voxel v's points that the shortcut left undecided."""
+    if _block(start, begin, around, v) < min_points:
+        return  # no point here can have min_points within eps
     for p in range(start[v], start[v + 1]):
         if core[p]:
             continue
@@ -517,8 +518,7 @@ def _core_by_distances(points, start, begin, around, low, high, reach2, min_poin
 def _farthest2(points, p, box, c) -> float:
     """Squared distance from point p to the farthest corner of box[c] ([6]: low, high), computed
     as ``_count_near`` computes a point's: rounding is monotonic, so no point of the box comes
-    out farther than this bound. (Indices, not row views: a view costs two atomic reference
-    counts, which were most of the core test's time.)"""
+    out farther than this bound."""
     x, y, z = points[p, 0], points[p, 1], points[p, 2]
     dx = max(x - box[c, 0], box[c, 3] - x)
     dy = max(y - box[c, 1], box[c, 4] - y)
