@@ -14,6 +14,7 @@ level); the bank is regions x D float16.
 
 from __future__ import annotations
 
+import errno
 import logging
 import mmap
 import os
@@ -138,7 +139,6 @@ class ObservationStore:
         index = len(segments)
         final = self.folder / "views" / f"{index:06d}"
         tmp = final.with_name(final.name + ".tmp")
-        tmp.mkdir()
         arrays: dict[str, np.ndarray] = {
             "gaussians": observations.gaussians.astype(np.int32),
             "strength": observations.strength.astype(np.float32),
@@ -147,16 +147,20 @@ class ObservationStore:
             "weights": observations.weights.astype(np.float32),
             "bank": bank.astype(np.float16),
         }
-        for key, value in arrays.items():
-            with open(tmp / f"{key}.npy", "wb") as f:
-                np.save(f, value)
-                f.flush()
-                os.fsync(f.fileno())
-        with open(tmp / "name.txt", "w") as text:
-            text.write(name)
-            text.flush()
-            os.fsync(text.fileno())
-        fsync_dir(tmp)  # the segment's file entries, before it becomes visible
+        try:
+            self._write_segment(tmp, name, arrays)
+        except OSError as exc:
+            # a full disk (or a file-size limit) mid-view: the half-written segment goes, so the
+            # next append can take this index once there is room, and the error says where
+            shutil.rmtree(tmp, ignore_errors=True)
+            free_mb = shutil.disk_usage(self.folder).free / 2**20
+            size = sum(a.nbytes for a in arrays.values())
+            raise OSError(
+                exc.errno,
+                f"view {name!r} ({size:,} bytes) could not be written: {exc.strerror or exc}; "
+                f"{free_mb:,.0f} MB free on its disk",
+                str(self.folder),
+            ) from exc
         missing = ({f"{key}.npy" for key in arrays} | {"name.txt"}) - {f.name for f in tmp.iterdir()}
         if missing:  # something else removed them: never publish a segment with holes
             raise OSError(f"{tmp}: {sorted(missing)} vanished while the segment was written")
@@ -164,6 +168,28 @@ class ObservationStore:
         fsync_dir(final.parent)  # the rename: once append returns, the view is on the disk
         self.touched[observations.gaussians] = True
         return index
+
+    @staticmethod
+    def _write_segment(tmp: Path, name: str, arrays: dict[str, np.ndarray]) -> None:
+        """A view's files into the new folder ``tmp``, each durable (fsync) before it is listed."""
+        tmp.mkdir()
+        for key, value in arrays.items():
+            with open(tmp / f"{key}.npy", "wb") as f:
+                np.save(f, value)
+                f.flush()
+                os.fsync(f.fileno())
+                # numpy copies a small array through a C stream whose last failed flush it does not
+                # report: a file cut short by a full disk would otherwise be published
+                if os.fstat(f.fileno()).st_size != f.tell():
+                    raise OSError(
+                        errno.EIO,
+                        f"{key}.npy cut short: {os.fstat(f.fileno()).st_size} of {f.tell()} bytes written",
+                    )
+        with open(tmp / "name.txt", "w") as text:
+            text.write(name)
+            text.flush()
+            os.fsync(text.fileno())
+        fsync_dir(tmp)  # the segment's file entries, before it becomes visible
 
     def usable(self, index: int, segments: list[Path]) -> bool:
         """Whether segment ``index`` is whole and consistent; one that is not (damaged on disk,

@@ -86,3 +86,49 @@ def test_views_snapshots_and_acknowledgements_are_durable(tmp_path, events):
     append_line(tmp_path / "acks" / "acknowledged.txt", "frame_0000.jpg")
     assert ("fsync", str((tmp_path / "acks" / "acknowledged.txt").resolve())) in events
     assert ("fsync", str((tmp_path / "acks").resolve())) in events  # a new file: its folder entry too
+
+
+_FULL_DISK = """
+import resource, signal, sys
+from pathlib import Path
+from olsplat_nodes.aggregate import ObservationStore
+from tests.aggregate.test_refine_store import _views
+
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit then fails with EFBIG
+folder = Path(sys.argv[1])
+store = ObservationStore(folder, 150, writer=True)
+(name, obs, bank), = _views(1, 150)
+soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+resource.setrlimit(resource.RLIMIT_FSIZE, (256, hard))  # no file may grow past 256 bytes: as a full disk
+try:
+    store.append(name, obs, bank)
+except OSError as exc:
+    print("ERROR", exc.filename, "|", exc.strerror)
+print("LEFT", sorted(p.name for p in (folder / "views").iterdir()))
+resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))  # room again: the same view goes in
+print("INDEX", store.append(name, obs, bank))
+print("LEFT", sorted(p.name for p in (folder / "views").iterdir()))
+"""
+
+
+def test_a_view_that_cannot_be_written_is_one_error_and_leaves_no_half_segment(tmp_path):
+    """A store write that fails part-way (the operating system refuses to grow a file, as on a
+    full disk) raises one OSError naming the store and the view, removes the half-written
+    segment, and the next append, once there is room, takes the same index."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run(
+        [sys.executable, "-c", _FULL_DISK, str(tmp_path / "store")],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    error = next(line for line in lines if line.startswith("ERROR"))
+    assert str(tmp_path / "store") in error and "could not be written" in error and "MB free on its disk" in error
+    assert lines[lines.index(error) + 1] == "LEFT []"
+    assert lines[-2:] == ["INDEX 0", "LEFT ['000000']"]
