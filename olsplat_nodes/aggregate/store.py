@@ -85,6 +85,30 @@ def _map_npy(path: Path, header: tuple[np.dtype, tuple[int, ...], int]) -> np.nd
     return np.frombuffer(buffer, dtype, count, offset).reshape(shape)
 
 
+def _segment_arrays(observations: ViewObservations, bank: np.ndarray) -> dict[str, np.ndarray]:
+    """A view's arrays as its store segment holds them (file name stem -> array)."""
+    return {
+        "gaussians": observations.gaussians.astype(np.int32),
+        "strength": observations.strength.astype(np.float32),
+        "offsets": observations.offsets.astype(np.int64),
+        "slots": observations.slots.astype(np.int32),
+        "weights": observations.weights.astype(np.float32),
+        "bank": bank.astype(np.float16),
+    }
+
+
+def segment_bytes(observations: ViewObservations, bank: np.ndarray) -> int:
+    """The bytes of a view's store segment (its arrays; each file adds a 128-byte header)."""
+    return (
+        4 * len(observations.gaussians)
+        + 4 * len(observations.strength)
+        + 8 * len(observations.offsets)
+        + 4 * len(observations.slots)
+        + 4 * len(observations.weights)
+        + 2 * int(np.prod(bank.shape))
+    )
+
+
 class ObservationStore:
     """A store folder opened by its one writer (``writer=True``: the accumulator, an offline
     run) or by any number of readers (the refiner, tools, tests). Only the writer removes the
@@ -139,14 +163,7 @@ class ObservationStore:
         index = len(segments)
         final = self.folder / "views" / f"{index:06d}"
         tmp = final.with_name(final.name + ".tmp")
-        arrays: dict[str, np.ndarray] = {
-            "gaussians": observations.gaussians.astype(np.int32),
-            "strength": observations.strength.astype(np.float32),
-            "offsets": observations.offsets.astype(np.int64),
-            "slots": observations.slots.astype(np.int32),
-            "weights": observations.weights.astype(np.float32),
-            "bank": bank.astype(np.float16),
-        }
+        arrays = _segment_arrays(observations, bank)
         try:
             self._write_segment(tmp, name, arrays)
         except OSError as exc:
@@ -154,7 +171,7 @@ class ObservationStore:
             # next append can take this index once there is room, and the error says where
             shutil.rmtree(tmp, ignore_errors=True)
             free_mb = shutil.disk_usage(self.folder).free / 2**20
-            size = sum(a.nbytes for a in arrays.values())
+            size = segment_bytes(observations, bank)
             raise OSError(
                 exc.errno,
                 f"view {name!r} ({size:,} bytes) could not be written: {exc.strerror or exc}; "

@@ -5,6 +5,8 @@ cameras, the frames and one region/feature cache."""
 
 from __future__ import annotations
 
+import logging
+import shutil
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -12,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..aggregate import LanguageMap
+from ..aggregate.store import segment_bytes
 from ..aggregate.tiles import TiledStore, TileGrid, Tiling
 from ..errors import OlsplatInputError
 from ..method import Method
@@ -21,6 +24,12 @@ from ..structure.branch import StructuralBranch, StructureConfig
 from ..structure.points import StructuralPoints
 from .peak_memory import peak_rss_mb
 from .scene_folder import Scene, view_features
+
+log = logging.getLogger(__name__)
+
+# Views after which a run's disk need is estimated again (bytes per view so far x views left):
+# the first estimate early, then as far views (which see more Gaussians) come in.
+DISK_CHECKS = (5, 25, 50, 100, 150, 200, 300, 400)
 
 # (scene folder, map file state, what shapes the points) -> (points, features): the 3D branch's
 # point features are costly and the same for every run over one map.
@@ -59,6 +68,21 @@ def aggregate_scene(
     ``tile_m`` > 0 the store is kept per ground tile of that size (``aggregate/tiles.py``):
     the same map."""
     return aggregate_flights([scene], method, encoder, out, progress, codebook, features_of, structure, tile_m)
+
+
+def disk_warning(out: Path, written: int, done: int, total: int, free: int, margin: float = 1.2) -> str | None:
+    """What to tell the user when a run will not fit on its disk at its rate so far (``written``
+    bytes of store for ``done`` of ``total`` views, ``free`` bytes left, ``margin`` for views that
+    see more than the first ones); None when it fits. A warning, not an error: the rate is an
+    estimate, and space can be made while the run goes on."""
+    need = written / max(done, 1) * (total - done) * margin
+    if need <= free:
+        return None
+    return (
+        f"{out}: the store will need ~{need / 2**30:.1f} GB more for the {total - done} views left "
+        f"({written / max(done, 1) / 2**20:.1f} MB per view so far), and its disk has {free / 2**30:.1f} GB "
+        "free: the run will stop with a full disk unless space is made"
+    )
 
 
 def flight_view_name(flight: int, flights: int, camera: Camera) -> str:
@@ -100,6 +124,7 @@ def aggregate_flights(
     if len(store):
         raise OlsplatInputError(f"{out / 'store'} already holds {len(store)} views: choose a new --out")
     start = time.perf_counter()
+    total, done, written = sum(len(scene.cameras) for scene in scenes), 0, 0
     for flight, scene in enumerate(scenes):
         branch = _structural_branch(scene, gaussians, structure) if structure else None
         cameras = progress(scene.cameras) if progress else scene.cameras
@@ -107,6 +132,11 @@ def aggregate_flights(
             label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
             observations, stacked, _stages = view_observations(gaussians, camera, label_maps, bank, method, branch)
             store.append(flight_view_name(flight, len(scenes), camera), observations, stacked)
+            done, written = done + 1, written + segment_bytes(observations, stacked)
+            if done in DISK_CHECKS and done < total:
+                warning = disk_warning(out, written, done, total, shutil.disk_usage(out).free)
+                if warning:
+                    log.warning(warning)
     # unit float16 rows range by range, as the live refiner keeps them (bit-identical to unit_rows
     # of the float32 result, without its [N, D] float32 array and copy: 2.7 GB for the large map)
     features, observed = store.refine(method.aggregation, encoder.name)

@@ -132,3 +132,27 @@ def test_a_view_that_cannot_be_written_is_one_error_and_leaves_no_half_segment(t
     assert str(tmp_path / "store") in error and "could not be written" in error and "MB free on its disk" in error
     assert lines[lines.index(error) + 1] == "LEFT []"
     assert lines[-2:] == ["INDEX 0", "LEFT ['000000']"]
+
+
+def test_a_views_segment_bytes_are_its_arrays(tmp_path):
+    """``segment_bytes`` (what a run's disk estimate counts) is the bytes of the arrays the
+    store writes for the view."""
+    from olsplat_nodes.aggregate.store import segment_bytes
+
+    store = ObservationStore(tmp_path / "store", 150, writer=True)
+    for name, obs, bank in _views(2, 150):
+        index = store.append(name, obs, bank)
+        segment = tmp_path / "store" / "views" / f"{index:06d}"
+        assert segment_bytes(obs, bank) == sum(np.load(f).nbytes for f in segment.glob("*.npy"))
+
+
+def test_a_run_that_will_not_fit_on_its_disk_is_told_early():
+    """The warning an offline run logs at its checkpoints: none while the views left fit, with
+    a margin of 20 %; otherwise one line with the folder, the need, the rate and the space."""
+    from olsplat_nodes.pipeline.offline import disk_warning
+
+    mb = 2**20
+    assert disk_warning(Path("run"), written=5 * 10 * mb, done=5, total=105, free=1200 * mb) is None
+    warning = disk_warning(Path("run"), written=5 * 10 * mb, done=5, total=105, free=1199 * mb)
+    assert warning is not None and warning.startswith("run: the store will need ~1.2 GB more for the 100 views left")
+    assert "(10.0 MB per view so far)" in warning and "1.2 GB free" in warning
