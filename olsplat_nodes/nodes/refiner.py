@@ -100,7 +100,15 @@ class RefinerNode(Node):
         self.last_pass = time.monotonic()
         self.wait_s = p.period_s
         self.last_announce = 0.0
-        self.final = False
+        # a run that had already ended (restarted after its final map, e.g. from a copy of its
+        # folder): the final map stands and is announced as it is. A pass here would publish the
+        # same views again as not final, after the ingest (which heard the final map and ended)
+        # has sent its last EndOfStream: the graph would wait for a final map forever.
+        self.final = bool(previous and previous.get("final") and previous.get("views") == len(self.store))
+        if self.final:
+            log.info(
+                "the run had ended: map version %d is final (%d views); announcing it", self.version, len(self.store)
+            )
         self.exit_at: float | None = None
 
     def spin(self) -> int | None:
@@ -113,7 +121,7 @@ class RefinerNode(Node):
             end_now |= isinstance(message, EndOfStream) and not self.final  # repeats are ignored
         self.final |= end_now
         due = time.monotonic() - self.last_pass > self.wait_s
-        if end_now or (due and len(self.store) > self.live.views):
+        if end_now or (due and len(self.store) > self.live.views and not self.final):
             start = time.perf_counter()
             self._refine(self.final)
             from ..pipeline.peak_memory import release_free_memory  # here: the launcher imports node classes

@@ -127,6 +127,28 @@ def test_a_run_folder_copied_mid_write_is_consistent_and_a_restart_from_it_finis
     print("\ncopies (stored views, photos, map version, acknowledged):", json.dumps(seen))
 
 
+@pytest.mark.timeout(600)
+def test_a_finished_run_launched_again_ends_with_its_final_map_unchanged(tiny, tmp_path):
+    """The graph launched on a run folder whose flight had ended (every frame acknowledged, the
+    final map written; a copy taken just after the end is one): it ends by itself, promptly,
+    and the final map stays the one it was. (The refiner used to make one more pass that
+    published the same views as not final, after the ingest had heard the final map and
+    ended: the launch then waited for a final map forever.)"""
+    scene, summary = tiny
+    run_dir = tmp_path / "run"
+    assert Supervisor(launch_tiny(scene, run_dir, free_port(), "launch.compose=true")).run() == 0
+    final = latest_map(run_dir / "map")
+    assert final["final"] and final["views"] == summary["views"]
+    again = Background(Supervisor(launch_tiny(scene, run_dir, free_port(), "launch.compose=true")))
+    try:
+        wait_for(lambda: again.code is not None, 60, "the launch on the finished run to end")
+    finally:
+        again.supervisor.request_stop()
+        again.thread.join(30)
+    assert again.code == 0
+    assert latest_map(run_dir / "map") == final  # the same version, file and record
+
+
 @pytest.mark.timeout(900)
 def test_the_refiner_killed_while_it_writes_a_snapshot_leaves_a_readable_map(
     tiny,
