@@ -282,8 +282,12 @@ def test_a_level_of_detail_heatmap_is_the_merged_render_and_relevance_stays_exac
     exact_node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views")
     with NodeThread(exact_node), QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=60.0) as client:
         exact = client.request(request)
-    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views", heatmap_lod_px=40.0)
-    with NodeThread(node) as running, QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=120.0) as client:
+    # its own socket folder: the first node's socket file is unlinked by zmq's I/O thread after
+    # its close returns, and could take a second node's file of the same path with it
+    lod_dir = sockdir / "lod"
+    lod_dir.mkdir()
+    node = query_server(scene, lod_dir, tmp_path / "map", tmp_path / "views", heatmap_lod_px=40.0)
+    with NodeThread(node) as running, QueryClient(ctx, f"ipc://{lod_dir}/query.sock", timeout_s=120.0) as client:
         merged = client.request(request)
         running.assert_running()
     assert exact.status == merged.status == "ok", merged.message
