@@ -85,28 +85,33 @@ def _map_npy(path: Path, header: tuple[np.dtype, tuple[int, ...], int]) -> np.nd
     return np.frombuffer(buffer, dtype, count, offset).reshape(shape)
 
 
-def _segment_arrays(observations: ViewObservations, bank: np.ndarray) -> dict[str, np.ndarray]:
-    """A view's arrays as its store segment holds them (file name stem -> array)."""
+# A segment's files (name stem -> the type it is stored in): one table for what the store
+# writes and what a run's disk estimate counts.
+SEGMENT_TYPES = {
+    "gaussians": np.int32,
+    "strength": np.float32,
+    "offsets": np.int64,
+    "slots": np.int32,
+    "weights": np.float32,
+    "bank": np.float16,
+}
+
+
+def _segment_sources(observations: ViewObservations, bank: np.ndarray) -> dict[str, np.ndarray]:
     return {
-        "gaussians": observations.gaussians.astype(np.int32),
-        "strength": observations.strength.astype(np.float32),
-        "offsets": observations.offsets.astype(np.int64),
-        "slots": observations.slots.astype(np.int32),
-        "weights": observations.weights.astype(np.float32),
-        "bank": bank.astype(np.float16),
+        "gaussians": observations.gaussians,
+        "strength": observations.strength,
+        "offsets": observations.offsets,
+        "slots": observations.slots,
+        "weights": observations.weights,
+        "bank": bank,
     }
 
 
 def segment_bytes(observations: ViewObservations, bank: np.ndarray) -> int:
     """The bytes of a view's store segment (its arrays; each file adds a 128-byte header)."""
-    return (
-        4 * len(observations.gaussians)
-        + 4 * len(observations.strength)
-        + 8 * len(observations.offsets)
-        + 4 * len(observations.slots)
-        + 4 * len(observations.weights)
-        + 2 * int(np.prod(bank.shape))
-    )
+    sources = _segment_sources(observations, bank)
+    return sum(sources[key].size * np.dtype(kind).itemsize for key, kind in SEGMENT_TYPES.items())
 
 
 class ObservationStore:
@@ -163,7 +168,8 @@ class ObservationStore:
         index = len(segments)
         final = self.folder / "views" / f"{index:06d}"
         tmp = final.with_name(final.name + ".tmp")
-        arrays = _segment_arrays(observations, bank)
+        sources = _segment_sources(observations, bank)
+        arrays = {key: sources[key].astype(kind) for key, kind in SEGMENT_TYPES.items()}
         try:
             self._write_segment(tmp, name, arrays)
         except OSError as exc:
@@ -171,7 +177,7 @@ class ObservationStore:
             # next append can take this index once there is room, and the error says where
             shutil.rmtree(tmp, ignore_errors=True)
             free_mb = shutil.disk_usage(self.folder).free / 2**20
-            size = segment_bytes(observations, bank)
+            size = sum(a.nbytes for a in arrays.values())
             raise OSError(
                 exc.errno,
                 f"view {name!r} ({size:,} bytes) could not be written: {exc.strerror or exc}; "
@@ -197,11 +203,9 @@ class ObservationStore:
                 os.fsync(f.fileno())
                 # numpy copies a small array through a C stream whose last failed flush it does not
                 # report: a file cut short by a full disk would otherwise be published
-                if os.fstat(f.fileno()).st_size != f.tell():
-                    raise OSError(
-                        errno.EIO,
-                        f"{key}.npy cut short: {os.fstat(f.fileno()).st_size} of {f.tell()} bytes written",
-                    )
+                written = os.fstat(f.fileno()).st_size
+                if written != f.tell():
+                    raise OSError(errno.EIO, f"{key}.npy cut short: {written} of {f.tell()} bytes written")
         with open(tmp / "name.txt", "w") as text:
             text.write(name)
             text.flush()
