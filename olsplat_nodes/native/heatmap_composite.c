@@ -7,10 +7,14 @@
  * * T), alpha = 1 - T, depth = sum(w z) / alpha, per query the cosine of the pixel's rendered
  * feature F = sum(w f) with the query, and (when unit_out is given) F / |F|.
  *
- * Two differences in how, none in what:
- * - the row of a Gaussian's box is one branch-free loop (the compiler vectorizes it), with
- *   exp(-s) as (Taylor_9(-s/8))^8 on 0 <= s <= 5.6 (relative error < 1e-6; every sigma that can
- *   pass the alpha test is below 5.6 = ln(255) + margin);
+ * Three differences in how, none in what:
+ * - a Gaussian's box is taken 8 pixels at a time in two steps (tile_pass.h): all its alphas,
+ *   with exp(-s) as (Taylor_9(-s/8))^8 on 0 <= s <= 5.6 (relative error < 1e-6; every sigma that
+ *   can pass the alpha test is below 5.6 = ln(255) + margin), then the blending row by row. The
+ *   alphas do not depend on transmittance, so their long chains of dependent instructions
+ *   overlap in the CPU (one row after another, they had waited on each other);
+ * - a tile keeps a bit per pixel that has not stopped, and a Gaussian skips the rows of its box
+ *   where every pixel has (32 % of the rows of a near view of the large map, 54 % of a far one);
  * - the feature channels are summed per pixel, not per Gaussian: a chunk of CHUNK Gaussians
  *   lists each pixel's (weight, Gaussian) pairs, then each pixel adds its list with 64 channels
  *   in eight AVX2 registers at a time, so the accumulators are read and written once per chunk
@@ -184,6 +188,7 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
         /* 8 floats past the tile: a row's last 8-pixel group may reach past it (masked) */
         float trans[MAX_TILE * MAX_TILE + 8], acc_r[MAX_TILE * MAX_TILE + 8], acc_g[MAX_TILE * MAX_TILE + 8];
         float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8], weights[MAX_TILE + 8];
+        float alphas[MAX_TILE * (MAX_TILE + 8)]; /* a Gaussian's box, rows of 8-pixel groups (box_alphas) */
         float chunk[CHUNK][RECORD];
         float *acc = calloc((size_t)(n_pix * dim), sizeof(float));
         float *zero_row = calloc((size_t)dim + 1, sizeof(float)); /* the row of -1; + 1: never calloc(0) */
@@ -201,6 +206,9 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
             acc_r[p] = acc_g[p] = acc_b[p] = acc_z[p] = 0.0f;
         }
         int64_t n_live = (x_end - x_start) * (y_end - y_start);
+        uint64_t live_rows[MAX_TILE]; /* bit lx of row ly: pixel (lx, ly) has not stopped */
+        for (int64_t ly = 0; ly < y_end - y_start; ly++)
+            live_rows[ly] = span_bits(0, x_end - x_start);
         const int64_t first = offsets[tile], length = offsets[tile + 1] - first;
         int64_t evals = 0, tile_pairs = n_live * length;
         for (int64_t j = 0; j < length && n_live > 0; j++) {
@@ -221,30 +229,35 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
                 }
             }
             const float *rec = chunk[j % CHUNK];
-            const float my = rec[MY];
             const float cut = rec[CUT] + 1e-3f; /* margin: the exact alpha test decides */
             int64_t box[4];
             pixel_box(rec, x_start, x_end, y_start, y_end, box);
             const int64_t px0 = box[0], px1 = box[1], py0 = box[2], py1 = box[3];
-            int contributed = 0;
+            if (px0 >= px1 || py0 >= py1)
+                continue;
+            const uint64_t span = span_bits(px0, px1);
+            const int64_t groups = box_groups(px0, px1);
+            uint64_t contributed = 0;
+            box_alphas(rec, px0, px1, py0, py1, live_rows, span, (float)x_start + 0.5f, (float)y_start + 0.5f, cut,
+                       alpha_min, alpha_max, alphas);
             for (int64_t ly = py0; ly < py1; ly++) {
-                const float dy = my - ((float)(y_start + ly) + 0.5f);
+                if (!(live_rows[ly] & span)) /* every pixel of the box's row has stopped */
+                    continue;
                 const int64_t row = ly * tile_size;
-                float counts[2] = {0.0f, 0.0f};
-                row_pass(trans + row, acc_r + row, acc_g + row, acc_b + row, acc_z + row, weights, (int32_t)px0,
-                         (int32_t)px1, (float)x_start + 0.5f, rec, dy, cut, alpha_min, alpha_max, t_min, counts);
-                const int64_t stopped = (int64_t)counts[1];
-                evals += (int64_t)counts[0];
+                uint64_t added;
+                const uint64_t stops = row_blend(trans + row, acc_r + row, acc_g + row, acc_b + row, acc_z + row,
+                                                 weights, alphas + (ly - py0) * groups * 8, px0 & ~7, groups, rec,
+                                                 t_min, &added, &evals);
+                const int64_t stopped = __builtin_popcountll(stops);
+                live_rows[ly] &= ~stops;
                 n_live -= stopped;
                 tile_pairs -= stopped * (length - j - 1);
-                for (int64_t lx = px0; lx < px1; lx++) {
-                    if (weights[lx] > 0.0f) {
-                        const int64_t p = row + lx;
-                        list_w[p * CHUNK + listed[p]] = weights[lx];
-                        list_c[p * CHUNK + listed[p]] = (uint8_t)(j % CHUNK);
-                        listed[p]++;
-                        contributed = 1;
-                    }
+                contributed |= added;
+                for (; added; added &= added - 1) { /* the pixels it added to, in x order */
+                    const int64_t lx = __builtin_ctzll(added), p = row + lx;
+                    list_w[p * CHUNK + listed[p]] = weights[lx];
+                    list_c[p * CHUNK + listed[p]] = (uint8_t)(j % CHUNK);
+                    listed[p]++;
                 }
             }
             /* its feature row is read at the chunk's end: ask for it now (half of a tile's

@@ -1,6 +1,6 @@
 /* What the C compositing kernels share (heatmap_composite.c, topk_composite.c): the record
  * layout of ``raster/project.py``, a Gaussian's pixel box in a tile, and the vectorized pass of
- * one Gaussian over one row of its box (weights and transmittance, the ``composite_tiles`` rule). */
+ * one Gaussian over its box (weights and transmittance, the ``composite_tiles`` rule). */
 #ifndef OLSPLAT_NATIVE_TILE_PASS_H
 #define OLSPLAT_NATIVE_TILE_PASS_H
 
@@ -33,56 +33,108 @@ static inline float exp_neg(float s)
     return e * e;
 }
 
-/* One row of a Gaussian's box, pixels [px0, px1) of a tile row whose arrays start at the given
- * pointers. A stopped pixel keeps its transmittance negated (live: trans > 0). Writes each
- * pixel's weight (0: no contribution) to weights; counts[0] += live pixels, counts[1] += stops.
- * With AVX2 the row is taken 8 pixels at a time from px0 rounded down to a multiple of 8, lanes
- * outside [px0, px1) masked off (their values are written back unchanged): most boxes are a few
- * pixels wide, too short for a compiler's vector loop. The arrays hold 8 floats past a tile. */
-static inline void row_pass(float *restrict trans, float *restrict acc_r, float *restrict acc_g, float *restrict acc_b,
-                     float *restrict acc_z, float *restrict weights, int32_t px0, int32_t px1, float x_centre0,
-                     const float *rec, float dy, float cut, float alpha_min, float alpha_max, float t_min,
-                     float *counts)
+/* The 8-pixel groups a box row [px0, px1) spans: from px0 rounded down to a multiple of 8. */
+static inline int64_t box_groups(int64_t px0, int64_t px1) { return ((px1 - 1) >> 3) - (px0 >> 3) + 1; }
+
+/* A Gaussian's pass over its pixel box comes in two steps, so that its rows' long dependency
+ * chains (sigma, the exp polynomial) overlap in the CPU instead of running one after the other:
+ * box_alphas computes every alpha of the box first (it does not depend on transmittance), then
+ * row_blend takes each row front to back as the ``composite_tiles`` rule says.
+ *
+ * box_alphas: for the rows ly in [py0, py1) that still have a live pixel in [px0, px1)
+ * (live_rows[ly] & span), alphas[((ly - py0) * groups + g) * 8 + lane] is the alpha of pixel
+ * x = (px0 & ~7) + 8 g + lane of the tile row: 0 where the Gaussian cannot add (sigma outside [0,
+ * cut] or alpha < alpha_min), -1 outside [px0, px1). Rows without live pixels are not written.
+ * x_centre0 / y_centre0: the tile's first pixel centre (x_start + 0.5, y_start + 0.5). */
+static inline void box_alphas(const float *rec, int64_t px0, int64_t px1, int64_t py0, int64_t py1,
+                              const uint64_t *live_rows, uint64_t span, float x_centre0, float y_centre0, float cut,
+                              float alpha_min, float alpha_max, float *restrict alphas)
 {
-    const float mx = rec[MX], ca = rec[CA], cb = rec[CB], cc = rec[CC], opacity = rec[OPACITY];
-    const float red = rec[RED], green = rec[GREEN], blue = rec[BLUE], depth = rec[DEPTH];
+    const float mx = rec[MX], my = rec[MY], ca = rec[CA], cb = rec[CB], cc = rec[CC], opacity = rec[OPACITY];
+    const int64_t groups = box_groups(px0, px1), x_first = px0 & ~7;
 #ifdef __AVX2__
     const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f), half = _mm256_set1_ps(0.5f);
     const __m256 lane = _mm256_setr_ps(0.0f, 1.0f, 2.0f, 3.0f, 4.0f, 5.0f, 6.0f, 7.0f);
     const __m256 v_mx = _mm256_set1_ps(mx), v_ca = _mm256_set1_ps(ca), v_cb = _mm256_set1_ps(cb);
-    const __m256 v_ccdy2 = _mm256_set1_ps(cc * dy * dy), v_dy = _mm256_set1_ps(dy), v_cut = _mm256_set1_ps(cut);
-    const __m256 v_opacity = _mm256_set1_ps(opacity), v_amax = _mm256_set1_ps(alpha_max);
-    const __m256 v_amin = _mm256_set1_ps(alpha_min), v_tmin = _mm256_set1_ps(t_min), v_clamp = _mm256_set1_ps(5.6f);
+    const __m256 v_cut = _mm256_set1_ps(cut), v_opacity = _mm256_set1_ps(opacity);
+    const __m256 v_amax = _mm256_set1_ps(alpha_max), v_amin = _mm256_set1_ps(alpha_min);
+    const __m256 v_clamp = _mm256_set1_ps(5.6f), outside_alpha = _mm256_set1_ps(-1.0f);
     const __m256 lo = _mm256_set1_ps((float)px0), hi = _mm256_set1_ps((float)px1);
-    int live_n = 0, stop_n = 0;
-    for (int32_t x0 = px0 & ~7; x0 < px1; x0 += 8) {
-        const __m256 xs = _mm256_add_ps(_mm256_set1_ps((float)x0), lane);
-        const __m256 inside = _mm256_and_ps(_mm256_cmp_ps(xs, lo, _CMP_GE_OQ), _mm256_cmp_ps(xs, hi, _CMP_LT_OQ));
-        const __m256 t = _mm256_loadu_ps(trans + x0);
-        const __m256 live = _mm256_and_ps(inside, _mm256_cmp_ps(t, zero, _CMP_GT_OQ));
-        const __m256 dx = _mm256_sub_ps(v_mx, _mm256_add_ps(xs, _mm256_set1_ps(x_centre0)));
-        /* sigma = 0.5 (ca dx^2 + cc dy^2) + cb dx dy */
-        const __m256 sigma = _mm256_fmadd_ps(
-            half, _mm256_fmadd_ps(_mm256_mul_ps(v_ca, dx), dx, v_ccdy2), _mm256_mul_ps(_mm256_mul_ps(v_cb, dx), v_dy));
-        /* exp(-s) as in exp_neg */
-        const __m256 x = _mm256_mul_ps(_mm256_min_ps(_mm256_max_ps(sigma, zero), v_clamp), _mm256_set1_ps(-0.125f));
-        __m256 e = _mm256_set1_ps(1.0f / 362880.0f);
-        e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 40320.0f));
-        e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 5040.0f));
-        e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 720.0f));
-        e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 120.0f));
-        e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 24.0f));
-        e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 6.0f));
-        e = _mm256_fmadd_ps(e, x, half);
-        e = _mm256_fmadd_ps(e, x, one);
-        e = _mm256_fmadd_ps(e, x, one);
-        e = _mm256_mul_ps(e, e);
-        e = _mm256_mul_ps(e, e);
-        e = _mm256_mul_ps(e, e);
-        const __m256 alpha = _mm256_min_ps(_mm256_mul_ps(v_opacity, e), v_amax);
-        __m256 hit = _mm256_and_ps(live, _mm256_cmp_ps(sigma, zero, _CMP_GE_OQ));
-        hit = _mm256_and_ps(hit, _mm256_cmp_ps(sigma, v_cut, _CMP_LE_OQ));
-        hit = _mm256_and_ps(hit, _mm256_cmp_ps(alpha, v_amin, _CMP_GE_OQ));
+    for (int64_t ly = py0; ly < py1; ly++) {
+        if (!(live_rows[ly] & span)) /* every pixel of the box's row has stopped */
+            continue;
+        const float dy = my - ((float)ly + y_centre0);
+        const __m256 v_ccdy2 = _mm256_set1_ps(cc * dy * dy), v_dy = _mm256_set1_ps(dy);
+        float *out = alphas + (ly - py0) * groups * 8;
+        for (int64_t g = 0; g < groups; g++) {
+            const __m256 xs = _mm256_add_ps(_mm256_set1_ps((float)(x_first + 8 * g)), lane);
+            const __m256 inside = _mm256_and_ps(_mm256_cmp_ps(xs, lo, _CMP_GE_OQ), _mm256_cmp_ps(xs, hi, _CMP_LT_OQ));
+            const __m256 dx = _mm256_sub_ps(v_mx, _mm256_add_ps(xs, _mm256_set1_ps(x_centre0)));
+            /* sigma = 0.5 (ca dx^2 + cc dy^2) + cb dx dy */
+            const __m256 sigma = _mm256_fmadd_ps(half, _mm256_fmadd_ps(_mm256_mul_ps(v_ca, dx), dx, v_ccdy2),
+                                                 _mm256_mul_ps(_mm256_mul_ps(v_cb, dx), v_dy));
+            /* exp(-s) as in exp_neg */
+            const __m256 x = _mm256_mul_ps(_mm256_min_ps(_mm256_max_ps(sigma, zero), v_clamp), _mm256_set1_ps(-0.125f));
+            __m256 e = _mm256_set1_ps(1.0f / 362880.0f);
+            e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 40320.0f));
+            e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 5040.0f));
+            e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 720.0f));
+            e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 120.0f));
+            e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 24.0f));
+            e = _mm256_fmadd_ps(e, x, _mm256_set1_ps(1.0f / 6.0f));
+            e = _mm256_fmadd_ps(e, x, half);
+            e = _mm256_fmadd_ps(e, x, one);
+            e = _mm256_fmadd_ps(e, x, one);
+            e = _mm256_mul_ps(e, e);
+            e = _mm256_mul_ps(e, e);
+            e = _mm256_mul_ps(e, e);
+            const __m256 alpha = _mm256_min_ps(_mm256_mul_ps(v_opacity, e), v_amax);
+            __m256 hit = _mm256_and_ps(_mm256_cmp_ps(sigma, zero, _CMP_GE_OQ), _mm256_cmp_ps(sigma, v_cut, _CMP_LE_OQ));
+            hit = _mm256_and_ps(hit, _mm256_cmp_ps(alpha, v_amin, _CMP_GE_OQ));
+            _mm256_storeu_ps(out + 8 * g, _mm256_blendv_ps(outside_alpha, _mm256_and_ps(hit, alpha), inside));
+        }
+    }
+#else
+    for (int64_t ly = py0; ly < py1; ly++) {
+        if (!(live_rows[ly] & span))
+            continue;
+        const float dy = my - ((float)ly + y_centre0);
+        float *out = alphas + (ly - py0) * groups * 8;
+        for (int64_t i = 0; i < groups * 8; i++) {
+            const int64_t lx = x_first + i;
+            const float dx = mx - ((float)lx + x_centre0);
+            const float sigma = 0.5f * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+            const float alpha = fminf(opacity * exp_neg(fminf(fmaxf(sigma, 0.0f), 5.6f)), alpha_max);
+            const int hit = sigma >= 0.0f && sigma <= cut && alpha >= alpha_min;
+            out[i] = lx < px0 || lx >= px1 ? -1.0f : hit ? alpha : 0.0f;
+        }
+    }
+#endif
+}
+
+/* One row of a Gaussian's box after box_alphas (its row's alphas; groups of 8 pixels from
+ * x_first = px0 & ~7), on a tile row whose arrays start at the given pointers. A stopped pixel
+ * keeps its transmittance negated (live: trans > 0); a live pixel with alpha > 0 stops when its
+ * transmittance would fall to <= t_min, else adds w = alpha T and takes T (1 - alpha). Writes
+ * each pixel's weight (0: no contribution) to weights (index: x in the tile row); returns the
+ * bits (1 << x) of the pixels it stopped, sets *added to the bits of those it added to and adds
+ * its live pixels inside the box to *live. The arrays hold 8 floats past a tile. */
+static inline uint64_t row_blend(float *restrict trans, float *restrict acc_r, float *restrict acc_g,
+                                 float *restrict acc_b, float *restrict acc_z, float *restrict weights,
+                                 const float *alphas, int64_t x_first, int64_t groups, const float *rec, float t_min,
+                                 uint64_t *added, int64_t *live)
+{
+    int64_t live_n = 0;
+    uint64_t stops = 0, adds = 0;
+#ifdef __AVX2__
+    const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f), v_tmin = _mm256_set1_ps(t_min);
+    const __m256 red = _mm256_set1_ps(rec[RED]), green = _mm256_set1_ps(rec[GREEN]);
+    const __m256 blue = _mm256_set1_ps(rec[BLUE]), depth = _mm256_set1_ps(rec[DEPTH]);
+    for (int64_t g = 0; g < groups; g++) {
+        const int64_t x0 = x_first + 8 * g;
+        const __m256 alpha = _mm256_loadu_ps(alphas + 8 * g), t = _mm256_loadu_ps(trans + x0);
+        const __m256 live = _mm256_and_ps(_mm256_cmp_ps(alpha, zero, _CMP_GE_OQ), _mm256_cmp_ps(t, zero, _CMP_GT_OQ));
+        const __m256 hit = _mm256_and_ps(live, _mm256_cmp_ps(alpha, zero, _CMP_GT_OQ));
         const __m256 next_t = _mm256_mul_ps(t, _mm256_sub_ps(one, alpha));
         const __m256 stop = _mm256_and_ps(hit, _mm256_cmp_ps(next_t, v_tmin, _CMP_LE_OQ));
         const __m256 add = _mm256_andnot_ps(stop, hit);
@@ -92,41 +144,44 @@ static inline void row_pass(float *restrict trans, float *restrict acc_r, float 
         __m256 t_out = _mm256_blendv_ps(t, next_t, add);
         t_out = _mm256_blendv_ps(t_out, _mm256_sub_ps(zero, t), stop);
         _mm256_storeu_ps(trans + x0, t_out);
-        _mm256_storeu_ps(acc_r + x0, _mm256_fmadd_ps(w, _mm256_set1_ps(red), _mm256_loadu_ps(acc_r + x0)));
-        _mm256_storeu_ps(acc_g + x0, _mm256_fmadd_ps(w, _mm256_set1_ps(green), _mm256_loadu_ps(acc_g + x0)));
-        _mm256_storeu_ps(acc_b + x0, _mm256_fmadd_ps(w, _mm256_set1_ps(blue), _mm256_loadu_ps(acc_b + x0)));
-        _mm256_storeu_ps(acc_z + x0, _mm256_fmadd_ps(w, _mm256_set1_ps(depth), _mm256_loadu_ps(acc_z + x0)));
+        _mm256_storeu_ps(acc_r + x0, _mm256_fmadd_ps(w, red, _mm256_loadu_ps(acc_r + x0)));
+        _mm256_storeu_ps(acc_g + x0, _mm256_fmadd_ps(w, green, _mm256_loadu_ps(acc_g + x0)));
+        _mm256_storeu_ps(acc_b + x0, _mm256_fmadd_ps(w, blue, _mm256_loadu_ps(acc_b + x0)));
+        _mm256_storeu_ps(acc_z + x0, _mm256_fmadd_ps(w, depth, _mm256_loadu_ps(acc_z + x0)));
         live_n += __builtin_popcount(_mm256_movemask_ps(live));
-        stop_n += __builtin_popcount(_mm256_movemask_ps(stop));
+        stops |= (uint64_t)(uint32_t)_mm256_movemask_ps(stop) << x0;
+        adds |= (uint64_t)(uint32_t)_mm256_movemask_ps(_mm256_cmp_ps(w, zero, _CMP_GT_OQ)) << x0;
     }
-    counts[0] += (float)live_n;
-    counts[1] += (float)stop_n;
 #else
-    float live_n = 0.0f, stop_n = 0.0f;
-    for (int32_t lx = px0; lx < px1; lx++) {
-        float t = trans[lx];
-        float live = t > 0.0f ? 1.0f : 0.0f;
-        float dx = mx - ((float)lx + x_centre0);
-        float sigma = 0.5f * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
-        float alpha = fminf(opacity * exp_neg(fminf(fmaxf(sigma, 0.0f), 5.6f)), alpha_max);
-        float hit = live * (sigma >= 0.0f ? 1.0f : 0.0f) * (sigma <= cut ? 1.0f : 0.0f) *
-                    (alpha >= alpha_min ? 1.0f : 0.0f);
-        float next_t = t * (1.0f - alpha);
-        float stop = hit * (next_t <= t_min ? 1.0f : 0.0f);
-        float add = hit - stop;
-        float w = add * alpha * t;
+    for (int64_t i = 0; i < groups * 8; i++) {
+        const int64_t lx = x_first + i;
+        const float alpha = alphas[i], t = trans[lx];
+        if (alpha < 0.0f) /* outside the box */
+            continue;
+        const int live = t > 0.0f, hit = live && alpha > 0.0f;
+        const float next_t = t * (1.0f - alpha);
+        const int stop = hit && next_t <= t_min, add = hit && !stop;
+        const float w = add ? alpha * t : 0.0f;
         weights[lx] = w;
-        trans[lx] = t + add * (next_t - t) - 2.0f * stop * t;
-        acc_r[lx] += w * red;
-        acc_g[lx] += w * green;
-        acc_b[lx] += w * blue;
-        acc_z[lx] += w * depth;
+        trans[lx] = add ? next_t : stop ? -t : t;
+        acc_r[lx] += w * rec[RED];
+        acc_g[lx] += w * rec[GREEN];
+        acc_b[lx] += w * rec[BLUE];
+        acc_z[lx] += w * rec[DEPTH];
         live_n += live;
-        stop_n += stop;
+        stops |= (uint64_t)stop << lx;
+        adds |= (uint64_t)(w > 0.0f) << lx;
     }
-    counts[0] += live_n;
-    counts[1] += stop_n;
 #endif
+    *added = adds;
+    *live += live_n;
+    return stops;
+}
+
+/* The bits (1 << lx) of pixels [px0, px1) of a tile row, px0 < px1 <= 64. */
+static inline uint64_t span_bits(int64_t px0, int64_t px1)
+{
+    return (px1 - px0 >= 64 ? ~0ULL : (1ULL << (px1 - px0)) - 1) << px0;
 }
 
 /* Gaussian rec's tile-local pixel box [px0, px1) x [py0, py1) in the tile [x_start, x_end) x

@@ -84,6 +84,7 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
         /* 8 floats past the tile: a row's last 8-pixel group may reach past it (masked) */
         float trans[MAX_TILE * MAX_TILE + 8], acc_r[MAX_TILE * MAX_TILE + 8], acc_g[MAX_TILE * MAX_TILE + 8];
         float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8], weights[MAX_TILE + 8];
+        float alphas[MAX_TILE * (MAX_TILE + 8)]; /* a Gaussian's box, rows of 8-pixel groups (box_alphas) */
         float chunk[CHUNK][RECORD];
         int32_t chunk_position[CHUNK];
         /* pixel p's list: keys[p * MAX_K + i], count[p] of them; when full, last[p] is the slot of its smallest */
@@ -99,6 +100,9 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
         }
         memset(count, 0, sizeof count);
         int64_t n_live = (x_end - x_start) * (y_end - y_start);
+        uint64_t live_rows[MAX_TILE]; /* bit lx of row ly: pixel (lx, ly) has not stopped */
+        for (int64_t ly = 0; ly < y_end - y_start; ly++)
+            live_rows[ly] = span_bits(0, x_end - x_start);
         const int64_t first = offsets[tile], length = offsets[tile + 1] - first;
         int64_t evals = 0, tile_pairs = n_live * length;
         for (int64_t j = 0; j < length && n_live > 0; j++) {
@@ -115,23 +119,30 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
             const float *rec = chunk[j % CHUNK];
             /* the rank key's low half: the inverted depth position (the nearer ranks first on ties) */
             const int64_t low = (int64_t)(0xFFFFFFFFu - (uint32_t)chunk_position[j % CHUNK]);
-            const float my = rec[MY], cut = rec[CUT] + 1e-3f; /* margin: the exact alpha test decides */
+            const float cut = rec[CUT] + 1e-3f; /* margin: the exact alpha test decides */
             int64_t box[4];
             pixel_box(rec, x_start, x_end, y_start, y_end, box);
             const int64_t px0 = box[0], px1 = box[1], py0 = box[2], py1 = box[3];
+            if (px0 >= px1 || py0 >= py1)
+                continue;
+            const uint64_t span = span_bits(px0, px1);
+            const int64_t groups = box_groups(px0, px1);
+            box_alphas(rec, px0, px1, py0, py1, live_rows, span, (float)x_start + 0.5f, (float)y_start + 0.5f, cut,
+                       alpha_min, alpha_max, alphas);
             for (int64_t ly = py0; ly < py1; ly++) {
-                const float dy = my - ((float)(y_start + ly) + 0.5f);
+                if (!(live_rows[ly] & span)) /* every pixel of the box's row has stopped */
+                    continue;
                 const int64_t row = ly * tile_size;
-                float counts[2] = {0.0f, 0.0f};
-                row_pass(trans + row, acc_r + row, acc_g + row, acc_b + row, acc_z + row, weights, (int32_t)px0,
-                         (int32_t)px1, (float)x_start + 0.5f, rec, dy, cut, alpha_min, alpha_max, t_min, counts);
-                const int64_t stopped = (int64_t)counts[1];
-                evals += (int64_t)counts[0];
+                uint64_t added;
+                const uint64_t stops = row_blend(trans + row, acc_r + row, acc_g + row, acc_b + row, acc_z + row,
+                                                 weights, alphas + (ly - py0) * groups * 8, px0 & ~7, groups, rec,
+                                                 t_min, &added, &evals);
+                const int64_t stopped = __builtin_popcountll(stops);
+                live_rows[ly] &= ~stops;
                 n_live -= stopped;
                 tile_pairs -= stopped * (length - j - 1);
-                for (int64_t lx = px0; lx < px1 && k_cap > 0; lx++) {
-                    if (!(weights[lx] > 0.0f))
-                        continue;
+                for (; added && k_cap > 0; added &= added - 1) { /* the pixels it added to, in x order */
+                    const int64_t lx = __builtin_ctzll(added);
                     uint32_t bits;
                     memcpy(&bits, weights + lx, sizeof bits);
                     const int64_t p = row + lx, key = ((int64_t)bits << 32) | low;
