@@ -8,7 +8,9 @@ then either absent or whole, and once the function returns it is on the disk.
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
@@ -25,18 +27,39 @@ def fsync_dir(folder: str | Path) -> None:
 
 def write_atomic(path: str | Path, write: Callable[[BinaryIO], object] | bytes) -> None:
     """Write ``path`` whole or not at all, durably: ``write`` is the bytes or a function that
-    writes them to the open file."""
+    writes them to the open file. A failed write (a full disk, a file-size limit) removes the
+    temporary file and raises one OSError naming ``path``, the reason and the free space."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        if isinstance(write, bytes):
-            f.write(write)
-        else:
-            write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
+    try:
+        with open(tmp, "wb") as f:
+            if isinstance(write, bytes):
+                f.write(write)
+            else:
+                write(f)
+            f.flush()
+            # numpy writes small arrays through a C stream whose failed last flush it does not
+            # report: a file cut short would otherwise be renamed into place
+            if os.fstat(f.fileno()).st_size != f.tell():
+                raise OSError(errno.EIO, f"cut short at {os.fstat(f.fileno()).st_size} of {f.tell()} bytes")
+            os.fsync(f.fileno())
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OSError(
+            exc.errno,
+            f"could not be written: {exc.strerror or exc}; {free_mb(path.parent):,.0f} MB free on its disk",
+            str(path),
+        ) from exc
     fsync_dir(path.parent)
+
+
+def free_mb(folder: str | Path) -> float:
+    """Free space on the disk of ``folder`` in MiB (nan when it cannot be read)."""
+    try:
+        return shutil.disk_usage(folder).free / 2**20
+    except OSError:
+        return float("nan")
 
 
 def append_line(path: str | Path, line: str) -> None:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from ..durable import fsync_dir, write_atomic
+from ..durable import free_mb, fsync_dir, write_atomic
 from .config import AggregationConfig
 from .observe import ViewObservations
 from .refine import MixedObservations, refine_mixed
@@ -176,12 +176,11 @@ class ObservationStore:
             # a full disk (or a file-size limit) mid-view: the half-written segment goes, so the
             # next append can take this index once there is room, and the error says where
             shutil.rmtree(tmp, ignore_errors=True)
-            free_mb = shutil.disk_usage(self.folder).free / 2**20
             size = sum(a.nbytes for a in arrays.values())
             raise OSError(
                 exc.errno,
                 f"view {name!r} ({size:,} bytes) could not be written: {exc.strerror or exc}; "
-                f"{free_mb:,.0f} MB free on its disk",
+                f"{free_mb(self.folder):,.0f} MB free on its disk",
                 str(self.folder),
             ) from exc
         missing = ({f"{key}.npy" for key in arrays} | {"name.txt"}) - {f.name for f in tmp.iterdir()}

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from olsplat_msgs import EndOfStream, ObservationsAdded, RegionFeatures
+from olsplat_msgs import DiagnosticStatus, EndOfStream, ObservationsAdded, RegionFeatures
 
 from ..errors import OlsplatInputError
 from ..method import MethodParams
@@ -110,6 +110,7 @@ class AccumulatorNode(Node):
         self.shard = TileShard(p.store, len(self.gaussians), writer=True)
         self.structure = self._structure(p)
         self.branch = None  # made at the first view, or restored from the store
+        self.store_error = ""  # why the last view could not be stored ("" once one is)
         self.branch_file = Path(p.store) / "branch.npz"
         if self.structure is not None and self.branch_file.exists():
             self.branch = self._restore_branch()
@@ -130,13 +131,34 @@ class AccumulatorNode(Node):
             if isinstance(message, EndOfStream):
                 self.publish(self.pub, p.topic_observations, message)
             elif isinstance(message, RegionFeatures):
-                self._add(message)
+                try:
+                    self._add(message)
+                    self.store_error = ""
+                except OSError as exc:
+                    self._not_stored(message, exc)
             else:
                 self.unexpected(message, p.topic_regions)
         if self.diag is not None:
             values = self.stats.with_sockets(self.sub.stats, queue_depth=len(batch), views=len(self.shard))
-            self.diag.beat(0, f"{len(self.shard)} views in the store", values)
+            if self.store_error:
+                self.diag.beat(DiagnosticStatus.ERROR, self.store_error, values)
+            else:
+                self.diag.beat(DiagnosticStatus.OK, f"{len(self.shard)} views in the store", values)
         return None
+
+    def _not_stored(self, message: RegionFeatures, exc: OSError) -> None:
+        """A view the disk would not take (full, a file-size limit, a folder gone): the node goes
+        on, the view is not acknowledged (a lossless ingest sends it again, and it goes in once
+        there is room), and the error is the node's status until a view is stored. What the
+        failed attempt had changed in memory is put back as the disk has it: the 3D branch from
+        its last saved state, so a re-sent view does not train h twice."""
+        self.stats.count("store_errors")
+        self.store_error = f"view {message.name!r} not stored: {exc}"
+        log.error("%s; not acknowledged (a lossless ingest sends it again)", self.store_error)
+        if self.structure is not None:
+            self.branch = self._restore_branch() if self.branch_file.exists() else None
+        if self.diag is not None:  # now: the operator should not wait for the next beat
+            self.diag.beat_now(DiagnosticStatus.ERROR, self.store_error, self.stats.with_sockets(self.sub.stats))
 
     def _restore_branch(self):
         """The 3D branch as the last run left it (``STORE/branch.npz``); a damaged file is an
@@ -184,8 +206,9 @@ class AccumulatorNode(Node):
                 log.warning("view %s (seq %d) dropped: %s", message.name, message.seq, exc)
                 return
             if self.manifest.encoder is None or self.manifest.feature_dim is None:
-                self.manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
-                write_manifest(self.params.store, self.manifest)
+                manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
+                write_manifest(self.params.store, manifest)
+                self.manifest = manifest  # after the write: a failed one is tried again with the next view
             save_view(self.params.views, len(self.shard.store), camera, image)
             if self.structure is not None and self.branch is None:
                 from ..structure.branch import StructuralBranch

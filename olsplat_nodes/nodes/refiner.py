@@ -110,6 +110,7 @@ class RefinerNode(Node):
                 "the run had ended: map version %d is final (%d views); announcing it", self.version, len(self.store)
             )
         self.exit_at: float | None = None
+        self.write_error = ""  # why the last snapshot could not be written ("" once one is)
 
     def spin(self) -> int | None:
         p = self.params
@@ -121,7 +122,7 @@ class RefinerNode(Node):
             end_now |= isinstance(message, EndOfStream) and not self.final  # repeats are ignored
         self.final |= end_now
         due = time.monotonic() - self.last_pass > self.wait_s
-        if end_now or (due and len(self.store) > self.live.views and not self.final):
+        if end_now or (due and (self._final_unwritten() or (len(self.store) > self.live.views and not self.final))):
             start = time.perf_counter()
             self._refine(self.final)
             from ..pipeline.peak_memory import release_free_memory  # here: the launcher imports node classes
@@ -141,12 +142,16 @@ class RefinerNode(Node):
             self.publish(self.pub, p.topic_map, update)
             self.last_announce = time.monotonic()
         self._beat()
-        if self.final and p.exit_on_final:
+        if self.final and p.exit_on_final and not self._final_unwritten():
             if self.exit_at is None:
                 self.exit_at = time.monotonic() + p.final_linger_s
             elif time.monotonic() >= self.exit_at:
                 return 0
         return None
+
+    def _final_unwritten(self) -> bool:
+        """The stream has ended but its final map could not be written yet (a full disk)."""
+        return self.final and not (self.record and self.record.get("final"))
 
     def teardown(self) -> None:
         if getattr(self, "diag", None) is not None:
@@ -165,6 +170,9 @@ class RefinerNode(Node):
             level = 2
             folder, why = next(iter(quarantined.items()))
             text += f"; {len(quarantined)} damaged view segment(s) skipped, e.g. {folder}: {why}"
+        if self.write_error:
+            level = 2
+            text += f"; {self.write_error}"
         (self.diag.beat_now if force else self.diag.beat)(level, text, values)
 
     def _refine(self, final: bool) -> None:
@@ -209,7 +217,15 @@ class RefinerNode(Node):
             "refine_s": round(time.perf_counter() - start, 3),  # this pass, before the snapshot's write
             "exact": exact or changed is None,  # False: a fold of the new views
         }
-        self.record = write_snapshot(self.map_dir, self.version, language_map, record, None)
+        try:
+            self.record = write_snapshot(self.map_dir, self.version, language_map, record, None)
+        except OSError as exc:  # a full disk: the last written map stands, the next pass tries again
+            self.version -= 1
+            self.stats.count("snapshot_errors")
+            self.write_error = f"map version {self.version + 1} not written: {exc}"
+            log.error("%s; the map stays at version %d until a pass can write", self.write_error, self.version)
+            return
+        self.write_error = ""
         log.info(
             "map version %d (%s): %d views, %d Gaussians observed, %.1f s%s",
             self.version,
