@@ -63,12 +63,30 @@ def free_mb(folder: str | Path) -> float:
 
 
 def append_line(path: str | Path, line: str) -> None:
-    """Append ``line`` and a newline to ``path`` durably (the folder too when the file is new)."""
+    """Append ``line`` and a newline to ``path`` durably (the folder too when the file is new).
+    A failed append (a full disk) leaves the file as it was, never half a line that the next
+    one would be glued to, and raises one OSError naming ``path``."""
     path = Path(path)
     new = not path.exists()
-    with open(path, "a") as f:
-        f.write(line + "\n")
-        f.flush()
-        os.fsync(f.fileno())
+    data = (line + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        start = os.fstat(fd).st_size
+        try:
+            if os.write(fd, data) != len(data):
+                raise OSError(errno.ENOSPC, "only part of the line was written")
+            os.fsync(fd)
+        except OSError as exc:
+            try:
+                os.ftruncate(fd, start)
+            except OSError:
+                pass
+            raise OSError(
+                exc.errno,
+                f"could not be appended to: {exc.strerror or exc}; {free_mb(path.parent):,.0f} MB free on its disk",
+                str(path),
+            ) from exc
+    finally:
+        os.close(fd)
     if new:
         fsync_dir(path.parent)

@@ -82,6 +82,7 @@ class IngestNode(Node):
         self.pending: OrderedDict[str, tuple[object, float, int]] = OrderedDict()
         self.heard_back = False  # an acknowledgement came: the graph is connected
         self.names: list[str] = []
+        self.state_error = ""  # why the last acknowledged frame could not be recorded
         self.phase = "streaming"  # -> "delivering" (source done, frames in flight) -> "ending" (EndOfStream sent)
         self.last_eos = 0.0
         self.source: Any = None  # a sources.Source once open
@@ -161,7 +162,7 @@ class IngestNode(Node):
                 self.acked.add(message.name)
                 self.pending.pop(message.name, None)
                 if p.state_file:  # fsynced: a frame once acknowledged is never sent again, power cut or not
-                    append_line(p.state_file, message.name)
+                    self._record_acknowledged(message.name)
             elif isinstance(message, MapUpdated) and message.final:
                 self.final_map = True
             elif not isinstance(message, (ObservationsAdded, MapUpdated, EndOfStream)):
@@ -182,6 +183,18 @@ class IngestNode(Node):
                 self._send(frame)
         self._beat()
 
+    def _record_acknowledged(self, name: str) -> None:
+        """Append ``name`` to the state file. A full disk does not stop the flight: the frame is
+        delivered; only a restart would send it again, and the accumulator answers that with a
+        duplicate acknowledgement. The error is the node's status until a line is written."""
+        try:
+            append_line(self.params.state_file, name)
+            self.state_error = ""
+        except OSError as exc:
+            self.stats.count("state_errors")
+            self.state_error = f"frame {name!r} not recorded as acknowledged: {exc}"
+            log.error("%s (a restart would send it again; the accumulator takes it once)", self.state_error)
+
     def _beat(self, force: bool = False) -> None:
         if self.diag is None:
             return
@@ -190,4 +203,6 @@ class IngestNode(Node):
         if self.source is not None:
             level, message = self.source.status()
             values.update({f"source_{key}": value for key, value in self.source.stats.items()})
+        if self.state_error:
+            level, message = max(level, 1), f"{message}; {self.state_error}"
         (self.diag.beat_now if force else self.diag.beat)(level, message, values)

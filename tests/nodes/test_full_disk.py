@@ -1,12 +1,13 @@
-"""An accumulator whose disk will not take a view: the node stays up, does not acknowledge the
-view, reports the error (which names the file, the reason and the free space) as its status,
-leaves no half-written file, and stores the view once there is room (the re-sent view, as a
-lossless ingest sends it).
+"""Nodes on a full disk: none dies of it, none leaves a half-written file, each reports the
+error (naming the file, the reason and the free space) as its status and goes on once there is
+room. The accumulator does not acknowledge a view it could not store and stores it when it is
+sent again (as a lossless ingest does); the refiner keeps its last map and writes the final one
+by a later pass; the ingest goes on with the flight when it cannot record an acknowledgement.
 
-The node runs in its own process (``python -m olsplat_nodes.nodes accumulator``) on real
-sockets; the "full disk" is the operating system's file-size limit (RLIMIT_FSIZE), set on the
-running node by ``prlimit`` once it is ready, so that every write of a view fails (EFBIG, with
-SIGXFSZ ignored as a node's parent may leave it) and lifted again to make room.
+Each node runs in its own process (``python -m olsplat_nodes.nodes NODE``) on real sockets; the
+"full disk" is the operating system's file-size limit (RLIMIT_FSIZE), set on the running node by
+``prlimit`` once it is ready, so that its writes fail (EFBIG, or a short write, with SIGXFSZ
+ignored as a node's parent may leave it), and lifted again to make room.
 """
 
 from __future__ import annotations
@@ -192,3 +193,81 @@ def test_a_map_the_disk_will_not_take_is_reported_and_written_by_a_later_pass(ct
         maps.close()
     assert "not written" in output, output[-3000:]
     assert json.loads((map_dir / "latest.json").read_text())["final"] is True
+
+
+def test_an_acknowledgement_the_disk_will_not_record_does_not_stop_the_flight(ctx, sockdir, tmp_path, tiny):
+    """The ingest cannot append an acknowledged frame to its state file: it goes on with the
+    flight (the next frame goes out), reports the error as its status (WARN, naming the file),
+    and leaves no half line: once there is room the next name is on a line of its own."""
+    from olsplat_msgs import ImageFrame, ObservationsAdded
+
+    scene, _ = tiny
+    beats = Heartbeats(ctx)
+    acks = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/acks.sock", bind=True)
+    frames = Tap(ctx, f"ipc://{sockdir}/frames.sock", ["frames"])
+    state = tmp_path / "acknowledged.txt"
+    state.write_text("frame_9999.jpg\n")  # a line from an earlier run: the limit sits just past it
+    params = {
+        "source": str(scene / "replay.mcap"),
+        "fast": True,
+        "window": 1,
+        "ack_timeout_s": 60.0,
+        "ack_timeout_start_s": 0.3,
+        "frames_out": f"ipc://{sockdir}/frames.sock",
+        "acks_in": f"ipc://{sockdir}/acks.sock",
+        "map_in": f"ipc://{sockdir}/map.sock",
+        "state_file": str(state),
+        "diagnostics": beats.endpoint,
+    }
+    node = subprocess.Popen(
+        [sys.executable, "-m", "olsplat_nodes.nodes", "ingest", "--params-json", json.dumps(params)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=_ignore_sigxfsz,
+    )
+
+    def sent(name: str) -> bool:
+        return any(frame.name == name for frame in frames.got(ImageFrame, 0))
+
+    def acknowledge(name: str) -> None:
+        send_msg(acks, ObservationsAdded(seq=1, frame_id="camera", name=name), "observations")
+
+    try:
+        wait_for(lambda: sent("frame_0000.jpg"), 60, "the first frame")
+        _, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (state.stat().st_size + 5, hard))  # room for 5 bytes
+        wait_for(
+            lambda: sent("frame_0001.jpg"), 20, "the next frame", step=every(0.3, lambda: acknowledge("frame_0000.jpg"))
+        )
+        warned = wait_for(
+            lambda: [m for m in beats.got(DiagnosticStatus) if m.node == "ingest" and m.level == DiagnosticStatus.WARN],
+            20,
+            "a WARN status from the ingest",
+        )[-1]
+        assert "frame_0000.jpg" in warned.message and str(state) in warned.message, warned
+        assert warned.values["state_errors"] >= 1
+        assert state.read_text() == "frame_9999.jpg\n"  # as it was: no half line
+
+        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, hard))  # room again
+        wait_for(
+            lambda: sent("frame_0002.jpg"),
+            20,
+            "the frame after",
+            step=every(0.3, lambda: acknowledge("frame_0001.jpg")),
+        )
+        wait_for(lambda: state.read_text().endswith("frame_0001.jpg\n"), 10, "the next name recorded")
+        assert state.read_text().splitlines() == ["frame_9999.jpg", "frame_0001.jpg"]
+        assert node.poll() is None
+    finally:
+        node.terminate()
+        try:
+            output, _ = node.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            node.kill()
+            output, _ = node.communicate()
+        beats.close()
+        acks.close()
+        frames.close()
+    assert "not recorded as acknowledged" in output, output[-3000:]
