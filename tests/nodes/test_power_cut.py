@@ -95,12 +95,21 @@ def test_a_run_folder_copied_mid_write_is_consistent_and_a_restart_from_it_finis
     try:
         wait_for(lambda: all(pid_of(supervisor, n) for n in NODES), 60, "every node started")
         views = run_dir / "store" / "views"
+
+        def stored_now() -> int:
+            return len(list(views.iterdir())) if views.is_dir() else 0
+
         rng = np.random.default_rng(5)
         while running.code is None and len(copies) < 8:  # copies spread over the flight
-            time.sleep(float(rng.uniform(0.3, 2.0)))
+            # after the store has moved on since the last copy (up to 15 s: a loaded machine
+            # flies slowly), at a random moment within a view's time
+            deadline = time.monotonic() + 15.0
+            while copies and stored_now() == copies[-1][0] and running.code is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(float(rng.uniform(0.0, 1.0)))
             if running.code is not None:
                 break
-            stored = len(list(views.iterdir())) if views.is_dir() else 0
+            stored = stored_now()
             out = tmp_path / f"copy{len(copies)}"
             _frozen_copy(supervisor, run_dir, out)
             copies.append((stored, out))
