@@ -150,8 +150,10 @@ class FeatureImages:
                     self.entries[key] = (unit, alpha)
             return maps, alpha
         unit, alpha = entry
-        maps = unit @ np.asarray(texts, np.float32).T  # [H * W, Q]
-        return np.ascontiguousarray(maps.T).reshape(len(texts), *alpha.shape), alpha
+        # [Q, H * W] straight from the product: (unit @ texts.T).T needed a 54 MB transposing
+        # copy at 1280x960 and 11 texts (138 -> 90 ms)
+        maps = np.asarray(texts, np.float32) @ unit.T
+        return maps.reshape(len(texts), *alpha.shape), alpha
 
 
 def heatmaps(feature_map: np.ndarray, text_embeddings: np.ndarray) -> np.ndarray:
