@@ -36,6 +36,35 @@ def _ignore_sigxfsz() -> None:  # in the child before exec: an ignored signal st
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 
 
+def _start(node: str, params: dict) -> subprocess.Popen:
+    """The node in its own process, its log in a pipe (a file would be cut by the limit too)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "olsplat_nodes.nodes", node, "--params-json", json.dumps(params)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=_ignore_sigxfsz,
+    )
+
+
+def _stop(node: subprocess.Popen) -> str:
+    """Ask the node to stop (SIGTERM; killed after 30 s) and return its log."""
+    if node.poll() is None:
+        node.terminate()
+    try:
+        return node.communicate(timeout=30)[0]
+    except subprocess.TimeoutExpired:
+        node.kill()
+        return node.communicate()[0]
+
+
+def _full_disk(pid: int, room_bytes: int | None) -> None:
+    """No file of process ``pid`` may grow past ``room_bytes`` (None: no limit), as on a full disk."""
+    _, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.prlimit(pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY if room_bytes is None else room_bytes, hard))
+
+
 def _statuses(beats: Heartbeats) -> list[DiagnosticStatus]:
     beats.poll(50)
     return [m for m in beats.of_type(DiagnosticStatus) if m.node == "accumulator"]
@@ -59,14 +88,7 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
         "observations_out": f"ipc://{sockdir}/observations.sock",
         "diagnostics": beats.endpoint,
     }
-    node = subprocess.Popen(
-        [sys.executable, "-m", "olsplat_nodes.nodes", "accumulator", "--params-json", json.dumps(params)],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,  # a pipe, not a file: the file-size limit would cut a log file too
-        stderr=subprocess.STDOUT,
-        text=True,
-        preexec_fn=_ignore_sigxfsz,
-    )
+    node = _start("accumulator", params)
     good = encode(region_features, "regions")
     try:
         wait_for(  # ready and subscribed: an EndOfStream comes back on the observations topic
@@ -75,8 +97,7 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
             "the accumulator to forward EndOfStream",
             step=every(0.2, lambda: send_msg(regions, EndOfStream(frame_id="sync", source="test"), "regions")),
         )
-        _, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (1024, hard))  # no file past 1 KB: a full disk
+        _full_disk(node.pid, 1024)
 
         send(regions, good)
         failed = wait_for(
@@ -92,7 +113,7 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
         left = sorted(p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp"))
         assert not left, f"half-written files left: {left}"
 
-        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, hard))  # room again
+        _full_disk(node.pid, None)  # room again
         acks = wait_for(
             lambda: observations.got(ObservationsAdded),
             60,
@@ -107,12 +128,7 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
         )
         assert node.poll() is None
     finally:
-        node.send_signal(signal.SIGTERM)
-        try:
-            output, _ = node.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            node.kill()
-            output, _ = node.communicate()
+        output = _stop(node)
         regions.close()
         beats.close()
         observations.close()
@@ -144,20 +160,12 @@ def test_a_map_the_disk_will_not_take_is_reported_and_written_by_a_later_pass(ct
         "map_out": f"ipc://{sockdir}/map.sock",
         "diagnostics": beats.endpoint,
     }
-    node = subprocess.Popen(
-        [sys.executable, "-m", "olsplat_nodes.nodes", "refiner", "--params-json", json.dumps(params)],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        preexec_fn=_ignore_sigxfsz,
-    )
+    node = _start("refiner", params)
     try:
         wait_for(
             lambda: [m for m in beats.got(DiagnosticStatus) if m.node == "refiner"], 120, "the refiner's heartbeat"
         )
-        _, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (1024, hard))  # no file past 1 KB: a full disk
+        _full_disk(node.pid, 1024)
         shutil.copytree(tiny_run / "store" / "views", store / "views")  # the flight's one view arrives ...
         wait_for(  # ... and the flight ends
             lambda: [
@@ -175,19 +183,17 @@ def test_a_map_the_disk_will_not_take_is_reported_and_written_by_a_later_pass(ct
         assert not [p.name for p in map_dir.iterdir() if p.name.endswith(".tmp")]
         assert not [m for m in maps.got(MapUpdated) if m.final]
 
-        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, hard))  # room again
+        _full_disk(node.pid, None)  # room again
         final = wait_for(
-            lambda: [m for m in maps.got(MapUpdated) if m.final] or (node.poll() is not None and ["exited"]),
+            lambda: [m for m in maps.got(MapUpdated) if m.final] or (node.poll() is not None and ["ended"]),
             60,
             "the final map once there is room",
         )
-        assert final[0] != "exited", node.communicate()[0][-3000:]
+        assert final[0] != "ended", f"the refiner ended without announcing a final map:\n{_stop(node)[-3000:]}"
         assert final[0].views == 1 and final[0].version == 1
         assert node.wait(timeout=30) == 0  # it ends after its final map, as after any flight
     finally:
-        if node.poll() is None:
-            node.kill()
-        output, _ = node.communicate()
+        output = _stop(node)
         beats.close()
         observations.close()
         maps.close()
@@ -219,14 +225,7 @@ def test_an_acknowledgement_the_disk_will_not_record_does_not_stop_the_flight(ct
         "state_file": str(state),
         "diagnostics": beats.endpoint,
     }
-    node = subprocess.Popen(
-        [sys.executable, "-m", "olsplat_nodes.nodes", "ingest", "--params-json", json.dumps(params)],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        preexec_fn=_ignore_sigxfsz,
-    )
+    node = _start("ingest", params)
 
     def sent(name: str) -> bool:
         return any(frame.name == name for frame in frames.got(ImageFrame, 0))
@@ -236,8 +235,7 @@ def test_an_acknowledgement_the_disk_will_not_record_does_not_stop_the_flight(ct
 
     try:
         wait_for(lambda: sent("frame_0000.jpg"), 60, "the first frame")
-        _, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (state.stat().st_size + 5, hard))  # room for 5 bytes
+        _full_disk(node.pid, state.stat().st_size + 5)  # room for 5 bytes: part of a line
         wait_for(
             lambda: sent("frame_0001.jpg"), 20, "the next frame", step=every(0.3, lambda: acknowledge("frame_0000.jpg"))
         )
@@ -250,7 +248,7 @@ def test_an_acknowledgement_the_disk_will_not_record_does_not_stop_the_flight(ct
         assert warned.values["state_errors"] >= 1
         assert state.read_text() == "frame_9999.jpg\n"  # as it was: no half line
 
-        resource.prlimit(node.pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, hard))  # room again
+        _full_disk(node.pid, None)  # room again
         wait_for(
             lambda: sent("frame_0002.jpg"),
             20,
@@ -261,12 +259,7 @@ def test_an_acknowledgement_the_disk_will_not_record_does_not_stop_the_flight(ct
         assert state.read_text().splitlines() == ["frame_9999.jpg", "frame_0001.jpg"]
         assert node.poll() is None
     finally:
-        node.terminate()
-        try:
-            output, _ = node.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            node.kill()
-            output, _ = node.communicate()
+        output = _stop(node)
         beats.close()
         acks.close()
         frames.close()
