@@ -182,13 +182,9 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
 #pragma omp parallel for schedule(dynamic, 4) num_threads(threads) reduction(| : failed)
     for (int64_t work = 0; work < n_tiles; work++) {
         const int64_t tile = tile_order[work];
-        const int64_t x_start = (tile % tiles_x) * tile_size, y_start = (tile / tiles_x) * tile_size;
-        const int64_t x_end = x_start + tile_size < width ? x_start + tile_size : width;
-        const int64_t y_end = y_start + tile_size < height ? y_start + tile_size : height;
-        /* 8 floats past the tile: a row's last 8-pixel group may reach past it (masked) */
-        float trans[MAX_TILE * MAX_TILE + 8], acc_r[MAX_TILE * MAX_TILE + 8], acc_g[MAX_TILE * MAX_TILE + 8];
-        float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8], weights[MAX_TILE + 8];
-        float alphas[MAX_TILE * (MAX_TILE + 8)]; /* a Gaussian's box, rows of 8-pixel groups (box_alphas) */
+        const int64_t first = offsets[tile], length = offsets[tile + 1] - first;
+        Tile t;
+        tile_start(&t, tile, tiles_x, tile_size, width, height, length);
         float chunk[CHUNK][RECORD];
         float *acc = calloc((size_t)(n_pix * dim), sizeof(float));
         float *zero_row = calloc((size_t)dim + 1, sizeof(float)); /* the row of -1; + 1: never calloc(0) */
@@ -201,17 +197,7 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
             free(acc), free(zero_row), free(list_w), free(list_c), free(listed);
             continue;
         }
-        for (int64_t p = 0; p < n_pix + 8; p++) {
-            trans[p] = 1.0f;
-            acc_r[p] = acc_g[p] = acc_b[p] = acc_z[p] = 0.0f;
-        }
-        int64_t n_live = (x_end - x_start) * (y_end - y_start);
-        uint64_t live_rows[MAX_TILE]; /* bit lx of row ly: pixel (lx, ly) has not stopped */
-        for (int64_t ly = 0; ly < y_end - y_start; ly++)
-            live_rows[ly] = span_bits(0, x_end - x_start);
-        const int64_t first = offsets[tile], length = offsets[tile + 1] - first;
-        int64_t evals = 0, tile_pairs = n_live * length;
-        for (int64_t j = 0; j < length && n_live > 0; j++) {
+        for (int64_t j = 0; j < length && t.n_live > 0; j++) {
             if (j % CHUNK == 0) {
                 if (j > 0)
                     add_listed(acc, chunk_rows, dim, list_w, list_c, listed, n_pix);
@@ -228,55 +214,26 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
                     chunk_rows[c] = row < 0 ? (const void *)zero_row : (const char *)features + row * row_bytes;
                 }
             }
-            const float *rec = chunk[j % CHUNK];
-            const float cut = rec[CUT] + 1e-3f; /* margin: the exact alpha test decides */
-            int64_t box[4];
-            pixel_box(rec, x_start, x_end, y_start, y_end, box);
-            const int64_t px0 = box[0], px1 = box[1], py0 = box[2], py1 = box[3];
-            if (px0 >= px1 || py0 >= py1)
+            if (!tile_pass(&t, chunk[j % CHUNK], j, alpha_min, alpha_max, t_min))
                 continue;
-            const uint64_t span = span_bits(px0, px1);
-            const int64_t groups = box_groups(px0, px1);
-            uint64_t contributed = 0;
-            box_alphas(rec, px0, px1, py0, py1, live_rows, span, (float)x_start + 0.5f, (float)y_start + 0.5f, cut,
-                       alpha_min, alpha_max, alphas);
-            for (int64_t ly = py0; ly < py1; ly++) {
-                if (!(live_rows[ly] & span)) /* every pixel of the box's row has stopped */
-                    continue;
-                const int64_t row = ly * tile_size;
-                uint64_t added;
-                const uint64_t stops = row_blend(trans + row, acc_r + row, acc_g + row, acc_b + row, acc_z + row,
-                                                 weights, alphas + (ly - py0) * groups * 8, px0 & ~7, groups, rec,
-                                                 t_min, &added, &evals);
-                const int64_t stopped = __builtin_popcountll(stops);
-                live_rows[ly] &= ~stops;
-                n_live -= stopped;
-                tile_pairs -= stopped * (length - j - 1);
-                contributed |= added;
-                for (; added; added &= added - 1) { /* the pixels it added to, in x order */
-                    const int64_t lx = __builtin_ctzll(added), p = row + lx;
-                    list_w[p * CHUNK + listed[p]] = weights[lx];
+            for (int64_t ly = t.py0; ly < t.py1; ly++) {
+                for (uint64_t added = t.added[ly - t.py0]; added; added &= added - 1) { /* in x order */
+                    const int64_t lx = __builtin_ctzll(added), p = ly * tile_size + lx;
+                    list_w[p * CHUNK + listed[p]] = tile_weight(&t, lx, ly);
                     list_c[p * CHUNK + listed[p]] = (uint8_t)(j % CHUNK);
                     listed[p]++;
                 }
             }
             /* its feature row is read at the chunk's end: ask for it now (half of a tile's
              * Gaussians never contribute, and their rows are never read) */
-            for (int64_t b = 0; contributed && b < row_bytes; b += 64)
+            for (int64_t b = 0; b < row_bytes; b += 64)
                 __builtin_prefetch((const char *)chunk_rows[j % CHUNK] + b);
         }
         add_listed(acc, chunk_rows, dim, list_w, list_c, listed, n_pix);
-        out_evals[tile * 2] = evals;
-        out_evals[tile * 2 + 1] = tile_pairs;
-        for (int64_t ly = 0; ly < y_end - y_start; ly++) {
-            for (int64_t lx = 0; lx < x_end - x_start; lx++) {
-                const int64_t p = ly * tile_size + lx, at = (y_start + ly) * width + x_start + lx;
-                const float final_t = fabsf(trans[p]), total = 1.0f - final_t;
-                out_alpha[at] = total;
-                out_rgb[at * 3] = acc_r[p] + final_t * background[0];
-                out_rgb[at * 3 + 1] = acc_g[p] + final_t * background[1];
-                out_rgb[at * 3 + 2] = acc_b[p] + final_t * background[2];
-                out_depth[at] = total > 1e-10f ? acc_z[p] / total : 0.0f;
+        tile_finish(&t, tile, width, background, out_rgb, out_alpha, out_depth, out_evals);
+        for (int64_t ly = 0; ly < t.y_end - t.y_start; ly++) {
+            for (int64_t lx = 0; lx < t.x_end - t.x_start; lx++) {
+                const int64_t p = ly * tile_size + lx, at = (t.y_start + ly) * width + t.x_start + lx;
                 pixel_outputs(acc + p * dim, dim, queries, n_queries, out_heat + at * n_queries,
                               out_unit ? out_unit + at * dim : NULL);
             }

@@ -112,17 +112,16 @@ static inline void box_alphas(const float *rec, int64_t px0, int64_t px1, int64_
 #endif
 }
 
-/* One row of a Gaussian's box after box_alphas (its row's alphas; groups of 8 pixels from
- * x_first = px0 & ~7), on a tile row whose arrays start at the given pointers. A stopped pixel
- * keeps its transmittance negated (live: trans > 0); a live pixel with alpha > 0 stops when its
- * transmittance would fall to <= t_min, else adds w = alpha T and takes T (1 - alpha). Writes
- * each pixel's weight (0: no contribution) to weights (index: x in the tile row); returns the
- * bits (1 << x) of the pixels it stopped, sets *added to the bits of those it added to and adds
- * its live pixels inside the box to *live. The arrays hold 8 floats past a tile. */
+/* One row of a Gaussian's box after box_alphas (``box``: its row's alphas, groups of 8 pixels
+ * from x_first = px0 & ~7), on a tile row whose arrays start at the given pointers. A stopped
+ * pixel keeps its transmittance negated (live: trans > 0); a live pixel with alpha > 0 stops when
+ * its transmittance would fall to <= t_min, else adds w = alpha T and takes T (1 - alpha). Each
+ * pixel's weight (0: no contribution) replaces its alpha in ``box``; returns the bits (1 << x) of
+ * the pixels it stopped, sets *added to the bits of those it added to and adds its live pixels
+ * inside the box to *live. The arrays hold 8 floats past a tile. */
 static inline uint64_t row_blend(float *restrict trans, float *restrict acc_r, float *restrict acc_g,
-                                 float *restrict acc_b, float *restrict acc_z, float *restrict weights,
-                                 const float *alphas, int64_t x_first, int64_t groups, const float *rec, float t_min,
-                                 uint64_t *added, int64_t *live)
+                                 float *restrict acc_b, float *restrict acc_z, float *restrict box, int64_t x_first,
+                                 int64_t groups, const float *rec, float t_min, uint64_t *added, int64_t *live)
 {
     int64_t live_n = 0;
     uint64_t stops = 0, adds = 0;
@@ -132,14 +131,14 @@ static inline uint64_t row_blend(float *restrict trans, float *restrict acc_r, f
     const __m256 blue = _mm256_set1_ps(rec[BLUE]), depth = _mm256_set1_ps(rec[DEPTH]);
     for (int64_t g = 0; g < groups; g++) {
         const int64_t x0 = x_first + 8 * g;
-        const __m256 alpha = _mm256_loadu_ps(alphas + 8 * g), t = _mm256_loadu_ps(trans + x0);
+        const __m256 alpha = _mm256_loadu_ps(box + 8 * g), t = _mm256_loadu_ps(trans + x0);
         const __m256 live = _mm256_and_ps(_mm256_cmp_ps(alpha, zero, _CMP_GE_OQ), _mm256_cmp_ps(t, zero, _CMP_GT_OQ));
         const __m256 hit = _mm256_and_ps(live, _mm256_cmp_ps(alpha, zero, _CMP_GT_OQ));
         const __m256 next_t = _mm256_mul_ps(t, _mm256_sub_ps(one, alpha));
         const __m256 stop = _mm256_and_ps(hit, _mm256_cmp_ps(next_t, v_tmin, _CMP_LE_OQ));
         const __m256 add = _mm256_andnot_ps(stop, hit);
         const __m256 w = _mm256_and_ps(add, _mm256_mul_ps(alpha, t));
-        _mm256_storeu_ps(weights + x0, w);
+        _mm256_storeu_ps(box + 8 * g, w);
         /* add: next_t; stop: -t; else t */
         __m256 t_out = _mm256_blendv_ps(t, next_t, add);
         t_out = _mm256_blendv_ps(t_out, _mm256_sub_ps(zero, t), stop);
@@ -155,14 +154,15 @@ static inline uint64_t row_blend(float *restrict trans, float *restrict acc_r, f
 #else
     for (int64_t i = 0; i < groups * 8; i++) {
         const int64_t lx = x_first + i;
-        const float alpha = alphas[i], t = trans[lx];
+        const float alpha = box[i], t = trans[lx];
+        box[i] = 0.0f;
         if (alpha < 0.0f) /* outside the box */
             continue;
         const int live = t > 0.0f, hit = live && alpha > 0.0f;
         const float next_t = t * (1.0f - alpha);
         const int stop = hit && next_t <= t_min, add = hit && !stop;
         const float w = add ? alpha * t : 0.0f;
-        weights[lx] = w;
+        box[i] = w;
         trans[lx] = add ? next_t : stop ? -t : t;
         acc_r[lx] += w * rec[RED];
         acc_g[lx] += w * rec[GREEN];
@@ -199,6 +199,105 @@ static inline void pixel_box(const float *rec, int64_t x_start, int64_t x_end, i
     box[1] = (px1 < x_end ? px1 : x_end) - x_start;
     box[2] = (py0 > y_start ? py0 : y_start) - y_start;
     box[3] = (py1 < y_end ? py1 : y_end) - y_start;
+}
+
+/* One tile's compositing state: the tile [x_start, x_end) x [y_start, y_end) of a tile_size grid
+ * (local pixel p = ly * tile_size + lx), its transmittance and colour/depth sums (8 floats past
+ * the tile: a row's last 8-pixel group may reach past it, masked), the bits of its pixels not yet
+ * stopped, and the two counts of out_evals. After tile_pass: the Gaussian's box rows [py0, py1),
+ * added[ly - py0] the bits of the pixels it added to, their weights read by tile_weight. */
+typedef struct {
+    int64_t x_start, y_start, x_end, y_end, tile_size, length, n_live, evals, tile_pairs;
+    uint64_t live_rows[MAX_TILE];
+    float trans[MAX_TILE * MAX_TILE + 8], acc_r[MAX_TILE * MAX_TILE + 8], acc_g[MAX_TILE * MAX_TILE + 8];
+    float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8];
+    int64_t py0, py1, x_first, groups;
+    uint64_t added[MAX_TILE];
+    float box[MAX_TILE * (MAX_TILE + 8)]; /* alphas, then weights: rows of 8-pixel groups */
+} Tile;
+
+/* Tile ``tile`` (row-major in a grid tiles_x wide) of a width x height image, with ``length``
+ * Gaussians in its list: T = 1, sums 0, every pixel live. */
+static inline void tile_start(Tile *t, int64_t tile, int64_t tiles_x, int64_t tile_size, int64_t width, int64_t height,
+                              int64_t length)
+{
+    t->tile_size = tile_size;
+    t->x_start = (tile % tiles_x) * tile_size, t->y_start = (tile / tiles_x) * tile_size;
+    t->x_end = t->x_start + tile_size < width ? t->x_start + tile_size : width;
+    t->y_end = t->y_start + tile_size < height ? t->y_start + tile_size : height;
+    for (int64_t p = 0; p < tile_size * tile_size + 8; p++) {
+        t->trans[p] = 1.0f;
+        t->acc_r[p] = t->acc_g[p] = t->acc_b[p] = t->acc_z[p] = 0.0f;
+    }
+    for (int64_t ly = 0; ly < t->y_end - t->y_start; ly++)
+        t->live_rows[ly] = span_bits(0, t->x_end - t->x_start);
+    t->length = length;
+    t->n_live = (t->x_end - t->x_start) * (t->y_end - t->y_start);
+    t->evals = 0, t->tile_pairs = t->n_live * length;
+    t->py0 = t->py1 = 0;
+}
+
+/* The pass of the tile's j-th Gaussian (record rec) over its pixel box, in two steps (box_alphas,
+ * then row_blend row by row), skipping the rows where every pixel of the box has stopped.
+ * Returns the bits of the pixels it added to, over all rows (0: it added nowhere). */
+static inline uint64_t tile_pass(Tile *t, const float *rec, int64_t j, float alpha_min, float alpha_max, float t_min)
+{
+    int64_t box[4];
+    pixel_box(rec, t->x_start, t->x_end, t->y_start, t->y_end, box);
+    const int64_t px0 = box[0], px1 = box[1];
+    t->py0 = box[2], t->py1 = box[3];
+    if (px0 >= px1 || t->py0 >= t->py1) {
+        t->py1 = t->py0;
+        return 0;
+    }
+    const uint64_t span = span_bits(px0, px1);
+    t->x_first = px0 & ~7, t->groups = box_groups(px0, px1);
+    const float cut = rec[CUT] + 1e-3f; /* margin: the exact alpha test decides */
+    box_alphas(rec, px0, px1, t->py0, t->py1, t->live_rows, span, (float)t->x_start + 0.5f,
+               (float)t->y_start + 0.5f, cut, alpha_min, alpha_max, t->box);
+    uint64_t any = 0;
+    for (int64_t ly = t->py0; ly < t->py1; ly++) {
+        uint64_t *added = t->added + (ly - t->py0);
+        *added = 0;
+        if (!(t->live_rows[ly] & span)) /* every pixel of the box's row has stopped */
+            continue;
+        const int64_t row = ly * t->tile_size;
+        const uint64_t stops = row_blend(t->trans + row, t->acc_r + row, t->acc_g + row, t->acc_b + row, t->acc_z + row,
+                                         t->box + (ly - t->py0) * t->groups * 8, t->x_first, t->groups, rec, t_min,
+                                         added, &t->evals);
+        const int64_t stopped = __builtin_popcountll(stops);
+        t->live_rows[ly] &= ~stops;
+        t->n_live -= stopped;
+        t->tile_pairs -= stopped * (t->length - j - 1);
+        any |= *added;
+    }
+    return any;
+}
+
+/* The weight of the last tile_pass at local pixel (lx, ly), a pixel of its added bits. */
+static inline float tile_weight(const Tile *t, int64_t lx, int64_t ly)
+{
+    return t->box[(ly - t->py0) * t->groups * 8 + lx - t->x_first];
+}
+
+/* The tile's colour (+ background x final T), alpha = 1 - T and depth = sum(w z) / alpha into
+ * the image's [H, W, 3] / [H, W] outputs, and its two counts into out_evals[tile]. */
+static inline void tile_finish(const Tile *t, int64_t tile, int64_t width, const float *background, float *out_rgb,
+                               float *out_alpha, float *out_depth, int64_t *out_evals)
+{
+    for (int64_t ly = 0; ly < t->y_end - t->y_start; ly++) {
+        for (int64_t lx = 0; lx < t->x_end - t->x_start; lx++) {
+            const int64_t p = ly * t->tile_size + lx, at = (t->y_start + ly) * width + t->x_start + lx;
+            const float final_t = fabsf(t->trans[p]), total = 1.0f - final_t;
+            out_alpha[at] = total;
+            out_rgb[at * 3] = t->acc_r[p] + final_t * background[0];
+            out_rgb[at * 3 + 1] = t->acc_g[p] + final_t * background[1];
+            out_rgb[at * 3 + 2] = t->acc_b[p] + final_t * background[2];
+            out_depth[at] = total > 1e-10f ? t->acc_z[p] / total : 0.0f;
+        }
+    }
+    out_evals[tile * 2] = t->evals;
+    out_evals[tile * 2 + 1] = t->tile_pairs;
 }
 
 #endif

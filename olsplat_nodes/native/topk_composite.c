@@ -78,13 +78,9 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
 #pragma omp parallel for schedule(dynamic, 4) num_threads(threads) reduction(| : failed)
     for (int64_t work = 0; work < n_tiles; work++) {
         const int64_t tile = tile_order[work];
-        const int64_t x_start = (tile % tiles_x) * tile_size, y_start = (tile / tiles_x) * tile_size;
-        const int64_t x_end = x_start + tile_size < width ? x_start + tile_size : width;
-        const int64_t y_end = y_start + tile_size < height ? y_start + tile_size : height;
-        /* 8 floats past the tile: a row's last 8-pixel group may reach past it (masked) */
-        float trans[MAX_TILE * MAX_TILE + 8], acc_r[MAX_TILE * MAX_TILE + 8], acc_g[MAX_TILE * MAX_TILE + 8];
-        float acc_b[MAX_TILE * MAX_TILE + 8], acc_z[MAX_TILE * MAX_TILE + 8], weights[MAX_TILE + 8];
-        float alphas[MAX_TILE * (MAX_TILE + 8)]; /* a Gaussian's box, rows of 8-pixel groups (box_alphas) */
+        const int64_t first = offsets[tile], length = offsets[tile + 1] - first;
+        Tile t;
+        tile_start(&t, tile, tiles_x, tile_size, width, height, length);
         float chunk[CHUNK][RECORD];
         int32_t chunk_position[CHUNK];
         /* pixel p's list: keys[p * MAX_K + i], count[p] of them; when full, last[p] is the slot of its smallest */
@@ -94,18 +90,8 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
             failed = 1;
             continue;
         }
-        for (int64_t p = 0; p < n_pix + 8; p++) {
-            trans[p] = 1.0f;
-            acc_r[p] = acc_g[p] = acc_b[p] = acc_z[p] = 0.0f;
-        }
         memset(count, 0, sizeof count);
-        int64_t n_live = (x_end - x_start) * (y_end - y_start);
-        uint64_t live_rows[MAX_TILE]; /* bit lx of row ly: pixel (lx, ly) has not stopped */
-        for (int64_t ly = 0; ly < y_end - y_start; ly++)
-            live_rows[ly] = span_bits(0, x_end - x_start);
-        const int64_t first = offsets[tile], length = offsets[tile + 1] - first;
-        int64_t evals = 0, tile_pairs = n_live * length;
-        for (int64_t j = 0; j < length && n_live > 0; j++) {
+        for (int64_t j = 0; j < length && t.n_live > 0; j++) {
             if (j % CHUNK == 0) { /* ask for the chunk after this one (at the tile's start, this one too) */
                 const int64_t ahead = length < j + 2 * CHUNK ? length : j + 2 * CHUNK;
                 for (int64_t c = j == 0 ? 0 : j + CHUNK; c < ahead; c++)
@@ -116,36 +102,17 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
                     memcpy(chunk[c], records + (int64_t)order[chunk_position[c]] * RECORD, RECORD * sizeof(float));
                 }
             }
-            const float *rec = chunk[j % CHUNK];
+            if (!tile_pass(&t, chunk[j % CHUNK], j, alpha_min, alpha_max, t_min) || k_cap == 0)
+                continue;
             /* the rank key's low half: the inverted depth position (the nearer ranks first on ties) */
             const int64_t low = (int64_t)(0xFFFFFFFFu - (uint32_t)chunk_position[j % CHUNK]);
-            const float cut = rec[CUT] + 1e-3f; /* margin: the exact alpha test decides */
-            int64_t box[4];
-            pixel_box(rec, x_start, x_end, y_start, y_end, box);
-            const int64_t px0 = box[0], px1 = box[1], py0 = box[2], py1 = box[3];
-            if (px0 >= px1 || py0 >= py1)
-                continue;
-            const uint64_t span = span_bits(px0, px1);
-            const int64_t groups = box_groups(px0, px1);
-            box_alphas(rec, px0, px1, py0, py1, live_rows, span, (float)x_start + 0.5f, (float)y_start + 0.5f, cut,
-                       alpha_min, alpha_max, alphas);
-            for (int64_t ly = py0; ly < py1; ly++) {
-                if (!(live_rows[ly] & span)) /* every pixel of the box's row has stopped */
-                    continue;
-                const int64_t row = ly * tile_size;
-                uint64_t added;
-                const uint64_t stops = row_blend(trans + row, acc_r + row, acc_g + row, acc_b + row, acc_z + row,
-                                                 weights, alphas + (ly - py0) * groups * 8, px0 & ~7, groups, rec,
-                                                 t_min, &added, &evals);
-                const int64_t stopped = __builtin_popcountll(stops);
-                live_rows[ly] &= ~stops;
-                n_live -= stopped;
-                tile_pairs -= stopped * (length - j - 1);
-                for (; added && k_cap > 0; added &= added - 1) { /* the pixels it added to, in x order */
+            for (int64_t ly = t.py0; ly < t.py1; ly++) {
+                for (uint64_t added = t.added[ly - t.py0]; added; added &= added - 1) { /* in x order */
                     const int64_t lx = __builtin_ctzll(added);
+                    const float weight = tile_weight(&t, lx, ly);
                     uint32_t bits;
-                    memcpy(&bits, weights + lx, sizeof bits);
-                    const int64_t p = row + lx, key = ((int64_t)bits << 32) | low;
+                    memcpy(&bits, &weight, sizeof bits);
+                    const int64_t p = ly * tile_size + lx, key = ((int64_t)bits << 32) | low;
                     int64_t *list = keys + p * MAX_K;
                     if (count[p] < k_cap) {
                         list[count[p]++] = key;
@@ -158,19 +125,11 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
                 }
             }
         }
-        out_evals[tile * 2] = evals;
-        out_evals[tile * 2 + 1] = tile_pairs;
-        for (int64_t ly = 0; ly < y_end - y_start; ly++) {
-            for (int64_t lx = 0; lx < x_end - x_start; lx++) {
-                const int64_t p = ly * tile_size + lx, at = (y_start + ly) * width + x_start + lx;
-                const float final_t = fabsf(trans[p]), total = 1.0f - final_t;
-                out_alpha[at] = total;
-                out_rgb[at * 3] = acc_r[p] + final_t * background[0];
-                out_rgb[at * 3 + 1] = acc_g[p] + final_t * background[1];
-                out_rgb[at * 3 + 2] = acc_b[p] + final_t * background[2];
-                out_depth[at] = total > 1e-10f ? acc_z[p] / total : 0.0f;
-                if (k_cap == 0)
-                    continue;
+        tile_finish(&t, tile, width, background, out_rgb, out_alpha, out_depth, out_evals);
+        for (int64_t ly = 0; k_cap > 0 && ly < t.y_end - t.y_start; ly++) { /* each pixel's Top-K */
+            for (int64_t lx = 0; lx < t.x_end - t.x_start; lx++) {
+                const int64_t p = ly * tile_size + lx, at = (t.y_start + ly) * width + t.x_start + lx;
+                const float total = out_alpha[at]; /* 1 - T, as tile_finish wrote it */
                 const int32_t n = count[p];
                 int64_t ranked[MAX_K];
                 memcpy(ranked, keys + p * MAX_K, (size_t)n * sizeof(int64_t));
