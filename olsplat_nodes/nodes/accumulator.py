@@ -133,7 +133,6 @@ class AccumulatorNode(Node):
             elif isinstance(message, RegionFeatures):
                 try:
                     self._add(message)
-                    self.store_error = ""
                 except OSError as exc:
                     self._not_stored(message, exc)
             else:
@@ -231,6 +230,7 @@ class AccumulatorNode(Node):
             views_in_store=len(self.shard),
             duplicate=duplicate,
         )
+        self.store_error = ""  # a view is on the disk (or already was): the status is OK again
         self.publish(self.pub, self.params.topic_observations, added)
         self.stats.count("duplicates" if duplicate else "views_added")
         self.stats.handled(message.stamp_ns, time.perf_counter() - start)
