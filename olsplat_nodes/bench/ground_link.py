@@ -76,11 +76,22 @@ QUERY_KINDS = {
 }
 
 
+def pick_views(names: list[str], count: int, spread: bool) -> list[str]:
+    """The ``count`` views heatmap queries ask for: the flight's first ones, or with ``spread``
+    views evenly spaced from its first to its last (a survey's far views cost more: more of the
+    map in view)."""
+    if not spread or count >= len(names):
+        return names[:count]
+    if count <= 1:
+        return names[:count]
+    return [names[round(k * (len(names) - 1) / (count - 1))] for k in range(count)]
+
+
 def time_queries(
-    client, scene: Path, run_dir: Path, relevance: int, heatmaps: int, heatmap_views: int
+    client, scene: Path, run_dir: Path, relevance: int, heatmaps: int, heatmap_views: int, spread: bool = False
 ) -> dict[str, list[float]]:
     """Round-trip seconds per kind (``QUERY_KINDS``) of ``relevance`` queries without a view and
-    ``heatmaps`` queries spread over the first ``heatmap_views`` views of the run, each text
+    ``heatmaps`` queries spread over ``heatmap_views`` views of the run (``pick_views``), each text
     one of the scene's labels with the others as negatives. Raises RunFailed on a refusal.
     Waits first (up to 60 s) until the query server has loaded the run's newest map: the
     refiner writes it before the server hears of it (announcement, or its 2 s look at
@@ -102,7 +113,7 @@ def time_queries(
         time.sleep(0.2)
     labels, queries = load_queries(scene)
     texts = label_texts(labels, queries)
-    views = [v.camera.name for v in load_views(run_dir / "views")][:heatmap_views]
+    views = pick_views([v.camera.name for v in load_views(run_dir / "views")], heatmap_views, spread)
     per_view = max(1, heatmaps // max(1, len(views)))
     plan = [("relevance", "", i) for i in range(relevance)]
     plan += [("heatmap", view, i) for view in views for i in range(per_view)]

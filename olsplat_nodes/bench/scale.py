@@ -63,6 +63,11 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--queries", type=int, default=100, help="relevance queries after the flight")
     parser.add_argument("--heatmap-queries", type=int, default=20, help="heatmap queries, spread over --heatmap-views")
     parser.add_argument("--heatmap-views", type=int, default=4, help="views the heatmap queries ask for, in turn")
+    parser.add_argument(
+        "--heatmap-spread",
+        action="store_true",
+        help="ask for views spread evenly over the flight, not its first ones (far views cost more)",
+    )
     parser.add_argument("--sample-s", type=float, default=1.0, help="seconds between memory samples")
     parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"), help="the launch file to run")
     parser.add_argument("--port", type=int, default=5612, help="the query server's TCP port")
@@ -286,7 +291,9 @@ def run(args: argparse.Namespace) -> int:
             + ", ".join(f"{s:.1f} ({v}{'*' if exact else ''})" for s, v, exact in marked)
         )
         print("  per view added by the pass (s): " + ", ".join(f"{s:.2f}" for s in figures["refine_s_per_added_view"]))
-        times = time_queries(client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views)
+        times = time_queries(
+            client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views, args.heatmap_spread
+        )
         report_queries(times, figures)
         figures["memory_series"] = {
             name: [[v, round(r), round(p)] for v, r, p in ser] for name, ser in sorted(watch.series.items())

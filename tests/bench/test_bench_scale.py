@@ -100,3 +100,13 @@ def test_a_bad_override_is_refused_before_anything_starts(tiny, tmp_path, capsys
         assert main([*args, "--set", setting]) == 1
         assert error in capsys.readouterr().err
         assert not (tmp_path / "run" / "logs").exists()  # no node was started
+
+
+def test_heatmap_views_are_the_first_ones_or_spread_over_the_flight():
+    from olsplat_nodes.bench.ground_link import pick_views
+
+    names = [f"v{i}" for i in range(10)]
+    assert pick_views(names, 4, spread=False) == ["v0", "v1", "v2", "v3"]
+    assert pick_views(names, 4, spread=True) == ["v0", "v3", "v6", "v9"]  # first to last, evenly
+    assert pick_views(names, 1, spread=True) == ["v0"]
+    assert pick_views(names, 20, spread=True) == names  # more than the flight has: every view once
