@@ -47,7 +47,7 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], object] | bytes) 
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         raise OSError(
-            exc.errno,
+            exc.errno or errno.EIO,
             f"could not be written: {exc.strerror or exc}; {free_mb(path.parent):,.0f} MB free on its disk",
             str(path),
         ) from exc
@@ -82,7 +82,7 @@ def append_line(path: str | Path, line: str) -> None:
             except OSError:
                 pass
             raise OSError(
-                exc.errno,
+                exc.errno or errno.EIO,
                 f"could not be appended to: {exc.strerror or exc}; {free_mb(path.parent):,.0f} MB free on its disk",
                 str(path),
             ) from exc

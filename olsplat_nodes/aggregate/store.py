@@ -178,7 +178,7 @@ class ObservationStore:
             shutil.rmtree(tmp, ignore_errors=True)
             size = sum(a.nbytes for a in arrays.values())
             raise OSError(
-                exc.errno,
+                exc.errno or errno.EIO,
                 f"view {name!r} ({size:,} bytes) could not be written: {exc.strerror or exc}; "
                 f"{free_mb(self.folder):,.0f} MB free on its disk",
                 str(self.folder),

@@ -70,13 +70,26 @@ def _statuses(beats: Heartbeats) -> list[DiagnosticStatus]:
     return [m for m in beats.of_type(DiagnosticStatus) if m.node == "accumulator"]
 
 
+@pytest.mark.parametrize("features", ["2d", "2d3d"])
 def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_once_there_is_room(
-    ctx, sockdir, tmp_path, tiny, region_features
+    ctx, sockdir, tmp_path, tiny, region_features, features
 ):
+    """With 2D features the view's photo is refused (1 KB of room); with the 3D branch the
+    photo fits and the store's segment is refused, after h has trained on the view: the branch
+    is put back as the disk has it, so the view stored later has trained h once."""
+    import cv2
+    import numpy as np
+
     from olsplat_nodes.aggregate import ObservationStore
     from olsplat_nodes.scene import read_ply
 
     scene, _ = tiny
+    room = 1024
+    if features == "2d3d":  # the photo as save_view encodes it, and its camera record, fit
+        photo = cv2.imencode(
+            ".jpg", np.ascontiguousarray(np.array(region_features.image)[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95]
+        )[1]
+        room = len(photo) + 4096
     regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
     beats = Heartbeats(ctx)
     observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
@@ -87,6 +100,7 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
         "regions_in": f"ipc://{sockdir}/regions.sock",
         "observations_out": f"ipc://{sockdir}/observations.sock",
         "diagnostics": beats.endpoint,
+        "features": features,
     }
     node = _start("accumulator", params)
     good = encode(region_features, "regions")
@@ -97,7 +111,7 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
             "the accumulator to forward EndOfStream",
             step=every(0.2, lambda: send_msg(regions, EndOfStream(frame_id="sync", source="test"), "regions")),
         )
-        _full_disk(node.pid, 1024)
+        _full_disk(node.pid, room)
 
         send(regions, good)
         failed = wait_for(
@@ -108,6 +122,8 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
         assert region_features.name in failed.message and "could not be written" in failed.message, failed
         assert "MB free on its disk" in failed.message and str(tmp_path) in failed.message, failed
         assert failed.values["store_errors"] >= 1
+        if features == "2d3d":  # refused at the segment, with the photo on the disk
+            assert failed.message.endswith(f"'{tmp_path / 'store'}'"), failed
         assert node.poll() is None, "the accumulator died of a full disk"
         assert not observations.got(ObservationsAdded), "a view that is not on the disk was acknowledged"
         left = sorted(p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp"))
@@ -135,6 +151,9 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
     assert "not stored" in output and "not acknowledged" in output, output[-3000:]
     store = ObservationStore(tmp_path / "store", len(read_ply(scene / "map" / "point_cloud.ply")))
     assert store.names() == [region_features.name]
+    if features == "2d3d":  # h trained on the view once: the failed attempt's training was undone
+        with np.load(tmp_path / "store" / "branch.npz") as branch:
+            assert len(branch["losses"]) == 1, branch["losses"]
 
 
 def test_a_map_the_disk_will_not_take_is_reported_and_written_by_a_later_pass(ctx, sockdir, tmp_path, tiny, tiny_run):
