@@ -40,8 +40,9 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], object] | bytes) 
             f.flush()
             # numpy writes small arrays through a C stream whose failed last flush it does not
             # report: a file cut short would otherwise be renamed into place
-            if os.fstat(f.fileno()).st_size != f.tell():
-                raise OSError(errno.EIO, f"cut short at {os.fstat(f.fileno()).st_size} of {f.tell()} bytes")
+            written = os.fstat(f.fileno()).st_size
+            if written != f.tell():
+                raise OSError(errno.EIO, f"cut short at {written} of {f.tell()} bytes")
             os.fsync(f.fileno())
         tmp.replace(path)
     except OSError as exc:

@@ -80,9 +80,7 @@ def pick_views(names: list[str], count: int, spread: bool) -> list[str]:
     """The ``count`` views heatmap queries ask for: the flight's first ones, or with ``spread``
     views evenly spaced from its first to its last (a survey's far views cost more: more of the
     map in view)."""
-    if not spread or count >= len(names):
-        return names[:count]
-    if count <= 1:
+    if not spread or count <= 1 or count >= len(names):
         return names[:count]
     return [names[round(k * (len(names) - 1) / (count - 1))] for k in range(count)]
 
