@@ -12,6 +12,7 @@ import errno
 import os
 import shutil
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
@@ -61,6 +62,34 @@ def free_mb(folder: str | Path) -> float:
         return shutil.disk_usage(folder).free / 2**20
     except OSError:
         return float("nan")
+
+
+@dataclass
+class DiskRunway:
+    """How many more views a run's disk holds at the run's rate so far: ``written`` bytes for
+    ``views`` views (its store segments and photos; its snapshots are a bounded number of
+    files), and ``margin`` for later views that see more than the first ones did (the offline
+    run's ``disk_warning`` allows the same margin)."""
+
+    written: int = 0
+    views: int = 0
+    margin: float = 1.2
+
+    def add(self, nbytes: int) -> None:
+        """One more view, of ``nbytes`` bytes on the disk."""
+        self.written += int(nbytes)
+        self.views += 1
+
+    @property
+    def bytes_per_view(self) -> float | None:
+        return self.written / self.views if self.views else None
+
+    def views_left(self, free_bytes: float) -> float | None:
+        """Views that ``free_bytes`` hold at this rate (None before the first view)."""
+        per_view = self.bytes_per_view
+        if per_view is None:
+            return None
+        return free_bytes / max(per_view * self.margin, 1.0)
 
 
 def append_line(path: str | Path, line: str) -> None:

@@ -22,8 +22,8 @@ from ..errors import OlsplatInputError
 from ..scene import Camera
 
 
-def save_view(folder: str | Path, index: int, camera: Camera, image_rgb: np.ndarray) -> None:
-    """Write view ``index``: photo [H, W, 3] uint8 RGB and camera."""
+def save_view(folder: str | Path, index: int, camera: Camera, image_rgb: np.ndarray) -> int:
+    """Write view ``index``: photo [H, W, 3] uint8 RGB and camera; returns the bytes written."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     stem = folder / f"{index:06d}"
@@ -39,7 +39,9 @@ def save_view(folder: str | Path, index: int, camera: Camera, image_rgb: np.ndar
         "dist": camera.dist.tolist(),
         "world_from_camera": camera.world_from_camera.reshape(-1).tolist(),
     }
-    write_atomic(str(stem) + ".json", json.dumps(record).encode())  # last: the view exists once it does
+    data = json.dumps(record).encode()
+    write_atomic(str(stem) + ".json", data)  # last: the view exists once it does
+    return len(jpeg) + len(data)
 
 
 @dataclass

@@ -62,6 +62,9 @@ class AccumulatorNode(Node):
         # the 3D branch's point features: "" geometric descriptors, "shipped" the packaged
         # self-supervised MinkUNet, or a MinkUNet checkpoint file
         minkunet: str = ""
+        # WARN once the store's disk holds fewer than this many more views at the run's rate so far
+        # (its segments and photos per view; 600: ten minutes at 1 frame/s, time to land)
+        disk_warn_views: int = 600
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -70,6 +73,8 @@ class AccumulatorNode(Node):
         method = method_params_of(params).resolve(where)  # a known method, values in range
         if params.features not in ("2d", "2d3d") or not 0.0 <= params.lambda_f <= 1.0:
             raise ParameterError(f"{where}: features must be 2d or 2d3d and 0 <= lambda_f <= 1, got {params}")
+        if params.disk_warn_views < 0:
+            raise ParameterError(f"{where}: disk_warn_views must be >= 0 (0: never), got {params.disk_warn_views}")
         from ..structure.branch import minkunet_path
 
         checkpoint = minkunet_path(params.minkunet)
@@ -98,6 +103,7 @@ class AccumulatorNode(Node):
 
     def setup(self) -> None:
         from ..aggregate.tiles import TileShard  # heavy imports here: the launcher imports node classes
+        from ..durable import DiskRunway
         from ..method import claim_store, method_params_of, warm_up
         from ..scene import read_ply
 
@@ -112,6 +118,9 @@ class AccumulatorNode(Node):
         self.branch = None  # made at the first view, or restored from the store
         self.store_error = ""  # why the last view could not be stored ("" once one is)
         self.branch_file = Path(p.store) / "branch.npz"
+        self.runway = DiskRunway()  # the bytes this run writes per view, to tell when the disk fills
+        self.disk_warning = ""
+        self.disk_values: dict = {}
         if self.structure is not None and self.branch_file.exists():
             self.branch = self._restore_branch()
         # before "ready": a fresh install compiles the per-view kernels here, not on a flight's first frames
@@ -139,11 +148,39 @@ class AccumulatorNode(Node):
                 self.unexpected(message, p.topic_regions)
         if self.diag is not None:
             values = self.stats.with_sockets(self.sub.stats, queue_depth=len(batch), views=len(self.shard))
+            values.update(self.disk_values)
             if self.store_error:
                 self.diag.beat(DiagnosticStatus.ERROR, self.store_error, values)
+            elif self.disk_warning:
+                self.diag.beat(DiagnosticStatus.WARN, self.disk_warning, values)
             else:
                 self.diag.beat(DiagnosticStatus.OK, f"{len(self.shard)} views in the store", values)
         return None
+
+    def _disk_after_view(self, nbytes: int) -> None:
+        """Count a stored view's bytes and tell, while the flight goes on, when the store's disk
+        will be full soon at this rate (a status, not an error: space can be made meanwhile)."""
+        from ..durable import free_mb
+
+        self.runway.add(nbytes)
+        free = free_mb(self.params.store) * 2**20
+        warned, self.disk_warning, self.disk_values = bool(self.disk_warning), "", {}
+        if not np.isfinite(free):  # the free space could not be read: nothing to tell
+            return
+        left = self.runway.views_left(free) or 0.0
+        per_view = self.runway.bytes_per_view or 0.0
+        self.disk_values = {
+            "disk_free_mb": round(free / 2**20, 1),
+            "disk_mb_per_view": round(per_view / 2**20, 3),
+            "disk_views_left": int(left),
+        }
+        if left < self.params.disk_warn_views:
+            self.disk_warning = (
+                f"disk nearly full: room for ~{int(left)} more views at {per_view / 2**20:.1f} MB per view "
+                f"({free / 2**20:,.0f} MB free on the disk of {self.params.store})"
+            )
+            if not warned:
+                log.warning(self.disk_warning)
 
     def _not_stored(self, message: RegionFeatures, exc: OSError) -> None:
         """A view the disk would not take (full, a file-size limit, a folder gone): the node goes
@@ -190,6 +227,7 @@ class AccumulatorNode(Node):
 
     def _add(self, message: RegionFeatures) -> None:
         from ..aggregate import save_view
+        from ..aggregate.store import segment_bytes
         from ..method import view_observations, write_manifest
 
         start = time.perf_counter()
@@ -208,7 +246,7 @@ class AccumulatorNode(Node):
                 manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
                 write_manifest(self.params.store, manifest)
                 self.manifest = manifest  # after the write: a failed one is tried again with the next view
-            save_view(self.params.views, len(self.shard.store), camera, image)
+            nbytes = save_view(self.params.views, len(self.shard.store), camera, image)
             if self.structure is not None and self.branch is None:
                 from ..structure.branch import StructuralBranch
 
@@ -217,6 +255,7 @@ class AccumulatorNode(Node):
                 self.gaussians, camera, label_maps, bank, self.method, self.branch
             )
             self.shard.record(message.name, observations, stacked)
+            self._disk_after_view(nbytes + segment_bytes(observations, stacked))
             kept = len(observations)
             if self.branch is not None:  # after the view is stored: a restart goes on from h as it is now
                 self._save_branch()

@@ -156,3 +156,16 @@ def test_a_run_that_will_not_fit_on_its_disk_is_told_early():
     warning = disk_warning(Path("run"), written=5 * 10 * mb, done=5, total=105, free=1199 * mb)
     assert warning is not None and warning.startswith("run: the store will need ~1.2 GB more for the 100 views left")
     assert "(10.0 MB per view so far)" in warning and "1.2 GB free" in warning
+
+
+def test_a_disk_runway_counts_the_views_the_free_space_holds_at_the_rate_so_far():
+    """None before the first view; then free / (bytes per view x the 20 % margin)."""
+    from olsplat_nodes.durable import DiskRunway
+
+    runway = DiskRunway()
+    assert runway.bytes_per_view is None and runway.views_left(10**9) is None
+    runway.add(4 * 2**20)
+    runway.add(6 * 2**20)
+    assert runway.bytes_per_view == 5 * 2**20
+    assert runway.views_left(600 * 2**20) == pytest.approx(100.0)
+    assert DiskRunway(margin=1.0, written=10, views=1).views_left(25) == pytest.approx(2.5)

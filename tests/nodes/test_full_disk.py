@@ -283,3 +283,64 @@ def test_an_acknowledgement_the_disk_will_not_record_does_not_stop_the_flight(ct
         acks.close()
         frames.close()
     assert "not recorded as acknowledged" in output, output[-3000:]
+
+
+@pytest.mark.parametrize("warn_views", [0, 10**15])
+def test_the_accumulator_tells_how_many_more_views_its_disk_holds(
+    ctx, sockdir, tmp_path, tiny, region_features, warn_views
+):
+    """After a stored view the status carries the free space, the run's bytes per view (photo,
+    camera and store segment, as on the disk) and the views the disk holds at that rate; below
+    ``disk_warn_views`` (here: more than any disk holds) the status is a WARN that says so."""
+    import shutil
+
+    import numpy as np
+
+    from olsplat_nodes.nodes.accumulator import AccumulatorNode
+
+    from .conftest import NodeThread
+
+    scene, _ = tiny
+    regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
+    beats = Heartbeats(ctx)
+    observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
+    params = {
+        "map": str(scene / "map" / "point_cloud.ply"),
+        "store": str(tmp_path / "store"),
+        "views": str(tmp_path / "views"),
+        "regions_in": f"ipc://{sockdir}/regions.sock",
+        "observations_out": f"ipc://{sockdir}/observations.sock",
+        "diagnostics": beats.endpoint,
+        "disk_warn_views": warn_views,
+    }
+    try:
+        with NodeThread(AccumulatorNode("accumulator", params)) as running:
+            wait_for(
+                lambda: observations.got(ObservationsAdded),
+                60,
+                "the view acknowledged",
+                step=every(1.0, lambda: send(regions, encode(region_features, "regions"))),
+            )
+            status = wait_for(
+                lambda: [s for s in _statuses(beats) if "disk_views_left" in s.values], 30, "a status with disk figures"
+            )[-1]
+            running.assert_running()
+    finally:
+        regions.close()
+        beats.close()
+        observations.close()
+    values = status.values
+    segment = tmp_path / "store" / "views" / "000000"
+    arrays = sum(np.load(f, mmap_mode="r").nbytes for f in segment.glob("*.npy"))
+    written = arrays + sum(f.stat().st_size for f in (tmp_path / "views").iterdir())
+    assert values["disk_mb_per_view"] == pytest.approx(written / 2**20, abs=0.001), (values, written)
+    free_mb = shutil.disk_usage(tmp_path).free / 2**20
+    assert values["disk_free_mb"] == pytest.approx(free_mb, rel=0.05), values
+    expected_left = values["disk_free_mb"] / (values["disk_mb_per_view"] * 1.2)
+    assert values["disk_views_left"] == pytest.approx(expected_left, rel=0.01), values
+    if warn_views:
+        assert status.level == DiagnosticStatus.WARN, status
+        assert status.message.startswith(f"disk nearly full: room for ~{values['disk_views_left']} more views at")
+        assert str(tmp_path / "store") in status.message
+    else:
+        assert status.level == DiagnosticStatus.OK and status.message == "1 views in the store", status
