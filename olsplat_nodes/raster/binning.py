@@ -2,8 +2,9 @@
 
 Gaussians are sorted by camera depth once (a stable radix sort on the float bits); a
 counting sort by tile then keeps that order inside each tile's list, so no per-tile sort is
-needed. Ties in depth keep map order. Both passes run in parallel over chunks of the sorted
-list; chunk c writes after chunks < c inside every tile, which keeps the depth order.
+needed. Ties in depth keep map order. The sort's passes and both binning passes run in parallel
+over chunks of their input; chunk c writes after chunks < c (in every digit's run, in every
+tile), which keeps the order stable.
 """
 
 from __future__ import annotations
@@ -11,27 +12,59 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+# Chunks of a radix pass that run in parallel (more than the threads: even loads; the result
+# does not depend on it)
+RADIX_CHUNKS = 8
 
-@njit(cache=True)
+
+@njit(parallel=True, cache=True)
 def radix_argsort(keys):
     """Stable argsort of non-negative float32 ``keys`` [M] (LSD radix, 3 passes of 11 bits).
 
-    Non-negative IEEE floats order like their bit patterns read as unsigned integers.
-    """
+    Non-negative IEEE floats order like their bit patterns read as unsigned integers. Each pass
+    moves (key, index) pairs, so it reads its input in order and only its writes scatter (a pass
+    that looked each key up through the order so far read 16 MB at random for 4M keys: 0.36-0.41
+    s of a far view's sort, now ~0.1 s); a pass whose digit is the same for every key (depths
+    share their high bits) is skipped: it would not move anything. Each pass runs in parallel
+    over ``RADIX_CHUNKS`` runs of its input, chunk c writing each digit's keys after those of
+    chunks < c, which keeps the sort stable. Its reference: ``np.argsort(keys, kind="stable")``
+    (tests)."""
     bits = keys.view(np.uint32)
     n = bits.shape[0]
+    every = np.zeros((3, 2048), np.int64)  # per pass, keys per digit
+    for i in range(n):
+        b = bits[i]
+        every[0, b & 2047] += 1
+        every[1, (b >> 11) & 2047] += 1
+        every[2, (b >> 22) & 2047] += 1
+    key_in = bits.copy()
+    key_out = np.empty(n, np.uint32)
     order = np.arange(n).astype(np.int32)
     scratch = np.empty(n, np.int32)
-    for shift in (0, 11, 22):
-        counts = np.zeros(2049, np.int64)
-        for i in range(n):
-            counts[((bits[order[i]] >> shift) & 2047) + 1] += 1
-        for b in range(2048):
-            counts[b + 1] += counts[b]
-        for i in range(n):
-            digit = (bits[order[i]] >> shift) & 2047
-            scratch[counts[digit]] = order[i]
-            counts[digit] += 1
+    bounds = np.linspace(0, n, RADIX_CHUNKS + 1).astype(np.int64)
+    for p in range(3):
+        if every[p].max() == n:  # one digit for every key: the order stays
+            continue
+        shift = 11 * p
+        starts = np.zeros((RADIX_CHUNKS, 2048), np.int64)
+        for c in prange(RADIX_CHUNKS):
+            for i in range(bounds[c], bounds[c + 1]):
+                starts[c, (key_in[i] >> shift) & 2047] += 1
+        at = 0
+        for digit in range(2048):  # counts -> where each chunk's keys of each digit go
+            for c in range(RADIX_CHUNKS):
+                here = starts[c, digit]
+                starts[c, digit] = at
+                at += here
+        for c in prange(RADIX_CHUNKS):
+            for i in range(bounds[c], bounds[c + 1]):
+                b = key_in[i]
+                digit = (b >> shift) & 2047
+                w = starts[c, digit]
+                key_out[w] = b
+                scratch[w] = order[i]
+                starts[c, digit] = w + 1
+        key_in, key_out = key_out, key_in
         order, scratch = scratch, order
     return order
 

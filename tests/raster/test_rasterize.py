@@ -152,11 +152,29 @@ def test_features_shape_is_checked():
         rasterize(gaussians, camera_for("PINHOLE_CENTRED", 8, 8), features=np.zeros((9, 4)))
 
 
-def test_radix_argsort_matches_stable_argsort():
+@pytest.mark.parametrize(
+    "kind", ["wide", "one_exponent", "low_bits_only", "all_equal", "empty", "one", "with_zeros", "huge"]
+)
+def test_radix_argsort_matches_stable_argsort(kind):
+    """Against numpy's stable argsort, with the cases where passes are skipped (a digit the
+    same for every key: keys of one binade share their high bits; keys that differ only in
+    their low bits; all equal) and many ties (their order must stay the input order)."""
     rng = np.random.default_rng(0)
-    keys = rng.uniform(0.01, 1000.0, 50_000).astype(np.float32)
-    keys[::5] = keys[7]  # many ties: the order among them must stay the input order
-    np.testing.assert_array_equal(radix_argsort(keys), np.argsort(keys, kind="stable"))
+    keys = {
+        "wide": rng.uniform(0.01, 1000.0, 50_000),
+        "one_exponent": rng.uniform(64.0, 128.0, 50_000),  # the top pass is skipped
+        "low_bits_only": np.float32(100.0) + np.float32(1e-5) * rng.integers(0, 200, 50_000),
+        "all_equal": np.full(1000, 3.5),
+        "empty": np.zeros(0),
+        "one": np.array([7.0]),
+        "with_zeros": np.where(rng.random(20_000) < 0.3, 0.0, rng.uniform(0.0, 5.0, 20_000)),
+        "huge": rng.uniform(0.0, 3e38, 20_000),
+    }[kind].astype(np.float32)
+    if len(keys) > 10:
+        keys[::5] = keys[7]  # many ties
+    order = radix_argsort(keys)
+    assert order.dtype == np.int32
+    np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))
 
 
 def test_config_rejects_bad_values():
