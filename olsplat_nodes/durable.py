@@ -3,7 +3,8 @@
 A rename is atomic, but after a power cut a renamed file may still be empty (its data were in
 the page cache) and the rename itself may be lost (the directory entry was too). So: write a
 temporary file in the same folder, fsync it, rename it into place, fsync the folder. A file is
-then either absent or whole, and once the function returns it is on the disk.
+then either absent or whole, and once the function returns it is on the disk. And before the
+disk is full: ``free_mb``, and ``DiskRunway``, the views a run's free space still holds.
 """
 
 from __future__ import annotations
