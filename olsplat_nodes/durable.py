@@ -69,8 +69,8 @@ def free_mb(folder: str | Path) -> float:
 class DiskRunway:
     """How many more views a run's disk holds at the run's rate so far: ``written`` bytes for
     ``views`` views (its store segments and photos; its snapshots are a bounded number of
-    files), and ``margin`` for later views that see more than the first ones did (the offline
-    run's ``disk_warning`` allows the same margin)."""
+    files), and ``margin`` for later views that see more than the first ones did. The live
+    accumulator's status and the offline run's ``disk_warning`` both use it."""
 
     written: int = 0
     views: int = 0
@@ -84,6 +84,10 @@ class DiskRunway:
     @property
     def bytes_per_view(self) -> float | None:
         return self.written / self.views if self.views else None
+
+    def need(self, views: int) -> float:
+        """Bytes that ``views`` more views take at this rate, with the margin (0 before the first)."""
+        return (self.bytes_per_view or 0.0) * views * self.margin
 
     def views_left(self, free_bytes: float) -> float | None:
         """Views that ``free_bytes`` hold at this rate (None before the first view)."""

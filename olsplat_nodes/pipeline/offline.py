@@ -16,6 +16,7 @@ import numpy as np
 from ..aggregate import LanguageMap
 from ..aggregate.store import segment_bytes
 from ..aggregate.tiles import TiledStore, TileGrid, Tiling
+from ..durable import DiskRunway
 from ..errors import OlsplatInputError
 from ..method import Method
 from ..method.view_step import view_observations
@@ -73,9 +74,9 @@ def aggregate_scene(
 def disk_warning(out: Path, written: int, done: int, total: int, free: int, margin: float = 1.2) -> str | None:
     """What to tell the user when a run will not fit on its disk at its rate so far (``written``
     bytes of store for ``done`` of ``total`` views, ``free`` bytes left, ``margin`` for views that
-    see more than the first ones); None when it fits. A warning, not an error: the rate is an
-    estimate, and space can be made while the run goes on."""
-    need = written / max(done, 1) * (total - done) * margin
+    see more than the first ones: ``DiskRunway``, as the live accumulator); None when it fits. A
+    warning, not an error: the rate is an estimate, and space can be made while the run goes on."""
+    need = DiskRunway(written, max(done, 1), margin).need(total - done)
     if need <= free:
         return None
     return (
