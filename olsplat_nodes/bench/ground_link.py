@@ -87,10 +87,11 @@ def pick_views(names: list[str], count: int, spread: bool) -> list[str]:
 
 def time_queries(
     client, scene: Path, run_dir: Path, relevance: int, heatmaps: int, heatmap_views: int, spread: bool = False
-) -> dict[str, list[float]]:
+) -> dict[str, list]:
     """Round-trip seconds per kind (``QUERY_KINDS``) of ``relevance`` queries without a view and
     ``heatmaps`` queries spread over ``heatmap_views`` views of the run (``pick_views``), each text
-    one of the scene's labels with the others as negatives. Raises RunFailed on a refusal.
+    one of the scene's labels with the others as negatives, and under ``"heatmap_views"`` the
+    names of the views asked for. Raises RunFailed on a refusal.
     Waits first (up to 60 s) until the query server has loaded the run's newest map: the
     refiner writes it before the server hears of it (announcement, or its 2 s look at
     ``latest.json``), and a query in between is answered ``no_map`` or from an older version."""
@@ -115,7 +116,8 @@ def time_queries(
     per_view = max(1, heatmaps // max(1, len(views)))
     plan = [("relevance", "", i) for i in range(relevance)]
     plan += [("heatmap", view, i) for view in views for i in range(per_view)]
-    times: dict[str, list[float]] = {kind: [] for kind in QUERY_KINDS}
+    times: dict[str, list] = {kind: [] for kind in QUERY_KINDS}
+    times["heatmap_views"] = views
     for kind, view, i in plan:
         text = texts[i % len(texts)]
         start = time.perf_counter()
@@ -142,10 +144,14 @@ def time_queries(
     return times
 
 
-def report_queries(times: dict[str, list[float]], figures: dict) -> None:
-    """Print each kind's percentiles and put ``query_<kind>_p95_ms`` into ``figures``."""
+def report_queries(times: dict[str, list], figures: dict) -> None:
+    """Print each kind's percentiles and put ``query_<kind>_p95_ms`` into ``figures``, and the
+    views the heatmap queries asked for into ``heatmap_views``."""
     for kind, label in QUERY_KINDS.items():
         if times.get(kind):
             where = "(in the server)" if kind.endswith("_server") else "(round trip)"
             print(f"  query {label:34s} {where:15s} {percentiles(times[kind])}")
             figures[f"query_{kind}_p95_ms"] = round(float(np.percentile(1000 * np.asarray(times[kind]), 95)), 1)
+    if times.get("heatmap_views"):
+        print(f"  heatmap queries asked for views {', '.join(times['heatmap_views'])}")
+        figures["heatmap_views"] = list(times["heatmap_views"])

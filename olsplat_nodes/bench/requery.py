@@ -70,7 +70,9 @@ def run(args: argparse.Namespace) -> int:
             if not thread.is_alive() or time.monotonic() > deadline:
                 raise RunFailed(f"the query server was not ready within 120 s; see {run_dir / 'logs'}")
             time.sleep(0.2)
-        times = time_queries(client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views)
+        times = time_queries(
+            client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views, args.heatmap_spread
+        )
         pid = supervisor.pids.get("query_server")
         peak = process_memory(pid).get("peak_rss_mb", float("nan")) if pid else float("nan")
         camera = read_cameras(scene)[0]
@@ -104,4 +106,4 @@ def run(args: argparse.Namespace) -> int:
 def _warm(status) -> bool:
     """Whether a status reply says the query server has finished its warm-up."""
     own = next((n for n in status.nodes if n["node"] == "query_server"), None) if status is not None else None
-    return bool(own and own["values"].get("query_index_ready"))
+    return bool(own and own["values"].get("query_index_ready") and own["values"].get("query_warm"))

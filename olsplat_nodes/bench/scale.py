@@ -29,8 +29,8 @@ end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB
 the refiner's first pass and its final one are exact), ``refine_s_per_added_view`` (each pass over the views it
 added), ``query_relevance_p95_ms`` (round trip) and ``query_relevance_server_p95_ms`` (the
 query server's own time), ``query_heatmap_p95_ms``, ``query_heatmap_first_p95_ms``,
-``query_heatmap_repeat_p95_ms``, ``query_heatmap_first_server_p95_ms``, and ``width``,
-``height``.
+``query_heatmap_repeat_p95_ms``, ``query_heatmap_first_server_p95_ms``, ``heatmap_views``
+(the views the heatmap queries asked for), and ``width``, ``height``.
 
 ``--queries-only --work DIR``: only the queries again, on a run kept with ``--work DIR``
 (``requery.py``).

@@ -9,6 +9,7 @@ with the query beats its cosine with every negative text; chosen Gaussians are c
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
@@ -137,22 +138,24 @@ class CachedTexts:
     def __init__(self, encoder, size: int = 4096):
         self.encoder, self.size, self.name = encoder, size, encoder.name
         self.cache: OrderedDict[str, np.ndarray] = OrderedDict()
+        self.lock = threading.Lock()  # the query server's warm query may encode beside a real one
 
     def unknown_words(self, text: str) -> list[str]:
         return list(getattr(self.encoder, "unknown_words", lambda _t: [])(text))
 
     def encode_text(self, texts: list[str]) -> np.ndarray:
         """[len(texts), D] unit rows, as the encoder's."""
-        missing = list(dict.fromkeys(t for t in texts if t not in self.cache))
-        if missing:
-            self.cache.update(zip(missing, self.encoder.encode_text(missing), strict=True))
-        rows = []
-        for text in texts:
-            self.cache.move_to_end(text)
-            rows.append(self.cache[text])
-        while len(self.cache) > self.size:
-            self.cache.popitem(last=False)
-        return np.stack(rows)
+        with self.lock:
+            missing = list(dict.fromkeys(t for t in texts if t not in self.cache))
+            if missing:
+                self.cache.update(zip(missing, self.encoder.encode_text(missing), strict=True))
+            rows = []
+            for text in texts:
+                self.cache.move_to_end(text)
+                rows.append(self.cache[text])
+            while len(self.cache) > self.size:
+                self.cache.popitem(last=False)
+            return np.stack(rows)
 
 
 def encoder_for_map(language_map: LanguageMap):

@@ -16,6 +16,7 @@ from collections import OrderedDict
 from collections.abc import Hashable
 
 import numpy as np
+from numba import njit, prange
 
 from ..raster import RasterConfig, rasterize
 from ..scene import Camera, Gaussians
@@ -173,8 +174,30 @@ def argmax_masks(maps: np.ndarray, alpha: np.ndarray, min_alpha: float = 0.5) ->
 def relevancy_mask(
     query_map: np.ndarray, negative_maps: np.ndarray, alpha: np.ndarray, min_alpha: float = 0.5
 ) -> np.ndarray:
-    """[H, W] bool: where the query's heatmap beats every negative's."""
-    return (query_map > negative_maps.max(0)) & (alpha > min_alpha) if len(negative_maps) else alpha > min_alpha
+    """[H, W] bool: where the query's heatmap beats every negative's (``query_map >
+    negative_maps.max(0)``, NaN never beats) and ``alpha > min_alpha``. One pass per pixel over
+    its negatives, whatever the maps' layout: a render's [Q, H, W] heatmaps are a view of its
+    [H, W, Q] output, whose negatives numpy's ``max(0)`` read 44 bytes apart (60 ms at
+    1280x960 and 10 negatives, 3-5 ms here)."""
+    if not len(negative_maps):
+        return alpha > min_alpha
+    out = np.empty(query_map.shape, np.bool_)
+    _beats_every(query_map, negative_maps, alpha, np.float32(min_alpha), out)
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _beats_every(query_map, negative_maps, alpha, min_alpha, out):
+    """out[y, x] = alpha[y, x] > min_alpha and query_map[y, x] > every negative_maps[k, y, x]."""
+    for y in prange(query_map.shape[0]):
+        for x in range(query_map.shape[1]):
+            beats = alpha[y, x] > min_alpha
+            value = query_map[y, x]
+            k = 0
+            while beats and k < negative_maps.shape[0]:
+                beats = value > negative_maps[k, y, x]
+                k += 1
+            out[y, x] = beats
 
 
 def threshold_mask(query_map: np.ndarray, threshold: float, alpha: np.ndarray, min_alpha: float = 0.5) -> np.ndarray:

@@ -61,12 +61,14 @@ def test_bench_scale_writes_the_documented_figures(tiny, tmp_path, capsys):
     # the same run's queries again without the flight: only its query server, on its final map
     again = tmp_path / "queries.json"
     args = ["bench", "scale", "--scene", str(scene), "--queries", "3", "--heatmap-queries", "2", "--queries-only"]
-    args += ["--heatmap-views", "1", "--work", str(tmp_path / "run"), "--json", str(again)]
+    args += ["--heatmap-views", "2", "--heatmap-spread", "--work", str(tmp_path / "run"), "--json", str(again)]
     args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port())]
     assert main(args) == 0
     requeried = json.loads(again.read_text())
     assert requeried["queries_only"] and requeried["views"] == 12 and requeried["gaussians"] == figures["gaussians"]
     assert set(requeried["peak_rss_mb"]) == {"query_server"} and requeried["startup_s"] > 0
+    names = [json.loads(f.read_text())["name"] for f in sorted((tmp_path / "run" / "views").glob("*.json"))]
+    assert figures["heatmap_views"] == names[:1] and requeried["heatmap_views"] == [names[0], names[-1]]  # spread
     for key in ("query_relevance_p95_ms", "query_relevance_server_p95_ms", "query_heatmap_p95_ms"):
         assert requeried[key] > 0
     assert json.loads((tmp_path / "run" / "map" / "latest.json").read_text()) == final  # the run is only read

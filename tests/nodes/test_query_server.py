@@ -1,6 +1,7 @@
 """The query server before any map exists: an explicit "no_map" at once (not a hang), for a query
 with and without a view; a StatusRequest works before any map; and once a snapshot appears
-(the refiner's latest.json), the same server answers from it without a restart. With a map, the
+(the refiner's latest.json), the same server answers from it without a restart, after querying
+it once in the background (status value ``query_warm``). With a map, the
 instances of its reply are, byte for byte, the ``Instance`` records msgs/README.md documents."""
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
             assert isinstance(status, StatusReply) and status.request_id == "s1" and status.map_version == 0
             assert status.nodes[0]["node"] == "query_server" and status.nodes[0]["level"] == 0
             assert "map version 0" in status.nodes[0]["message"]
+            assert status.nodes[0]["values"]["query_warm"] == 0  # nothing to warm without a map
 
             client.timeout_s = 2.0  # "at once": a hang would raise NoReply
             for view in ("", ENCODE_VIEW):
@@ -59,6 +61,12 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
                     0.2, lambda: send_msg(maps, MapUpdated(version=1, path=str(tmp_path / "map"), views=1), "map")
                 ),
             )
+            # the first map is queried in the background: the operator's first query finds the
+            # text encoder loaded (and the kernels warm)
+            wait_for(
+                lambda: client.request(StatusRequest()).nodes[0]["values"]["query_warm"] == 1, 60, "the warm query"
+            )
+            assert list(node.encoders) == [node.language_map.encoder] and node.warm_query.result() > 0
             client.timeout_s = 30.0
             reply = client.request(
                 QueryRequest(request_id="q", text="red roof buildings", view=ENCODE_VIEW, heatmap=True)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from olsplat_nodes.query import heatmaps, render_feature_map
-from olsplat_nodes.query.heatmap import render_heatmaps
+from olsplat_nodes.query.heatmap import relevancy_mask, render_heatmaps
 from olsplat_nodes.raster import rasterize
 
 from ..conftest import camera_for, random_gaussians
@@ -124,3 +124,22 @@ def test_codebook_features_render_as_their_rows():
     np.testing.assert_array_equal(maps.features, dense_maps.features)
     with pytest.raises(ValueError, match="feature_rows"):
         rasterize(gaussians, camera, features=centres, feature_rows=np.full(300, 9, np.int32))
+
+
+@pytest.mark.parametrize("layout", ["planes", "render"])
+def test_the_relevancy_mask_is_numpys_rule_in_either_layout(layout):
+    """The one-pass mask equals (query > negatives.max(0)) & (alpha > 0.5), on [Q, H, W] planes
+    (the cache's product) and on the strided view of a render's [H, W, Q] output, with ties,
+    NaN in the query and in a negative, and alpha on both sides of its bar."""
+    rng = np.random.default_rng(3)
+    pixels = rng.choice([-0.5, 0.0, 0.25, 0.5], size=(37, 29, 6)).astype(np.float32)  # many ties
+    pixels[3, 4, 0] = np.nan
+    pixels[5, 6, 2] = np.nan
+    maps = np.ascontiguousarray(np.moveaxis(pixels, -1, 0)) if layout == "planes" else np.moveaxis(pixels, -1, 0)
+    assert maps.flags.c_contiguous == (layout == "planes")
+    alpha = rng.choice([0.0, 0.5, 0.51, 1.0], size=(37, 29)).astype(np.float32)
+    for negatives in (maps[1:], maps[1:2], maps[:0]):
+        expected = (maps[0] > negatives.max(0)) & (alpha > 0.5) if len(negatives) else alpha > 0.5
+        np.testing.assert_array_equal(relevancy_mask(maps[0], negatives, alpha), expected)
+    mask = relevancy_mask(maps[0], maps[1:], alpha)
+    assert mask.any() and not mask[3, 4]  # a NaN query never beats
