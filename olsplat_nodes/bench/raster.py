@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     )
     print(
         f"{'gaussians':>10} {'image':>9} {'in view':>9} {'tiles x G':>10} {'s/view':>7} {'s/view':>8} "
-        f"{'evals':>6} {'Mevals/s':>9} {'gsplat':>7} {'Mpairs/s':>9} {'project':>8} {'bin':>6} {'compos.':>8}"
+        f"{'evals':>6} {'Mevals/s':>9} {'list':>7} {'Mpairs/s':>9} {'project':>8} {'bin':>6} {'compos.':>8}"
     )
     print(
         f"{'':>10} {'':>9} {'':>9} {'':>10} {'top-K':>7} {'no top-K':>8} {'(M)':>6} {'per core':>9} "
@@ -133,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     print("evals: Gaussian-pixel pairs whose sigma was computed (each Gaussian only over its alpha >= 1/255 box);")
-    print("gsplat pairs: the pairs a per-pixel tile-list loop (gsplat classic) tests for the same image;")
+    print("list pairs: the pairs a per-pixel loop over the tile lists (gsplat's loop) tests for the same image;")
+    print("  a Gaussian is listed in the tiles of its 3-sigma square that its alpha >= 1/255 box reaches")
+    print("  (until 2026-11-27 every tile of the square, as gsplat lists it: more pairs);")
     print("rates per core divide by (s/view with top-K) x threads; stage times are of the median top-K run.")
     return 0

@@ -3,7 +3,8 @@
 Same contract as ``rasterize.rasterize``. It projects every Gaussian with plain matrix
 algebra, sorts all of them by depth, and then, for every pixel separately, walks the whole
 sorted list: a Gaussian counts at a pixel when the pixel's tile lies in the Gaussian's tile
-rectangle (gsplat's rule), and it contributes alpha * T unless alpha < alpha_min; the walk
+rectangle (gsplat's rule: the tiles of its 3-sigma square) and its box where alpha >= alpha_min
+is possible reaches that tile, and it contributes alpha * T unless alpha < alpha_min; the walk
 stops before the transmittance would fall to <= transmittance_min. The pixel's Top-K is a
 stable sort of all its contributions by weight. Use it only on tiny scenes.
 """
@@ -87,7 +88,16 @@ def project_reference(gaussians: Gaussians, camera: Camera, config: RasterConfig
         valid &= (mean2d[:, 0] + radius > 0) & (mean2d[:, 0] - radius < w)
         valid &= (mean2d[:, 1] + radius > 0) & (mean2d[:, 1] - radius < h)
         valid &= (rect[:, 0] < rect[:, 2]) & (rect[:, 1] < rect[:, 3])
-    return dict(valid=valid, mean2d=mean2d, conic=conic, depth=z, opacity=opacity, color=colors, rect=rect)
+        # the tiles a Gaussian is listed in: those of rect that its alpha >= alpha_min box reaches
+        # (pixel x is in the box when |x + 0.5 - mx| <= extent * 1.001 + 0.01; one pixel wider)
+        sigma_cut = np.log(np.maximum(opacity, 1e-30) / config.alpha_min)
+        extent = np.sqrt(2.0 * np.maximum(sigma_cut, 0.0)[:, None] * cov2[:, [0, 1], [0, 1]]) * 1.001 + 0.01
+        first = np.ceil(mean2d - extent - 0.5) - 1  # pixel
+        last = np.floor(mean2d + extent - 0.5) + 2  # pixel, end exclusive
+        low, high = np.maximum(rect[:, :2], np.floor(first / t)), np.minimum(rect[:, 2:], np.ceil(last / t))
+        tiles = np.concatenate([low, high], 1)
+        tiles[sigma_cut <= 0] = 0
+    return dict(valid=valid, mean2d=mean2d, conic=conic, depth=z, opacity=opacity, color=colors, rect=rect, tiles=tiles)
 
 
 def rasterize_reference(
@@ -120,7 +130,7 @@ def rasterize_reference(
             trans, contributions = 1.0, []  # (weight, gaussian)
             rgb, depth, feat = np.zeros(3), 0.0, np.zeros(d)
             for g in order:
-                x0, y0, x1, y1 = proj["rect"][g]
+                x0, y0, x1, y1 = proj["tiles"][g]
                 if not (x0 <= x // t < x1 and y0 <= y // t < y1):
                     continue
                 # the fast path culls Gaussians that can never reach alpha_min before binning

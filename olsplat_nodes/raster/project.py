@@ -3,10 +3,11 @@
 For each Gaussian: camera-space mean, 3D covariance R S S^T R^T, 2D covariance J W Σ W^T J^T
 (J the perspective Jacobian at the mean, with the mean's x/z and y/z clamped to 1.3x the
 field of view as gsplat does), plus ``eps2d`` on the diagonal; its inverse (the conic); a
-screen radius of 3 sigma of the largest eigenvalue; the covered tile rectangle; opacity and
-the SH colour for the viewing direction. Degenerate Gaussians (non-finite parameters, zero
-scale, behind the near plane, off-screen, too transparent to ever reach alpha_min) get
-radius 0 and are never rasterized.
+screen radius of 3 sigma of the largest eigenvalue; the covered tile rectangle: the tiles of
+the 3-sigma square (gsplat's rule) that the box where alpha >= alpha_min is possible reaches
+(the others would evaluate nothing); opacity and the SH colour for the viewing direction.
+Degenerate Gaussians (non-finite parameters, zero scale, behind the near plane, off-screen, too
+transparent to ever reach alpha_min) get radius 0 and are never rasterized.
 """
 
 from __future__ import annotations
@@ -180,6 +181,19 @@ def _project_kernel(
         ty1 = min(max(int(math.ceil((v + radius) / tile_size)), 0), tiles_y)
         if tx0 >= tx1 or ty0 >= ty1:
             continue
+        # alpha >= alpha_min  <=>  d^T cov^-1 d <= 2 sigma_cut: an ellipse with this bounding box
+        sigma_cut = math.log(opacity / alpha_min)
+        extent_x = math.sqrt(2.0 * sigma_cut * cov_a)
+        extent_y = math.sqrt(2.0 * sigma_cut * cov_c)
+        # Only the tiles that box reaches are listed (the kernels evaluate a Gaussian only over
+        # its box): 24 % fewer Gaussian-tile pairs on a near view of the large map, 14 % on a
+        # far one, the same image. The box as the kernels take it (pixel x is in when
+        # |x + 0.5 - mx| <= extent * 1.001 + 0.01), one pixel wider against rounding.
+        px0, px1, py0, py1 = _pixel_box(u, v, extent_x, extent_y)
+        tx0, tx1 = max(tx0, (px0 - 1) // tile_size), min(tx1, -(-(px1 + 1) // tile_size))
+        ty0, ty1 = max(ty0, (py0 - 1) // tile_size), min(ty1, -(-(py1 + 1) // tile_size))
+        if tx0 >= tx1 or ty0 >= ty1:  # no pixel centre in its box: on screen (radius), in no tile's list
+            tx0 = tx1 = ty0 = ty1 = 0
         # SH colour
         dx, dy, dz = means[i, 0] - campos[0], means[i, 1] - campos[1], means[i, 2] - campos[2]
         dn = math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -193,17 +207,30 @@ def _project_kernel(
         if not color_ok:
             rec[RED], rec[GREEN], rec[BLUE] = 0.0, 0.0, 0.0
             continue
-        sigma_cut = math.log(opacity / alpha_min)
         rec[MX], rec[MY] = u, v
         rec[CA], rec[CB], rec[CC] = cov_c / det, -cov_b / det, cov_a / det
         rec[DEPTH] = pz
         rec[OPACITY] = opacity
-        # alpha >= alpha_min  <=>  d^T cov^-1 d <= 2 sigma_cut: an ellipse with this bounding box
-        rec[EX] = math.sqrt(2.0 * sigma_cut * cov_a)
-        rec[EY] = math.sqrt(2.0 * sigma_cut * cov_c)
+        rec[EX], rec[EY] = extent_x, extent_y
         rec[CUT] = sigma_cut
         tile_rects[j, 0], tile_rects[j, 1], tile_rects[j, 2], tile_rects[j, 3] = tx0, ty0, tx1, ty1
         radii[j] = radius
+
+
+@njit(cache=True)
+def _pixel_box(u, v, extent_x, extent_y):
+    """(px0, px1, py0, py1): the pixels [px0, px1) x [py0, py1) whose centres lie within a
+    Gaussian's alpha >= alpha_min box, in float32 as the compositing kernels compute it from a
+    record (centre u, v and extents stored as float32, widened by 0.1 % + 0.01 px)."""
+    mx, my = np.float32(u), np.float32(v)
+    ex = np.float32(extent_x) * np.float32(1.001) + np.float32(0.01)
+    ey = np.float32(extent_y) * np.float32(1.001) + np.float32(0.01)
+    half = np.float32(0.5)
+    px0 = int(math.ceil(mx - ex - half))
+    px1 = int(math.floor(mx + ex - half)) + 1
+    py0 = int(math.ceil(my - ey - half))
+    py1 = int(math.floor(my + ey - half)) + 1
+    return px0, px1, py0, py1
 
 
 def project(

@@ -29,7 +29,7 @@ class RenderResult:
     projected: Projected  # the Gaussians on screen (a culled map's candidates only: see means2d, radii)
     n_gaussians: int  # N, the map's
     n_evaluations: int  # Gaussian-pixel pairs evaluated (the sigma computed)
-    n_tile_pairs: int  # pairs a per-pixel tile-list loop (gsplat classic) evaluates for the same image
+    n_tile_pairs: int  # pairs a per-pixel loop over the tile lists (gsplat's loop) evaluates for the same image
     n_intersections: int  # Gaussian-tile pairs after binning
     n_visible: int  # Gaussians that survived projection
     seconds: dict[str, float]  # wall time per stage: project, bin, composite
