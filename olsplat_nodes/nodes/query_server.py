@@ -207,13 +207,17 @@ class QueryServerNode(Node):
         self.last_check = time.monotonic()
 
     def teardown(self) -> None:
-        # the warm-up runs numba kernels in the background (seconds, minutes on a cold cache):
-        # a stopped node does not leave it running in a process that goes on (composed launches, tests)
+        # the warm-up and the warm query run numba kernels in the background (seconds, minutes on
+        # a cold cache): a stopped node does not leave them running in a process that goes on
+        # (composed launches, tests)
         if getattr(self, "warm_up", None) is not None:
             self.warm_up.join(120)
         reservation = getattr(self, "reservation", None)
         if reservation is not None:
             reservation.join(120)
+        warm_query = getattr(self, "warm_query", None)
+        if warm_query is not None:
+            warm_query.done.wait(120)
 
     def spin(self) -> int | None:
         request = self.server.poll(100)
