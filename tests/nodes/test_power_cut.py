@@ -102,11 +102,14 @@ def test_a_run_folder_copied_mid_write_is_consistent_and_a_restart_from_it_finis
         rng = np.random.default_rng(5)
         while running.code is None and len(copies) < 8:  # copies spread over the flight
             # after the store has moved on since the last copy (up to 15 s: a loaded machine
-            # flies slowly), at a random moment within a view's time
-            deadline = time.monotonic() + 15.0
-            while copies and stored_now() == copies[-1][0] and running.code is None and time.monotonic() < deadline:
+            # flies slowly), at a random moment within a view's time, which the wait measures:
+            # a fixed second let a fast machine store 7 of the tiny flight's 12 views between two
+            # copies (3 copies in all)
+            start = time.monotonic()
+            while copies and stored_now() == copies[-1][0] and running.code is None and time.monotonic() < start + 15:
                 time.sleep(0.05)
-            time.sleep(float(rng.uniform(0.0, 1.0)))
+            view_time = min(1.0, max(0.05, time.monotonic() - start))
+            time.sleep(float(rng.uniform(0.0, view_time)))
             if running.code is not None:
                 break
             stored = stored_now()
