@@ -26,7 +26,7 @@ from numba import njit, prange
 
 from ._network32 import sort_descending
 from .prefetch import prefetch
-from .project import BLUE, CA, CB, CC, CUT, DEPTH, EX, EY, GREEN, MX, MY, OPACITY, RECORD, RED
+from .project import BLUE, CA, CB, CC, CUT, DEPTH, EX, EY, GREEN, MX, MY, OPACITY, RECORD, RED, pixel_box
 
 
 @njit(cache=True, inline="always")
@@ -178,15 +178,10 @@ def composite_tiles(
             ca, cb, cc = rec[CA], rec[CB], rec[CC]
             opac = rec[OPACITY]
             cut = rec[CUT] + np.float32(1e-3)  # margin: the exact alpha test decides
-            # Pixel box (tile-local) where alpha >= alpha_min is possible: pixel x (centre x + 0.5)
-            # is in when |x + 0.5 - mx| <= extent. The extent is widened by 0.1 % + 0.01 px, more
-            # than the 1e-3 margin on cut moves the ellipse; the exact sigma test below decides.
-            ex = rec[EX] * np.float32(1.001) + np.float32(0.01)
-            ey = rec[EY] * np.float32(1.001) + np.float32(0.01)
-            px0 = max(int(math.ceil(mx - ex - half)), x_start) - x_start
-            px1 = min(int(math.floor(mx + ex - half)) + 1, x_end) - x_start
-            py0 = max(int(math.ceil(my - ey - half)), y_start) - y_start
-            py1 = min(int(math.floor(my + ey - half)) + 1, y_end) - y_start
+            # the pixel box where alpha >= alpha_min is possible, clipped to the tile (tile-local)
+            bx0, bx1, by0, by1 = pixel_box(mx, my, rec[EX], rec[EY])
+            px0, px1 = max(bx0, x_start) - x_start, min(bx1, x_end) - x_start
+            py0, py1 = max(by0, y_start) - y_start, min(by1, y_end) - y_start
             for ly in range(py0, py1):
                 dy = my - (np.float32(y_start + ly) + half)
                 for lx in range(px0, px1):

@@ -187,9 +187,9 @@ def _project_kernel(
         extent_y = math.sqrt(2.0 * sigma_cut * cov_c)
         # Only the tiles that box reaches are listed (the kernels evaluate a Gaussian only over
         # its box): 24 % fewer Gaussian-tile pairs on a near view of the large map, 14 % on a
-        # far one, the same image. The box as the kernels take it (pixel x is in when
-        # |x + 0.5 - mx| <= extent * 1.001 + 0.01), one pixel wider against rounding.
-        px0, px1, py0, py1 = _pixel_box(u, v, extent_x, extent_y)
+        # far one, the same image. The box as the kernels take it, one pixel wider against the C
+        # kernels' rounding.
+        px0, px1, py0, py1 = pixel_box(u, v, extent_x, extent_y)
         tx0, tx1 = max(tx0, (px0 - 1) // tile_size), min(tx1, -(-(px1 + 1) // tile_size))
         ty0, ty1 = max(ty0, (py0 - 1) // tile_size), min(ty1, -(-(py1 + 1) // tile_size))
         if tx0 >= tx1 or ty0 >= ty1:  # no pixel centre in its box: on screen (radius), in no tile's list
@@ -218,10 +218,14 @@ def _project_kernel(
 
 
 @njit(cache=True)
-def _pixel_box(u, v, extent_x, extent_y):
-    """(px0, px1, py0, py1): the pixels [px0, px1) x [py0, py1) whose centres lie within a
-    Gaussian's alpha >= alpha_min box, in float32 as the compositing kernels compute it from a
-    record (centre u, v and extents stored as float32, widened by 0.1 % + 0.01 px)."""
+def pixel_box(u, v, extent_x, extent_y):
+    """(px0, px1, py0, py1): the image pixels [px0, px1) x [py0, py1) where a Gaussian with
+    centre (u, v) and extents (EX, EY) may reach alpha >= alpha_min: pixel x (centre x + 0.5) is
+    in when |x + 0.5 - u| <= extent, the extent widened by 0.1 % + 0.01 px (more than the 1e-3
+    margin on the sigma cut moves the ellipse; the exact sigma test decides). In float32, as
+    the record stores them: the binning (the tiles a Gaussian is listed in) and the numba
+    compositing kernel take this box; the C kernels' ``pixel_box`` (native/tile_pass.h) is the
+    same arithmetic."""
     mx, my = np.float32(u), np.float32(v)
     ex = np.float32(extent_x) * np.float32(1.001) + np.float32(0.01)
     ey = np.float32(extent_y) * np.float32(1.001) + np.float32(0.01)
