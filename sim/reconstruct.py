@@ -34,7 +34,7 @@ class ReconstructionSpec:
     # a foggier one. A trainer prunes floaters that would show in its own training views; tied to
     # the count alone, the large preset (4.3x the small one's Gaussians per m²) had 1.1 per m²,
     # the top-weight Gaussian on most roof, tree and car pixels, fogging its training views
-    # (README, issue 19). inf: the fraction alone
+    # (docs/decisions.md, "Scale and the simulator"). inf: the fraction alone
     floaters_max_per_m2: float = 0.3
     position_jitter: float = 0.25  # std, in units of the mean Gaussian spacing
     log_scale_jitter: float = 0.25  # std of the log-scale error

@@ -1,4 +1,4 @@
-"""The architecture the README's tour promises, checked on the source: every import, also the
+"""The architecture docs/architecture.md ("Package layout") promises, checked on the source: every import, also the
 lazy ones inside functions, followed transitively.
 
 - No node imports another node: nodes share code through ``nodes/base.py`` (the loop) and

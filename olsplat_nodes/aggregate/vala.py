@@ -16,7 +16,7 @@ per view, the Gaussians that are:
 
 Views are combined by the streaming geometric median in cosine space (``refine.py``,
 ``combine="streaming_median"``). The defaults of tau_mass, tau_abs and the cut are VALA's values for
-LERF scenes (0.75, 0.13, 0.15); README "Comparisons" gives the values tuned on our training seeds.
+LERF scenes (0.75, 0.13, 0.15); docs/evaluation.md ("Comparisons") gives the values tuned on our training seeds.
 Not reproduced: the code's final pruning of Gaussians with little total weight (it deletes
 them from the scene, which a map of fixed Gaussians cannot do) and its half-pixel offset
 between the weight's pixel and the feature's pixel (ours is the pixel containing the centre).

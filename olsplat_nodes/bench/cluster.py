@@ -8,7 +8,7 @@ union map), and the store's bytes per tile. The region features come from the sc
 cache, filled first (not timed: ``olsplat bench encode`` times them). Needs olsplat[cluster].
 
 Two cores give no speed-up from more workers here; the point is the memory per actor, which
-falls with the tile count, and what a city-scale map needs from it (README, "Beyond one machine").
+falls with the tile count, and what a city-scale map needs from it (docs/cluster.md).
 """
 
 from __future__ import annotations

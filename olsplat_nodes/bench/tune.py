@@ -6,7 +6,7 @@ the chosen setting has the best mean mIoU over the scenes, where a lead of less 
 ``TIE_MIOU`` (the resolution of our tables) is a tie and a tie goes to the earlier setting (the
 default first): a default is not replaced on noise. Scenes must be simulator scenes of training seeds (>= 1000, their
 ``scene.json``): choices made on the held-out seeds of the results would flatter whoever is
-tuned most. The chosen values are the defaults of ``method/table.py``; README "Comparisons"
+tuned most. The chosen values are the defaults of ``method/table.py``; docs/evaluation.md ("Comparisons")
 shows the sweep.
 """
 

@@ -1,7 +1,7 @@
 """Encoders named on a command line: shipped names, "shipped" (both fused), or exported folders.
 
 The default is ``DEFAULT_SPEC``, the first shipped encoder alone (D = 64): on the training seeds
-it beat the two shipped encoders fused (README "2D-3D feature fusion", Table 6), and it is
+it beat the two shipped encoders fused (docs/evaluation.md, "The 3D branch", Table 6), and it is
 one encoder per frame instead of two, with half the bytes per feature everywhere after it."""
 
 from __future__ import annotations

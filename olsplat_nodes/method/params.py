@@ -2,7 +2,7 @@
 give them: a method name plus any of the fields below; a field left at None keeps the named
 method's own value (so ``method: projection`` keeps its 256-long contribution lists unless told otherwise).
 
-Symbols are the paper's; defaults and the values the sweeps tried are in README.md.
+Symbols are the paper's; defaults and the values the sweeps tried are in docs/method.md.
 """
 
 from __future__ import annotations

@@ -58,7 +58,7 @@ class Method:
 _PLAIN = AggregationConfig(use_quality=False, tau_d=0.0, iterations=0)
 ALL_CONTRIBUTORS = 256  # a contribution list this long holds every contributor of every pixel we render
 _EVERY = RasterConfig(topk_min=ALL_CONTRIBUTORS, topk_max=ALL_CONTRIBUTORS, topk_coverage=1.0)
-# Chosen by ``olsplat bench tune`` on training seeds 1001 and 1002 (README "Comparisons"); every
+# Chosen by ``olsplat bench tune`` on training seeds 1001 and 1002 (docs/evaluation.md, "Comparisons"); every
 # method had the same four settings of budget. VALA's own values for LERF scenes (tau_mass 0.75,
 # tau_abs 0.13, stage-B cut 0.15) are AggregationConfig's defaults and gave 3 mIoU less here.
 _VALA = replace(_PLAIN, view_feature="centre", combine="streaming_median", gate_mass=0.9, gate_floor=0.0, gate_cut=0.05)

@@ -1,7 +1,7 @@
 """One text query against a language map, as a pure function: what ``olsplat query`` prints and
 what the query server sends back to the ground station.
 
-Rule (documented in README "Queries"): a Gaussian is chosen when it is observed and its cosine
+Rule (documented in docs/method.md, "Queries"): a Gaussian is chosen when it is observed and its cosine
 with the query beats its cosine with every negative text; chosen Gaussians are clustered into
 3D instances. In a view, the rendered heatmap H_q must beat every negative's heatmap
 (LERF-style relevancy mask); the mask's connected components are the 2D instances.

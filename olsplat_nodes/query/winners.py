@@ -1,4 +1,4 @@
-"""The relevance rule of README "Queries" as single passes over a map's rows.
+"""The relevance rule of docs/method.md ("Queries") as single passes over a map's rows.
 
 A Gaussian picks the query when the dot product of its feature with the query's embedding is at
 least its dot product with every negative's (the features and embeddings are unit rows, so these
@@ -7,7 +7,7 @@ are the cosines of eq. semantic_heatmap). That is numpy's ``(table @ embeddings.
 kernels to. The numpy form makes an [N, Q] float32 product and reads it again for the argmax, and
 reads the rows of never-observed Gaussians; here each row is read once, only when observed, and
 the negatives are tried one at a time until one beats the query. On the small demo map (390k
-Gaussians, D = 128, 3 negatives): 15-18 ms per query instead of 45-57 ms (README, round 6).
+Gaussians, D = 128, 3 negatives): 15-18 ms per query instead of 45-57 ms for one [N, Q] product.
 
 A float16 table (a language map's stored form, which the query server keeps) goes to the C
 kernel ``olsplat_nodes/native/winning_rows.c`` (numba has no float16), a float32 one to numba.

@@ -28,7 +28,7 @@ def test_the_dual_branch_runs_in_the_graph_and_survives_a_restart(tiny, tmp_path
     assert resumed and " 0 views" not in resumed[0], log[-2000:]  # the restart went on from h, not from scratch
     with np.load(run_dir / "store" / "branch.npz") as state:
         # h trained once on every stored view across the restart, but for at most the one view a
-        # kill can land between storing the view and saving h (README: that view keeps its place
+        # kill can land between storing the view and saving h (docs/method.md: that view keeps its place
         # in the map and loses only its training steps)
         assert summary["views"] - 1 <= len(state["losses"]) <= summary["views"]
         assert int(state["h.dims"][2]) > 500  # regions seen: past the warm-up, so views were fused
