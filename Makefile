@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml setup.py $(wildcard olsplat_nodes/native/*.[ch]) | syst
 	$(PY) -m pip install -q --upgrade pip
 	# torch first and pinned: 2.13.0 is the local CPU build, anything else drags in CUDA.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[test,lint,ground,cluster]'
+	$(PY) -m pip install -q -e '.[all]'
 	# Two files of open_clip (not installed: it needs torchvision): CLIP's BPE vocabulary and
 	# open_clip's tokenizer, the reference the tokenizer tests compare with.
 	$(PY) -m pip download -q --no-deps open_clip_torch==3.3.0 -d $(VENV)/reference

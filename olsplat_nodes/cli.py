@@ -2,9 +2,10 @@
 
 One error path: anticipated failures (``OlsplatInputError``, ``RunFailed`` -- a run of the
 graph that did not get there -- and the operating system's ``OSError``: a missing file, a folder
-where a file was expected, no permission, a full disk) print one line naming the file, option
-or logs and exit 1; anything else is a bug: its traceback
-is printed with a line saying so, and the exit code is 1 as well.
+where a file was expected, no permission, a full disk; and a module of an optional extra that is
+not installed, ``extras.py``) print one line naming the file, option, logs or extra and exit 1;
+anything else is a bug: its traceback is printed with a line saying so, and the exit code is 1 as
+well.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import sys
 import traceback
 
 from .errors import EXIT_FAILED, EXIT_INTERRUPTED, OlsplatInputError, RunFailed
+from .extras import EXTRA_OF_MODULE, missing_extra_message
 
 EPILOG = """examples:
   olsplat demo --out out                           the whole pipeline on a generated flight
@@ -32,6 +34,9 @@ EXAMPLES = {
     "--png r/v3.png",
     "demo": "olsplat demo --out out\nolsplat demo --out out --preset small --seed 1",
     "warm-up": "olsplat warm-up",
+    "doctor": "olsplat doctor\nolsplat doctor --launch field_drone --run-dir /var/lib/olsplat/run --minutes 25",
+    "service": "olsplat service --launch field_drone --run-dir /var/lib/olsplat/run --user uav "
+    "> /etc/systemd/system/olsplat.service",
     "sim train-encoders": "olsplat sim train-encoders --out enc --seeds 10 --epochs 8",
     "sim zeroshot": "olsplat sim zeroshot --seeds 0 1 2 --views 12",
     "sim replay": "olsplat sim replay --log scene/replay.mcap --rate 2 --limit 10",
@@ -41,8 +46,11 @@ EXAMPLES = {
     "--out maps/proj --set topk_max=24\n"
     "olsplat aggregate --scene flight1 --scene flight2 --tile-m 100 --cluster auto --out maps/city",
     "eval": "olsplat eval --scene small31 --scene small32 --methods outlangsplat,projection,vala",
-    "launch": "olsplat launch launch/replay.yaml --run-dir out/run --set ingest.source=scene/replay.mcap "
-    "--set launch.map=scene/map/point_cloud.ply",
+    "launch": "olsplat launch --list\n"
+    "olsplat launch replay --run-dir out/run --set ingest.source=scene/replay.mcap "
+    "--set query_server.map=scene/map/point_cloud.ply --set accumulator.map=scene/map/point_cloud.ply "
+    "--set refiner.map=scene/map/point_cloud.ply\n"
+    "olsplat launch my_graph.yaml --set launch.compose=true",
     "ground query": 'olsplat ground query "red roof buildings" --view 3 --out pictures/\n'
     "olsplat ground query road --connect tcp://DRONE:5600 --client-key ground.key_secret --server-key drone.key",
     "ground status": "olsplat ground status\nolsplat ground status --connect tcp://DRONE:5600 --json",
@@ -116,6 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .tools import (
         aggregate,
         demo,
+        doctor,
         encode,
         evaluate,
         export_clip,
@@ -125,6 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
         query,
         record,
         render,
+        service,
         warm_up,
     )
 
@@ -151,6 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
         bench,
         record,
         warm_up,
+        doctor,
+        service,
     ):
         module.add_parser(subparsers)
     _finish(parser, [])
@@ -171,7 +183,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"olsplat {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except Exception:
+    except Exception as exc:
+        missing = (exc.name or "") if isinstance(exc, ModuleNotFoundError) else ""
+        if missing.split(".")[0] in EXTRA_OF_MODULE:  # an optional extra this install does not have
+            print(f"olsplat {args.command}: error: {missing_extra_message(missing, 'this command')}", file=sys.stderr)
+            return EXIT_FAILED
         traceback.print_exc()
         print(
             f"olsplat {args.command}: internal error (a bug in olsplat, not in your input): please report it "

@@ -145,6 +145,9 @@ def run_replay(args: argparse.Namespace) -> int:
 
 
 def run_train(args: argparse.Namespace) -> int:
+    from olsplat_nodes.extras import require
+
+    require("torch", "olsplat sim train-encoders", "sim")
     from .train_encoders import ASSETS, train_all
 
     train_all(args.out or ASSETS, args.seeds, args.views, args.epochs)
@@ -152,6 +155,10 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_train_structure(args: argparse.Namespace) -> int:
+    from olsplat_nodes.extras import require
+
+    for module in ("torch", "open3d"):
+        require(module, "olsplat sim train-structure", "sim,structure")
     from olsplat_nodes.structure.branch import SHIPPED_MINKUNET
     from olsplat_nodes.structure.segcontrast import PretrainConfig
 

@@ -42,7 +42,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--queries", type=int, default=100, help="relevance queries after the flight")
     parser.add_argument("--heatmap-queries", type=int, default=20, help="heatmap queries, spread over --heatmap-views")
     parser.add_argument("--heatmap-views", type=int, default=4, help="views the heatmap queries ask for, in turn")
-    parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"), help="the launch file to run")
+    parser.add_argument("--launch", default="replay", help="the launch file to run (a shipped name or a path)")
     parser.add_argument("--port", type=int, default=5610, help="the query server's TCP port")
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
     parser.add_argument("--json", type=Path, help="also write the figures here (keys: see the module docstring)")

@@ -69,7 +69,7 @@ def add_parser(subparsers) -> None:
         help="ask for views spread evenly over the flight, not its first ones (far views cost more)",
     )
     parser.add_argument("--sample-s", type=float, default=1.0, help="seconds between memory samples")
-    parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"), help="the launch file to run")
+    parser.add_argument("--launch", default="replay", help="the launch file to run (a shipped name or a path)")
     parser.add_argument("--port", type=int, default=5612, help="the query server's TCP port")
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
     parser.add_argument(

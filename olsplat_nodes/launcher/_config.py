@@ -84,10 +84,37 @@ class LaunchConfig:
         return self.namespace if node.namespace is None else node.namespace
 
 
+# The launch files shipped inside the package (package data), launched by name: ``olsplat launch replay``.
+SHIPPED_DIR = Path(__file__).resolve().parent / "files"
+
+
+def shipped_launch_files() -> dict[str, Path]:
+    """The launch files that ship with olsplat: name (``replay``) -> file, sorted by name."""
+    return {path.stem: path for path in sorted(SHIPPED_DIR.glob("*.yaml"))}
+
+
+def find_launch_file(name_or_path: str | Path) -> Path:
+    """The launch file a user means: an existing file as given, else a shipped launch file by its
+    name (``replay`` or ``replay.yaml``). A missing path or an unknown name is one
+    ``LaunchFileError`` that lists the shipped names."""
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    shipped = shipped_launch_files()
+    bare = path.name[: -len(".yaml")] if path.name.endswith(".yaml") else path.name
+    if len(path.parts) == 1 and bare in shipped:
+        return shipped[bare]
+    raise LaunchFileError(
+        f"{name_or_path}: no such launch file, nor a shipped launch file of that name "
+        f"(shipped: {', '.join(shipped) or 'none'}; olsplat launch --list)"
+    )
+
+
 def load_launch(path: str | Path, overrides: Sequence[str] = (), run_dir: str | Path | None = None) -> LaunchConfig:
     """Read, override (``["ingest.rate_hz=2", "launch.compose=true"]``) and validate a launch
-    file. ``run_dir`` replaces the file's ``run_dir`` (the CLI's ``--run-dir``)."""
-    path = Path(path)
+    file, given as a path or as the name of a shipped one (``find_launch_file``). ``run_dir``
+    replaces the file's ``run_dir`` (the CLI's ``--run-dir``)."""
+    path = find_launch_file(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:

@@ -31,6 +31,7 @@ import numpy as np
 from olsplat_msgs import DiagnosticStatus, EndOfStream, ObservationsAdded, RegionFeatures
 
 from ..errors import OlsplatInputError
+from ..extras import require
 from ..method import MethodParams
 from ..params import ParameterError
 from ..transport import Diagnostics, Publisher, Subscriber
@@ -75,6 +76,10 @@ class AccumulatorNode(Node):
             raise ParameterError(f"{where}: features must be 2d or 2d3d and 0 <= lambda_f <= 1, got {params}")
         if params.disk_warn_views < 0:
             raise ParameterError(f"{where}: disk_warn_views must be >= 0 (0: never), got {params.disk_warn_views}")
+        if params.features == "2d3d":  # the 3D branch: open3d always, torch for a MinkUNet
+            require("open3d", f"{where}: features=2d3d (the 3D branch)")
+            if params.minkunet:
+                require("torch", f"{where}: minkunet={params.minkunet!r}")
         from ..structure.branch import minkunet_path
 
         checkpoint = minkunet_path(params.minkunet)

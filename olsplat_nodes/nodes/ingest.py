@@ -34,6 +34,7 @@ from typing import Any
 from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
 from ..durable import append_line
+from ..extras import require
 from ..sources import SourceParams, open_source
 from ..transport import CONTROL_MAX_BYTES, Diagnostics, Publisher, Subscriber
 from .base import Node
@@ -62,6 +63,11 @@ class IngestNode(Node):
         topic_map: str = "map"
         hwm: int = 4
         state_file: str = "{run_dir}/ingest_acknowledged.txt"  # acknowledged frame names: a restart skips them
+
+    @classmethod
+    def validate(cls, params: Params, where: str) -> None:
+        if params.source_kind == "depthai":  # a live OAK camera: refused at launch, not retried for ever
+            require("depthai", f"{where}: source_kind=depthai (a live OAK camera)")
 
     def setup(self) -> None:
         p = self.params

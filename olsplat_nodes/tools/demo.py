@@ -1,7 +1,7 @@
 """``olsplat demo``: the main job of ``make demo``, end to end through the node graph.
 
 1. make (or reuse) a simulated UAV flight: prior Gaussian map, replay log, annotated queries;
-2. launch the replay graph (``launch/replay.yaml``: ingest -> region encoder -> accumulator ->
+2. launch the replay graph (the shipped launch file ``replay``: ingest -> region encoder -> accumulator ->
    refiner -> query server, one process each, over ZeroMQ);
 3. while the flight streams, ask the ground-station queries each time a new map version is out;
 4. after the final map, ask them again over a view, write heatmap and mask PNGs, and a summary
@@ -30,7 +30,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default: out)")
     parser.add_argument("--preset", default="small", help="simulator preset of the flight (default: small, 60 frames)")
     parser.add_argument("--seed", type=int, default=0, help="the generated town and flight")
-    parser.add_argument("--launch", type=Path, default=Path("launch/replay.yaml"), help="the launch file of the graph")
+    parser.add_argument("--launch", default="replay", help="the launch file of the graph (a shipped name or a path)")
     parser.add_argument("--port", type=int, default=5600, help="TCP port of the query server on 127.0.0.1")
     parser.add_argument("--timeout", type=float, default=1800.0, help="give up after this many seconds")
     parser.set_defaults(run=run)
@@ -126,15 +126,12 @@ def run(args: argparse.Namespace) -> int:
     from ..aggregate.snapshot import latest_map
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import label_texts, load_queries
-    from ..launcher import Supervisor, load_launch
+    from ..launcher import Supervisor, find_launch_file, load_launch
     from ..viz import write_query_pictures
     from .ground import print_status
 
     out: Path = args.out
-    if not args.launch.exists():
-        raise OlsplatInputError(
-            f"{args.launch}: launch file not found (run the demo from the repository root, or give --launch)"
-        )
+    find_launch_file(args.launch)  # a wrong --launch fails now, not after the flight is simulated
     started = time.perf_counter()
     flight = out / "flight"
     made = ensure_flight(flight, args.preset, args.seed)

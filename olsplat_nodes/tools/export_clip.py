@@ -27,8 +27,12 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..encoders.export import export_clip
     from ..errors import OlsplatInputError
+    from ..extras import require
+
+    for module in ("torch", "onnx", "onnxscript"):
+        require(module, "olsplat export-clip", "export")
+    from ..encoders.export import export_clip
 
     try:
         out = export_clip(args.checkpoint, args.vocab, args.out, args.activation, args.name)

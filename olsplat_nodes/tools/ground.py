@@ -78,11 +78,9 @@ def add_parser(subparsers) -> None:
 
 def run_web(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
+    from ..extras import require
 
-    try:
-        import viser  # noqa: F401
-    except ImportError:
-        raise OlsplatInputError("the browser page needs viser: pip install 'olsplat[ground]'") from None
+    require("viser", "the browser page (olsplat ground web)")
     from ..ground.page import GroundPage, serve
     from ..ground.splats import MAX_SPLATS
 
@@ -203,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
         return print_answer(reply, args.json, args.out, args.threshold)
     except NoReply as exc:
         hint = (
-            "is the drone's graph running? (olsplat launch launch/drone.yaml, or olsplat demo); "
+            "is the drone's graph running? (olsplat launch drone, or olsplat demo); "
             "with CURVE, are --client-key and --server-key the right pair?"
         )
         print(f"olsplat ground {args.ground_command}: error: {exc}: {hint}", file=sys.stderr)
