@@ -24,6 +24,12 @@ def add_parser(subparsers) -> None:
                         help="override a node parameter (value parsed as YAML: 2, true, [a, b]); "
                              "launch.KEY=VALUE sets a top-level key, e.g. launch.compose=true; repeatable")  # fmt: skip
     parser.add_argument("--run-dir", help="where the run writes (logs, sockets, outputs); overrides the file's run_dir")
+    parser.add_argument("--check", action="store_true",
+                        help="check the launch (file, params, inputs, keys, disk, ports, camera) and start nothing; "
+                             "exit 1 on a blocker")  # fmt: skip
+    from .doctor import add_launch_options
+
+    add_launch_options(parser, launch_flag=False)  # --minutes, --rate: the disk row of --check
     parser.set_defaults(run=run, parser=parser)
 
 
@@ -32,18 +38,47 @@ def run(args: argparse.Namespace) -> int:
         return list_shipped()
     if args.file is None:
         args.parser.error("give a launch file (a name from --list, or a path)")
+    if args.check:
+        return check(args)
     from ..launcher import Supervisor, load_launch
 
     config = load_launch(args.file, overrides=args.overrides, run_dir=args.run_dir)
     return Supervisor(config).run()
 
 
+def check(args: argparse.Namespace) -> int:
+    """``--check``: the launch's pre-flight rows as a table; 1 when one is a blocker."""
+    from ..errors import OlsplatInputError
+    from ..launcher.preflight import blocked, format_table, launch_rows
+
+    if args.minutes <= 0 or (args.rate is not None and args.rate <= 0):
+        raise OlsplatInputError(f"--minutes and --rate must be > 0, got --minutes {args.minutes} --rate {args.rate}")
+    rows, _ = launch_rows(args.file, args.overrides, args.run_dir, args.minutes, args.rate)
+    print(format_table(rows))
+    return 1 if blocked(rows) else 0
+
+
 def list_shipped() -> int:
     """One line per shipped launch file: its name, its first comment line, and where it is."""
     from ..launcher import shipped_launch_files
+    from ..launcher._config import SHIPPED_DIR
 
-    for name, path in shipped_launch_files().items():
-        first = next((line.lstrip("# ").strip() for line in path.read_text().splitlines() if line.strip()), "")
-        print(f"{name:<14} {first}")
-    print(f"(files in {next(iter(shipped_launch_files().values())).parent}; copy one to change it)")
+    shipped = shipped_launch_files()
+    for name, path in shipped.items():
+        print(f"{name:<14} {summary(path.read_text())}")
+    print(f"(the files are in {SHIPPED_DIR}; copy one to change it)")
     return 0
+
+
+def summary(text: str) -> str:
+    """A launch file's header comment up to its first sentence's end, '(' or ';', at most ~90
+    characters (its one-line purpose)."""
+    header = []
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            break
+        header.append(line.lstrip("#").strip())
+    words = " ".join(header)
+    cut = min((i for i in (words.find(". "), words.find("; "), words.find(" (")) if i >= 0), default=len(words))
+    words = words[:cut].strip()
+    return words if len(words) <= 90 else words[:90].rsplit(" ", 1)[0] + " ..."

@@ -120,3 +120,27 @@ def test_a_run_folder_made_with_other_method_settings_is_refused_at_launch(tmp_p
         "use a new run folder or the store's own settings"
     ]
     assert sorted(p.name for p in run.iterdir()) == ["store"]  # nothing started
+
+
+def test_shipped_launch_files_run_by_name_from_any_folder(tmp_path):
+    """A pip-installed drone has no checkout: the five launch files ship in the package, are
+    listed by ``--list`` and taken by name; an unknown name lists the shipped ones."""
+    from olsplat_nodes.launcher import find_launch_file, load_launch, shipped_launch_files
+
+    shipped = shipped_launch_files()
+    assert set(shipped) == {"replay", "drone", "field_drone", "ground", "field_ground"}
+    listed = subprocess.run(
+        [str(OLSPLAT), "launch", "--list"], capture_output=True, text=True, cwd=tmp_path, timeout=60
+    )
+    assert listed.returncode == 0 and [line.split()[0] for line in listed.stdout.splitlines()[:5]] == sorted(shipped)
+    assert find_launch_file("replay") == find_launch_file("replay.yaml") == shipped["replay"]
+    assert load_launch("replay", run_dir=str(tmp_path / "run")).name == "replay"
+    mine = tmp_path / "replay"  # a file of that name in the working folder wins over the shipped one
+    mine.write_text("name: mine\nnodes: [{name: a, exec: ingest}]\n")
+    assert find_launch_file(mine) == mine
+    wrong = subprocess.run([str(OLSPLAT), "launch", "replya"], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    assert wrong.returncode == 1
+    assert wrong.stderr.strip().splitlines() == [
+        "olsplat launch: error: replya: no such launch file, nor a shipped launch file of that name "
+        "(shipped: drone, field_drone, field_ground, ground, replay; olsplat launch --list)"
+    ]
