@@ -103,7 +103,7 @@ class QueryServerNode(Node):
         allow_dir: str = ""  # CURVE: folder of allowed client public keys
         max_text_chars: int = 200  # per text, the query's and each negative's
         max_negatives: int = 32  # each costs a text embedding and a cosine per Gaussian and pixel
-        queries_per_s: float = 5.0  # per client (CURVE key or address), beyond query_burst: "busy"; 0 = no limit
+        queries_per_s: float = 5.0  # per client (CURVE key, else connection), beyond query_burst: "busy"; 0 = no limit
         query_burst: int = 10
         threads: int = 2  # numba threads of heatmap rendering and clustering (0 = one per core)
         # rendered features of recent views, so that the next query on a view is not rendered again

@@ -56,17 +56,19 @@ def _salvage_request_id(body: list) -> str:
 
 
 def _client_of(frames: list) -> str:
-    """Who sent a request, as stable as ZeroMQ tells: the CURVE public key, else the peer's
-    address (a client that reconnects keeps it), else the connection."""
+    """Who sent a request, for the rate limit: the CURVE public key (a client that reconnects
+    keeps it), else the connection (the ROUTER's routing identity of it).
+
+    Not the peer's address: without CURVE every client of one machine, or behind one NAT, has
+    the same address, and one flooding client would spend the budget of all the others (three
+    loopback clients flooding left an honest fourth 6 answers in 57 when the budget was per
+    address). A client that reconnects to get a fresh budget pays a TCP handshake each time."""
     first = frames[0]
-    for prop in ("User-Id", "Peer-Address"):
-        try:
-            value = first.get(prop)
-        except (zmq.ZMQError, AttributeError, KeyError):
-            continue
-        if value:
-            return f"{prop}:{value}"
-    return f"identity:{bytes(first).hex()}"
+    try:
+        key = first.get("User-Id")
+    except (zmq.ZMQError, AttributeError, KeyError):
+        key = None
+    return f"User-Id:{key}" if key else f"connection:{bytes(first).hex()}"
 
 
 class RateLimiter:
@@ -94,7 +96,7 @@ class QueryServer(Closable):
     with ``QueryReply(status="bad_request")`` right there. With ``keys`` the link is CURVE
     encrypted and only clients on the allow-list get through.
 
-    With ``queries_per_s`` a client (its CURVE key, else its address) sending QueryRequests
+    With ``queries_per_s`` a client (its CURVE key, else its connection) sending QueryRequests
     faster than that (beyond ``burst`` at once) is answered ``status="busy"`` at once, without
     the query being run; StatusRequests are never limited.
 

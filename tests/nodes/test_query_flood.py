@@ -1,17 +1,22 @@
-"""A hostile client floods the query link with 100 queries per second for 10 s: it is told
-"busy" beyond its rate limit, an honest client is still answered as fast as before, and the
-server's memory stays flat. CURVE on, as on a drone: clients are told apart by their keys."""
+"""Hostile clients flood the query link with 100 queries per second each for 10 s: they are told
+"busy" beyond their rate limit, an honest client is still answered (its p95 within twice its
+quiet p95, plus 50 ms for a shared machine's noise), and the server's memory stays flat.
+
+Two set-ups: CURVE on, as on a drone (clients told apart by their keys; one flooder), and no
+CURVE with three flooders on the honest client's own machine (clients told apart by their
+connection: the budget is not per address)."""
 
 from __future__ import annotations
 
+import json
 import resource
 import shutil
-import threading
+import subprocess
+import sys
 import time
 
 import numpy as np
 import pytest
-import zmq
 
 from olsplat_msgs import QueryRequest
 from olsplat_nodes.transport import QueryClient, curve
@@ -30,28 +35,50 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def test_a_flooding_client_is_told_busy_and_others_are_served(ctx, sockdir, tiny, tiny_run, tmp_path):
-    scene, _ = tiny
-    shutil.copytree(tiny_run / "views", tmp_path / "views")
-    shutil.copytree(tiny_run / "map", tmp_path / "map")
+FLOOD = """
+import json, sys, time
+import zmq
+from olsplat_msgs import QueryRequest
+from olsplat_nodes.transport import QueryClient, curve
+endpoint, seconds, *key_files = sys.argv[1:]
+keys = curve.ClientKeys(*key_files) if key_files else None
+statuses = []
+with QueryClient(zmq.Context.instance(), endpoint, timeout_s=30.0, keys=keys) as client:
+    print("ready", flush=True)
+    sys.stdin.readline()  # go
+    end = next_at = time.monotonic()
+    end += float(seconds)
+    while time.monotonic() < end:
+        statuses.append(client.request(QueryRequest(text="road", negatives=["road", "trees"])).status)
+        next_at += 0.01  # 100 per second, as long as the server keeps up
+        time.sleep(max(0.0, next_at - time.monotonic()))
+print(json.dumps(statuses))
+"""
+
+
+def _curve_setup(tmp_path, names):
     _, server_secret = curve.generate(tmp_path / "server", "server")
     server_public = tmp_path / "server" / "server.key"
     (tmp_path / "allow").mkdir()
     keys = {}
-    for name in ("honest", "flood"):
+    for name in names:
         public, secret = curve.generate(tmp_path / name, name)
         shutil.copy(public, tmp_path / "allow")
         keys[name] = curve.ClientKeys(secret, server_public)
+    return {"server_secret": str(server_secret), "allow_dir": str(tmp_path / "allow")}, keys
+
+
+@pytest.mark.parametrize("flooders", [1, 3], ids=["curve-1-flooder", "plain-3-flooders-one-address"])
+def test_flooding_clients_are_told_busy_and_others_are_served(ctx, sockdir, tiny, tiny_run, tmp_path, flooders):
+    scene, _ = tiny
+    shutil.copytree(tiny_run / "views", tmp_path / "views")
+    shutil.copytree(tiny_run / "map", tmp_path / "map")
+    names = ["honest"] + [f"flood{i}" for i in range(flooders)]
+    params, keys = _curve_setup(tmp_path, names) if flooders == 1 else ({}, dict.fromkeys(names))
+    key_args = {n: [str(tmp_path / n / f"{n}.key_secret"), str(tmp_path / "server" / "server.key")] for n in names}
+    key_args = key_args if params else {}
     endpoint = f"tcp://127.0.0.1:{free_port()}"
-    node = query_server(
-        scene,
-        sockdir,
-        tmp_path / "map",
-        tmp_path / "views",
-        query_endpoint=endpoint,
-        server_secret=str(server_secret),
-        allow_dir=str(tmp_path / "allow"),
-    )
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views", query_endpoint=endpoint, **params)
 
     def timed(client, text="red roof buildings"):
         start = time.perf_counter()
@@ -68,19 +95,22 @@ def test_a_flooding_client_is_told_busy_and_others_are_served(ctx, sockdir, tiny
             time.sleep(0.25)
         rss_before = _rss_mb()
 
-        statuses: list[str] = []
-        stop = threading.Event()
-
-        def flood():
-            with QueryClient(zmq.Context.instance(), endpoint, timeout_s=30.0, keys=keys["flood"]) as client:
-                next_at = time.monotonic()
-                while not stop.is_set():
-                    statuses.append(timed(client, "road")[0].status)
-                    next_at += 0.01  # 100 per second, as long as the server keeps up
-                    time.sleep(max(0.0, next_at - time.monotonic()))
-
-        flooder = threading.Thread(target=flood, daemon=True)
-        flooder.start()
+        # each flooder is a process of its own, as a hostile client would be (threads of this
+        # process would compete with the server thread for the interpreter, not for the link)
+        floods = [
+            subprocess.Popen(
+                [sys.executable, "-c", FLOOD, endpoint, "10.5", *(key_args[name] if key_args else [])],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            for name in names[1:]
+        ]
+        for flood in floods:  # started and connected: now all at once
+            assert flood.stdout.readline().strip() == "ready"
+        for flood in floods:
+            flood.stdin.write("go\n")
+            flood.stdin.flush()
         during = []
         end = time.monotonic() + 10.0
         while time.monotonic() < end:
@@ -88,14 +118,20 @@ def test_a_flooding_client_is_told_busy_and_others_are_served(ctx, sockdir, tiny
             assert reply.status == "ok", reply.message  # never "busy": the limit is per client
             during.append(seconds)
             time.sleep(0.25)
-        stop.set()
-        flooder.join(30)
+        statuses = [json.loads(flood.communicate(timeout=60)[0]) for flood in floods]  # after 10.5 s
         running.assert_running()
         rss_after = _rss_mb()
 
-    assert len(statuses) >= 500, len(statuses)  # the flood did reach ~100 queries per second
-    busy = statuses.count("busy")
-    assert busy >= 0.8 * len(statuses) and statuses.count("ok") <= 10 + 5 * 11, (busy, len(statuses))
+    for seen in statuses:
+        assert len(seen) >= 300, len(seen)  # each flood did reach tens of queries per second
+        busy = seen.count("busy")
+        assert busy >= 0.8 * len(seen) and seen.count("ok") <= 10 + 5 * 11, (busy, len(seen))
     p95_before, p95_during = np.percentile(before, 95), np.percentile(during, 95)
+    print(  # the figures docs/architecture.md quotes (pytest -s)
+        f"{flooders} flooder(s): "
+        + ", ".join(f"{len(s)} queries, {s.count('busy')} busy" for s in statuses)
+        + f"; honest p95 {1000 * p95_before:.1f} ms quiet, {1000 * p95_during:.1f} ms during; "
+        f"server RSS {rss_after - rss_before:+.1f} MB"
+    )
     assert p95_during <= 2 * p95_before + 0.05, (p95_before, p95_during)
     assert rss_after - rss_before < 50, (rss_before, rss_after)
