@@ -4,15 +4,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .base import PacedSource
+from .base import WARN, PacedSource
 from .replay_log import read_replay
 
 
 class ReplaySource(PacedSource):
-    """``read_replay(path)`` at the recorded pace, at ``rate_hz``, or as fast as asked (``fast``)."""
+    """``read_replay(path)`` at the recorded pace, at ``rate_hz``, or as fast as asked (``fast``).
+    A cut log's frames before the cut are replayed; then the status is WARN, saying so."""
 
     kind = "replay"
 
     def __init__(self, path: str | Path, rate_hz: float | None = None, fast: bool = False, folder_rate_hz: float = 1.0):
         self.path = Path(path)
-        super().__init__(read_replay(path, folder_rate_hz), rate_hz, fast)
+        self.cut = ""  # what the reader said of a cut log ("" when whole)
+        super().__init__(read_replay(path, folder_rate_hz, self._on_cut), rate_hz, fast)
+
+    def _on_cut(self, message: str) -> None:
+        self.cut = message
+
+    def status(self) -> tuple[int, str]:
+        return (WARN, self.cut) if self.done and self.cut else super().status()

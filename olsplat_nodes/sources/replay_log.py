@@ -16,6 +16,12 @@ with Foxglove schemas, so Foxglove opens the file and shows the images and camer
 All three messages of a frame share its ``log_time`` (the acquisition stamp in ns) and carry
 the frame's index in the log (0, 1, 2, ...) as ``sequence``. A metadata record ``olsplat``
 holds the frame names, by index.
+
+A log survives being cut (a power cut while recording, a copy that stopped): each message is
+its own chunk and each frame's name a metadata record ``olsplat_frame`` written before the
+frame's messages, so everything before the cut is whole on the disk. The reader reads the file
+front to back (no summary, no index needed) and a cut log replays every whole frame before the
+cut, then logs one WARN naming the file and the frames replayed.
 """
 
 from __future__ import annotations
@@ -23,8 +29,9 @@ from __future__ import annotations
 import base64
 import csv
 import json
+import logging
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import cv2
@@ -34,6 +41,8 @@ from ..errors import SceneFormatError
 from ..scene import Camera, read_colmap
 from ..scene.rotations import quat_to_rotmat, rotmat_to_quat
 from .base import Pacer, SourceFrame
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "CAMERA_FRAME",
@@ -88,6 +97,7 @@ TOPICS = {
 }
 CAMERA_FRAME = "camera"
 _JPEG_MAGIC = b"\xff\xd8\xff"  # start of image + the first marker
+_FRAME_METADATA = "olsplat_frame"  # per frame, before its messages: sequence, name
 
 
 def _stamp(stamp_ns: int) -> dict:
@@ -155,7 +165,8 @@ def write_mcap(path: str | Path, frames: Iterable[SourceFrame], jpeg_quality: in
     tmp = path.with_name(path.name + ".tmp")
     names = []
     with open(tmp, "wb") as stream:
-        writer = Writer(stream)
+        # a chunk per message (chunk_size 1 closes each after its message): a cut file keeps every whole frame
+        writer = Writer(stream, chunk_size=1)
         writer.start(profile="", library="olsplat")
         schema_ids = {
             name: writer.register_schema(name, "jsonschema", json.dumps(s).encode()) for name, s in SCHEMAS.items()
@@ -165,6 +176,7 @@ def write_mcap(path: str | Path, frames: Iterable[SourceFrame], jpeg_quality: in
         }
         for index, frame in enumerate(frames):
             names.append(frame.name)
+            writer.add_metadata(_FRAME_METADATA, {"sequence": str(index), "name": frame.name})
             jpeg = frame.jpeg if frame.jpeg is not None else encode_jpeg(frame.image, jpeg_quality)
             stamp_ns = int(frame.stamp_ns)
             for topic, message in _messages(stamp_ns, jpeg, frame.camera).items():
@@ -175,35 +187,70 @@ def write_mcap(path: str | Path, frames: Iterable[SourceFrame], jpeg_quality: in
     return len(names)
 
 
-def _read_mcap(path: Path) -> Iterator[SourceFrame]:
+def _final_names(path: Path) -> list[str]:
+    """The frame names of a finished log's ``olsplat`` metadata (read through its summary); []
+    when the log has no summary (cut) or no such record."""
     from mcap.reader import make_reader
 
     try:
         with open(path, "rb") as stream:
-            reader = make_reader(stream)
-            names = []
-            for record in reader.iter_metadata():
+            for record in make_reader(stream).iter_metadata():
                 if record.name == "olsplat":
-                    names = json.loads(record.metadata.get("frame_names", "[]"))
-            stream.seek(0)
-            reader = make_reader(stream)
-            pending: dict[int, dict] = {}
-            for _, channel, message in reader.iter_messages(topics=list(TOPICS)):
-                parts = pending.setdefault(message.sequence, {})
-                parts[channel.topic] = json.loads(message.data)
-                parts["stamp"] = message.log_time
-                if len(parts) == len(TOPICS) + 1:
-                    del pending[message.sequence]
-                    yield _frame_from_messages(message.sequence, parts, names, path)
+                    return list(json.loads(record.metadata.get("frame_names", "[]")))
+    except Exception:  # a cut or foreign file: the front-to-back pass below says which
+        return []
+    return []
+
+
+def _read_mcap(path: Path, on_cut: Callable[[str], None] | None = None) -> Iterator[SourceFrame]:
+    """Front to back through the records (``mcap.stream_reader``): a frame is yielded once its
+    three messages are in; at a cut (the file ends inside a record or before its footer) the
+    frames so far stand and the cut is logged (and told to ``on_cut``)."""
+    from mcap.exceptions import EndOfFile, McapError
+    from mcap.records import Channel, Footer, Message, Metadata
+    from mcap.stream_reader import StreamReader
+
+    names = dict(enumerate(_final_names(path)))
+    topics: dict[int, str] = {}
+    pending: dict[int, dict] = {}
+    replayed = 0
+    try:
+        with open(path, "rb") as stream:
+            for record in StreamReader(stream).records:
+                if isinstance(record, Metadata) and record.name == _FRAME_METADATA:
+                    names.setdefault(int(record.metadata["sequence"]), record.metadata["name"])
+                elif isinstance(record, Channel):
+                    topics[record.id] = record.topic
+                elif isinstance(record, Message) and topics.get(record.channel_id) in TOPICS:
+                    parts = pending.setdefault(record.sequence, {})
+                    parts[topics[record.channel_id]] = json.loads(record.data)
+                    parts["stamp"] = record.log_time
+                    if len(parts) == len(TOPICS) + 1:
+                        del pending[record.sequence]
+                        replayed += 1
+                        yield _frame_from_messages(record.sequence, parts, names, path)
+                elif isinstance(record, Footer):
+                    return
+    except EndOfFile:
+        pass  # cut inside a record
+    except SceneFormatError:
+        raise
     except (OSError, ValueError, KeyError) as exc:
         raise SceneFormatError(path, f"not a readable olsplat MCAP replay log ({type(exc).__name__}: {exc})") from None
-    except Exception as exc:  # the mcap package raises its own types for corrupt files
-        if type(exc).__module__.startswith("mcap"):
-            raise SceneFormatError(path, f"corrupt MCAP file ({type(exc).__name__}: {exc})") from None
-        raise
+    except McapError as exc:
+        raise SceneFormatError(path, f"corrupt MCAP file ({type(exc).__name__}: {exc})") from None
+    if not replayed:
+        raise SceneFormatError(path, "MCAP replay log cut before its first whole frame")
+    message = (
+        f"{path}: the replay log is cut (it ends without its footer: a recording that did not finish); "
+        f"replayed the {replayed} whole frames before the cut"
+    )
+    log.warning(message)
+    if on_cut is not None:
+        on_cut(message)
 
 
-def _frame_from_messages(seq: int, parts: dict, names: list[str], path: Path) -> SourceFrame:
+def _frame_from_messages(seq: int, parts: dict, names: dict[int, str], path: Path) -> SourceFrame:
     image_msg, calib, tf = parts["/camera/image"], parts["/camera/calibration"], parts["/tf"]
     data = base64.b64decode(image_msg["data"])
     image = _decode_rgb(data)
@@ -215,7 +262,7 @@ def _frame_from_messages(seq: int, parts: dict, names: list[str], path: Path) ->
     pose[:3, 3] = [tf["translation"][k] for k in "xyz"]
     K = np.asarray(calib["K"], float).reshape(3, 3)
     dist = np.asarray(calib["D"], float)
-    name = names[seq] if seq < len(names) else f"frame_{seq:04d}.jpg"
+    name = names.get(seq, f"frame_{seq:04d}.jpg")
     camera = Camera(
         name,
         calib["width"],
@@ -254,20 +301,24 @@ def _read_folder(folder: Path, rate_hz: float) -> Iterator[SourceFrame]:
         yield SourceFrame(seq, stamp, camera.name, image, camera, jpeg)
 
 
-def read_replay(path: str | Path, folder_rate_hz: float = 1.0) -> Iterator[SourceFrame]:
+def read_replay(
+    path: str | Path, folder_rate_hz: float = 1.0, on_cut: Callable[[str], None] | None = None
+) -> Iterator[SourceFrame]:
     """Frames of an MCAP replay log, or of a folder of images + COLMAP model, in order.
 
     Frames carry the stored JPEG bytes (``jpeg``), so recording a replay copies its images
     exactly. A folder's stamps come from ``images/timestamps.csv`` (columns name, stamp_ns)
     when present, else from ``folder_rate_hz``. Unreadable input raises ``SceneFormatError``
-    (a missing path at once, a corrupt log while iterating).
+    (a missing path at once, a corrupt log while iterating). A cut log (no footer: a recording
+    that did not finish) gives its whole frames before the cut, then logs one WARN naming the
+    file and the frames replayed, the same line given to ``on_cut``.
     """
     path = Path(path)
     if path.is_dir():
         return _read_folder(path, folder_rate_hz)
     if not path.is_file():
         raise SceneFormatError(path, "does not exist")
-    return _read_mcap(path)
+    return _read_mcap(path, on_cut)
 
 
 def paced(frames: Iterable[SourceFrame], rate_hz: float | None = None, fast: bool = False) -> Iterator[SourceFrame]:

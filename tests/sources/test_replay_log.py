@@ -169,13 +169,40 @@ def test_pacing(tiny):
         paced(frames, rate_hz=0.0)
 
 
+def test_a_cut_log_replays_its_whole_frames_and_reports_the_cut(tmp_path, tiny, caplog):
+    """A log cut at half its bytes (a recording that did not finish) replays every whole frame
+    before the cut, the same frames as the whole log's, then one WARN naming the file and the
+    count; the replay source's status says it too."""
+    from olsplat_nodes.sources import open_source
+    from olsplat_nodes.sources.base import WARN
+
+    out, summary = tiny
+    whole = list(read_replay(out / "replay.mcap"))
+    data = (out / "replay.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    with caplog.at_level("WARNING", logger="olsplat_nodes.sources.replay_log"):
+        with open_source({"source_kind": "replay", "source": str(cut), "fast": True}) as source:
+            frames = list(source)
+            level, message = source.status()
+    n = len(frames)
+    assert summary["views"] // 2 - 2 <= n < summary["views"], n  # the frames before the cut, no more
+    for got, want in zip(frames, whole, strict=False):
+        assert (got.seq, got.name, got.stamp_ns, got.jpeg) == (want.seq, want.name, want.stamp_ns, want.jpeg)
+        np.testing.assert_array_equal(got.camera.world_from_camera, want.camera.world_from_camera)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and str(cut) in warnings[0] and f"replayed the {n} whole frames" in warnings[0]
+    assert level == WARN and message == warnings[0]
+
+
 def test_corrupt_and_missing_logs(tmp_path, tiny):
     out, _ = tiny
     data = (out / "replay.mcap").read_bytes()
-    (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
+    (tmp_path / "early.mcap").write_bytes(data[:200])  # cut before its first frame: nothing to replay
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap file at all" * 10)
-    for name in ("cut.mcap", "junk.mcap"):
-        with pytest.raises(SceneFormatError, match=name):
+    for name, why in (("early.mcap", "cut before its first whole frame"), ("junk.mcap", "invalid magic")):
+        with pytest.raises(SceneFormatError, match=name) as error:
             list(read_replay(tmp_path / name))
+        assert why in str(error.value) and "\n" not in str(error.value)
     with pytest.raises(SceneFormatError, match="does not exist"):
         read_replay(tmp_path / "none.mcap")
