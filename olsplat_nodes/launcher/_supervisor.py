@@ -3,6 +3,14 @@
 One loop in the calling thread polls every node 20 times a second. Signals only set flags (a
 handler that took a lock could deadlock against the loop), so all decisions are made in one
 place, in order.
+
+Failures are classified: a node that exits with ``errors.NOT_RESTARTABLE`` (bad input or
+configuration; it said why in one line) is not restarted, the launch stops and exits with that
+code; a crash (a signal, an unexpected exception, any other code) is restarted after a delay that
+doubles from ``restart_delay_s`` up to ``MAX_RESTART_DELAY_S``; a node that has used up its
+``max_restarts`` ends the launch with ``EXIT_FAILED``. The launch never waits on a node that will
+not run again. Child processes die with the launcher (``nodes._lifeline``), and a launch refuses
+a run folder or a TCP port another graph holds (``_claims``).
 """
 
 from __future__ import annotations
@@ -17,13 +25,15 @@ from typing import TextIO
 
 import zmq
 
-from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK  # the exit codes of Supervisor.run
+from ..errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, NOT_RESTARTABLE  # the exit codes of Supervisor.run
 from ._children import NodeLog, ProcessChild, ThreadChild, describe_exit
+from ._claims import RunDirLock, check_ports
 from ._config import LaunchConfig, NodeConfig
 from ._memory import check_memory
 from ._resolve import resolve_launch
 
 _TICK_S = 0.05
+MAX_RESTART_DELAY_S = 30.0  # the doubling restart delay stops growing here (or at restart_delay_s if larger)
 
 
 @dataclass
@@ -36,6 +46,7 @@ class _Slot:
     starts: int = 0
     restarts: int = 0
     restart_at: float = 0.0
+    last_exit: str = ""  # how the previous run ended, for the node's status after a restart
 
 
 class Supervisor:
@@ -44,9 +55,12 @@ class Supervisor:
 
     ``run()`` returns 0 (every ``exit_when`` node exited with code 0, or, with an empty
     ``exit_when``, every node ended and none had failed), 1 (an ``exit_when`` node failed and
-    cannot be restarted), or 128 + the signal number when stopped by SIGINT (130) / SIGTERM
-    (143). Signal handlers are installed only when ``run`` is called from the main thread;
-    from any other thread, call ``request_stop()``.
+    cannot be restarted, or a node gave up after ``max_restarts``), the node's
+    ``EXIT_BAD_INPUT`` (65) / ``EXIT_CONFIG`` (78) when a node failed on its input or
+    configuration, or 128 + the signal number when stopped by SIGINT (130) / SIGTERM (143).
+    Before any node starts it takes the run folder's lock and checks the TCP ports
+    (``OlsplatInputError`` when another graph holds either). Signal handlers are installed only
+    when ``run`` is called from the main thread; from any other thread, call ``request_stop()``.
 
     Status lines (started, exited, restarting, giving up, stopping) go to ``stdout`` (default:
     ``sys.stdout``) and to ``run_dir/logs/launch.log``; node output goes to
@@ -100,6 +114,15 @@ class Supervisor:
         if self._slots:
             raise RuntimeError("Supervisor.run() was already called; make a new Supervisor")
         params = self.check()
+        lock = RunDirLock(self.run_dir)
+        lock.acquire()
+        try:
+            check_ports(self.config, params)
+            return self._run(params)
+        finally:
+            lock.release()
+
+    def _run(self, params: dict) -> int:
         logs = self.run_dir / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         self._launch_log = open(logs / "launch.log", "a", buffering=1, encoding="utf-8")
@@ -157,7 +180,7 @@ class Supervisor:
     def _start(self, slot: _Slot) -> None:
         slot.starts += 1
         slot.child.log.marker(f"start #{slot.starts} of node {slot.node.name} ({slot.node.exec})")
-        how = slot.child.start()
+        how = slot.child.start(slot.restarts, slot.last_exit)
         slot.state = "running"
         self._status(f"{slot.node.name}: started ({how})")
 
@@ -165,8 +188,16 @@ class Supervisor:
         """Record a node's exit; the launch's exit code if this ends the launch."""
         node, exit_when = slot.node, self.config.exit_when
         failure = getattr(slot.child, "failure", "")
-        self._status(f"{node.name}: {failure or describe_exit(code)}")
-        slot.child.log.marker(f"node {node.name} {failure or describe_exit(code)}")
+        slot.last_exit = failure or describe_exit(code)
+        self._status(f"{node.name}: {slot.last_exit}")
+        slot.child.log.marker(f"node {node.name} {slot.last_exit}")
+        if code in NOT_RESTARTABLE:
+            slot.state = "failed"
+            kind = "bad input" if code == NOT_RESTARTABLE[0] else "configuration"
+            self._status(
+                f"launch failed: {node.name} failed on its {kind} (exit code {code}); a restart would not help"
+            )
+            return code
         if code == 0 and node.name in exit_when:
             slot.state = "finished"
             if all(s.state == "finished" for s in self._slots if s.node.name in exit_when):
@@ -181,18 +212,23 @@ class Supervisor:
         if slot.restarts >= node.max_restarts:
             slot.state = "failed"
             self._status(f"{node.name}: giving up after {slot.restarts} restarts (max_restarts: {node.max_restarts})")
-            return self._gave_up(slot)
+            return self._gave_up(slot, exhausted=True)
         slot.restarts += 1
         slot.state = "waiting"
-        slot.restart_at = time.monotonic() + node.restart_delay_s
-        self._status(
-            f"{node.name}: restarting in {node.restart_delay_s:g} s (restart {slot.restarts} of {node.max_restarts})"
-        )
+        delay = restart_delay(node.restart_delay_s, slot.restarts)
+        slot.restart_at = time.monotonic() + delay
+        self._status(f"{node.name}: restarting in {delay:g} s (restart {slot.restarts} of {node.max_restarts})")
         return None
 
-    def _gave_up(self, slot: _Slot) -> int | None:
+    def _gave_up(self, slot: _Slot, exhausted: bool = False) -> int | None:
+        """The launch's exit code when a node that will not run again ends it: one in
+        ``exit_when``, or one that used up its restarts while others still run (they would wait
+        on it for ever); None to go on (when nothing else runs, the loop ends the launch)."""
         if slot.state == "failed" and slot.node.name in self.config.exit_when:
             self._status(f"launch failed: {slot.node.name} is in exit_when and will not run again")
+            return EXIT_FAILED
+        if exhausted and any(s.state in ("running", "waiting") for s in self._slots):
+            self._status(f"launch failed: {slot.node.name} gave up after {slot.restarts} restarts; stopping the rest")
             return EXIT_FAILED
         return None
 
@@ -259,3 +295,9 @@ class Supervisor:
         print(line, file=out, flush=True)
         if self._launch_log is not None:
             self._launch_log.write(line + "\n")
+
+
+def restart_delay(first_s: float, restart: int) -> float:
+    """Seconds before restart number ``restart`` (1, 2, ...): ``first_s``, doubling each time, at
+    most ``MAX_RESTART_DELAY_S`` (or ``first_s`` when that is larger)."""
+    return min(first_s * 2.0 ** (restart - 1), max(first_s, MAX_RESTART_DELAY_S))

@@ -167,15 +167,33 @@ def node_class(exec_name: str) -> type[Node]:
     return cls
 
 
+RESTARTS_ENV, LAST_EXIT_ENV = "OLSPLAT_RESTARTS", "OLSPLAT_LAST_EXIT"
+
+
+def launch_history() -> tuple[int, str]:
+    """(restarts, how the previous run ended) as the launcher passed them in the environment;
+    (0, "") for a first start or a node started by hand."""
+    import os
+
+    text = os.environ.get(RESTARTS_ENV, "0")
+    return (int(text) if text.isdigit() else 0), os.environ.get(LAST_EXIT_ENV, "")
+
+
 class NodeStats:
     """Counters every node reports in its DiagnosticStatus heartbeats.
 
     ``rate_hz`` is messages handled per second over the last ``window_s``; ``latency_ms`` is
     the mean wall time from a message's acquisition stamp to the end of its handling over the
-    same window (it includes queueing upstream), ``busy_ms`` the mean handling time alone."""
+    same window (it includes queueing upstream), ``busy_ms`` the mean handling time alone;
+    ``restarts`` how often the launcher has restarted the node, ``last_exit`` (after a restart)
+    how its previous run ended."""
 
     def __init__(self, window_s: float = 10.0):
         self.window_s = window_s
+        # how often the launcher has restarted this node and why its previous run ended: put in
+        # the child's environment by the supervisor (``RESTARTS_ENV``, ``LAST_EXIT_ENV``), set
+        # on ``stats`` directly for a node running as a thread of a composed launch
+        self.restarts, self.last_exit = launch_history()
         self.events: collections.deque = collections.deque()  # (monotonic end, latency s, busy s)
         self.counts: dict[str, int] = {
             "received": 0,
@@ -205,6 +223,9 @@ class NodeStats:
         out["rate_hz"] = round(len(recent) / span, 3) if len(recent) > 1 else 0.0
         out["latency_ms"] = round(1e3 * float(np.mean([e[1] for e in recent])), 1) if recent else 0.0
         out["busy_ms"] = round(1e3 * float(np.mean([e[2] for e in recent])), 1) if recent else 0.0
+        out["restarts"] = self.restarts
+        if self.last_exit:
+            out["last_exit"] = self.last_exit
         out.update(extra)
         return out
 

@@ -222,6 +222,7 @@ def print_status(reply, as_json: bool) -> int:
             f"rate {v.get('rate_hz', 0):5.2f} Hz  latency {v.get('latency_ms', 0):8.1f} ms  "
             f"handled {v.get('handled', 0):5d}  drops {v.get('dropped', 0) + v.get('gaps', 0):4d}  bad "
             f"{v.get('bad_messages', 0):3d}  {node['message']}"
+            + (f"  [restarts {v['restarts']}, last exit: {v.get('last_exit', '?')}]" if v.get("restarts") else "")
         )
     return 0
 
