@@ -72,11 +72,14 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..errors import OlsplatInputError
     from ..launcher import find_launch_file, shipped_launch_files
     from ..launcher.preflight import plan_launch
 
     workdir = Path(args.workdir or os.getcwd()).absolute()
-    plan = plan_launch(args.launch, args.overrides, args.run_dir)  # a bad launch: one error line, no unit
+    # a bad launch (syntax, unknown params): one error line and no unit; values that only fail
+    # here and now (keys not made yet) are the ExecStartPre's to refuse, said below
+    plan = plan_launch(args.launch, args.overrides, args.run_dir, validate=False)
     path = find_launch_file(args.launch)
     shipped = shipped_launch_files()
     launch = path.stem if shipped.get(path.stem) == path.resolve() else str(path.absolute())
@@ -97,6 +100,11 @@ def run(args: argparse.Namespace) -> int:
         ),
         end="",
     )
+    try:
+        plan_launch(args.launch, args.overrides, args.run_dir)
+    except OlsplatInputError as exc:
+        print(f"olsplat service: note: the unit's ExecStartPre will refuse to start until this is fixed: {exc}",
+              file=sys.stderr)  # fmt: skip
     return 0
 
 

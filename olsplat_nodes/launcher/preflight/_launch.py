@@ -38,14 +38,26 @@ class LaunchPlan:
         return [node.name for node in self.config.nodes if node.exec == exec_name]
 
 
-def plan_launch(name_or_file: str, overrides: Sequence[str] = (), run_dir: str | None = None) -> LaunchPlan:
+def plan_launch(
+    name_or_file: str, overrides: Sequence[str] = (), run_dir: str | None = None, validate: bool = True
+) -> LaunchPlan:
     """Load, override and resolve a launch (``load_launch`` + ``resolve_launch``); raises the
-    ``LaunchFileError`` naming file and key that ``olsplat launch`` would."""
+    ``LaunchFileError`` naming file and key that ``olsplat launch`` would. ``validate=False``
+    skips the node classes' own checks of their values (files such as keys may not exist yet
+    where a unit file is written); unknown params and placeholders are still errors."""
     from ...nodes.base import node_class
-    from .._resolve import resolve_launch
+    from .._resolve import resolve_launch, resolve_params
 
     config = load_launch(name_or_file, overrides=overrides, run_dir=run_dir)
-    resolved = resolve_launch(config, config.run_dir.resolve())
+    absolute = config.run_dir.resolve()
+    if validate:
+        resolved = resolve_launch(config, absolute)
+    else:
+        resolved = {
+            node.name: resolve_params(node, node_class(node.exec).defaults(), absolute, config.namespace_of(node),
+                                      config.compose, where=f"{config.source}: nodes[{i}] ({node.name})")
+            for i, node in enumerate(config.nodes)
+        }  # fmt: skip
     params = {node.name: {**node_class(node.exec).defaults(), **resolved[node.name]} for node in config.nodes}
     return LaunchPlan(config, params)
 
