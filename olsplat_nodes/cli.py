@@ -66,9 +66,10 @@ EXAMPLES = {
     "bench live": "olsplat eval --scene small1 --methods outlangsplat,vala\n"
     "olsplat bench live --scene small1 --methods outlangsplat,vala --every 10 --json live.json",
     "bench frame": "olsplat bench frame --scene small0 --json frame.json",
-    "bench query": "olsplat bench query --scene small0",
+    "bench query": "olsplat bench query --scene small0 --map maps/small0/language_map.npz",
     "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json",
-    "bench compression": "olsplat bench compression --scene small0",
+    "bench compression": "olsplat aggregate --scene small0 --out maps/small0\n"
+    "olsplat bench compression --scene small0 --aggregated maps/small0",
     "bench robustness": "olsplat bench robustness --scene small31 --confusion 0,0.15,0.3,0.45 --md robust.md",
     "bench tune": "olsplat bench tune --scene small1001 --scene small1002 --json tune.json",
     "bench structure": "olsplat bench structure --scene small0",
