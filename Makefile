@@ -46,7 +46,9 @@ $(STAMP): pyproject.toml setup.py $(wildcard olsplat_nodes/native/*.[ch]) | syst
 	$(VENV)/bin/olsplat warm-up
 	touch $(STAMP)
 
+# the pre-flight check first: a blocker (a cold numba cache, a broken model file) stops the demo with its fix
 demo: setup
+	$(VENV)/bin/olsplat doctor
 	$(VENV)/bin/olsplat demo --out out
 
 test: setup
