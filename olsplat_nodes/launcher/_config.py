@@ -94,15 +94,15 @@ def shipped_launch_files() -> dict[str, Path]:
 
 
 def find_launch_file(name_or_path: str | Path) -> Path:
-    """The launch file a user means: an existing file as given, else a shipped launch file by its
-    name (``replay`` or ``replay.yaml``). A missing path or an unknown name is one
+    """The launch file a user means: an existing file or a path with a folder as given, else a
+    shipped launch file by its name (``replay`` or ``replay.yaml``). An unknown bare name is one
     ``LaunchFileError`` that lists the shipped names."""
     path = Path(name_or_path)
-    if path.exists():
+    if path.exists() or len(path.parts) > 1:  # a path: read as given (its errors name it)
         return path
     shipped = shipped_launch_files()
     bare = path.name[: -len(".yaml")] if path.name.endswith(".yaml") else path.name
-    if len(path.parts) == 1 and bare in shipped:
+    if bare in shipped:
         return shipped[bare]
     raise LaunchFileError(
         f"{name_or_path}: no such launch file, nor a shipped launch file of that name "
