@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -52,6 +54,7 @@ def warm_up_all(work: Path) -> dict[str, float]:
     from ..query.answer import answer_query
     from ..query.heatmap import FeatureImages
     from ..query.localize import VoxelIndex, default_cluster_radius
+    from ..query.winners import gather_verdicts
     from ..regions import RegionConfig
     from ..scene import read_ply
 
@@ -102,5 +105,9 @@ def warm_up_all(work: Path) -> dict[str, float]:
         cluster_radius=radius,
         voxel_index=VoxelIndex.build(gaussians.means, radius),
     )
+    # a codebook map's query (drone launch files: refiner codebook > 0) gathers the centres'
+    # verdicts per Gaussian: the same argument types as QueryFeatures.winners passes
+    gather_verdicts(np.zeros(2, np.bool_), np.zeros(4, np.int32), np.zeros(0, np.bool_))
+    gather_verdicts(np.zeros(2, np.bool_), np.zeros(4, np.int32), np.zeros(4, np.bool_))
     lap("query, relevance and heatmap")
     return stages
