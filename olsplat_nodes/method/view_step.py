@@ -1,5 +1,7 @@
 """The method's per-view step, shared by the live accumulator and the offline runs: one view's
-regions and features in, its Gaussian observations appended to the store."""
+regions and features in, its Gaussian observations appended to the store. A view that does not
+see the prior map (``coverage.CoverageGate``) is refused right after its render, before the 3D
+branch trains on it."""
 
 from __future__ import annotations
 
@@ -12,10 +14,23 @@ from ..aggregate import ObservationStore, ViewObservations, observe_view, stack_
 from ..aggregate.vala import observe_view_centres
 from ..raster import rasterize
 from ..scene import Camera, Gaussians
+from .coverage import CoverageGate, MapCoverage, map_coverage
 from .table import Method
 
 if TYPE_CHECKING:
     from ..structure.branch import StructuralBranch
+
+
+class ViewOffMap(ValueError):
+    """A view the coverage gate refused: its camera does not see the prior map (enough of it, or
+    from above its ground). ``seen`` has the figures."""
+
+    def __init__(self, name: str, seen: MapCoverage, gate: CoverageGate):
+        self.name, self.seen, self.gate = name, seen, gate
+        super().__init__(
+            f"view {name!r} refused: {seen.describe()} (needs >= {gate.min_coverage:.0%} and >= "
+            f"{gate.min_height_m:g} m)"
+        )
 
 
 def view_observations(
@@ -25,16 +40,23 @@ def view_observations(
     bank: list[np.ndarray],
     method: Method,
     branch: StructuralBranch | None = None,
+    gate: CoverageGate | None = None,
 ) -> tuple[ViewObservations, np.ndarray, dict[str, float]]:
-    """One view's observations, touching no store: render the view's adaptive Top-K, fuse its
-    bank with the 3D branch (if any), observe.
+    """One view's observations, touching no store: render the view's adaptive Top-K, measure how
+    much of the frame the map covers (``coverage.map_coverage``, from that render), fuse its bank
+    with the 3D branch (if any), observe.
 
     ``label_maps`` [L, H, W] int32 (-1 = no region), ``bank`` one [R_l, D] float32 feature
     array per level. Returns the observations, the stacked region bank [sum R_l, D] they refer
-    to, and the seconds of each stage (rasterize, fuse, observe)."""
+    to, and the seconds of each stage (rasterize, fuse, observe) with the view's ``coverage``
+    (0..1) and ``height_m`` (the camera above the map's ground under the view). Raises
+    ``ViewOffMap`` when ``gate`` refuses the view (nothing fused, nothing observed)."""
     t0 = time.perf_counter()
     rendered = rasterize(gaussians, camera, method.raster)
     assert rendered.topk_ids is not None and rendered.topk_weights is not None  # rasterize always keeps Top-K
+    seen = map_coverage(rendered.alpha, rendered.topk_ids, gaussians.means[:, 2], float(camera.center[2]))
+    if gate is not None and gate.refuses(seen):
+        raise ViewOffMap(camera.name, seen, gate)
     t1 = time.perf_counter()
     if branch is not None:
         bank = branch.fuse_view(camera, rendered.depth, label_maps, bank)
@@ -48,7 +70,8 @@ def view_observations(
     else:
         observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), config)
     t3 = time.perf_counter()
-    return observations, stacked, {"rasterize": t1 - t0, "fuse": t2 - t1, "observe": t3 - t2}
+    stages = {"rasterize": t1 - t0, "fuse": t2 - t1, "observe": t3 - t2}
+    return observations, stacked, {**stages, "coverage": seen.coverage, "height_m": seen.height_m}
 
 
 def add_view(
@@ -61,7 +84,8 @@ def add_view(
     branch: StructuralBranch | None = None,
 ) -> dict[str, float]:
     """``view_observations``, then append them to ``store``. Returns the seconds of each stage
-    (rasterize, fuse, observe, append) and ``kept``, the number of Gaussians the view observed."""
+    (rasterize, fuse, observe, append), ``kept``, the number of Gaussians the view observed, and
+    the view's map ``coverage`` and ``height_m`` (no gate here: every view is appended)."""
     observations, stacked, stages = view_observations(gaussians, camera, label_maps, bank, method, branch)
     t0 = time.perf_counter()
     store.append(camera.name, observations, stacked)

@@ -17,11 +17,22 @@ with h as it was; the branch's settings are in the store's manifest. A view alre
 store (by name: the shard's rule) is acknowledged again without being added twice, so a
 restarted node or a re-sent frame never double-counts. ``EndOfStream`` is forwarded
 on the observations topic after the views before it.
+
+A view that does not see the prior map is refused (``method.coverage``: less than
+``min_coverage`` of the frame covered by the map, or the camera less than ``min_height_m`` above
+the map's ground under the view): a WARN names the view and its figures, the view is
+acknowledged (``observations: 0``, so the ingest goes on) but not aggregated. When the first
+``off_map_views`` views of a run are all refused, the node's status is ERROR ("views do not
+overlap the map: wrong map, wrong georeference or wrong camera model?" and their figures) until
+a view is taken. The prior map's path and SHA-256 go into ``STORE/prior_map.json`` once per
+store (``aggregate.prior.record_prior_map``, hashed in the background), so that a run's map is
+found from its folder alone (``olsplat ground web --run``).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -66,6 +77,13 @@ class AccumulatorNode(Node):
         # WARN once the store's disk holds fewer than this many more views at the run's rate so far
         # (its segments and photos per view; 600: ten minutes at 1 frame/s, time to land)
         disk_warn_views: int = 600
+        # refuse a view that does not see the map: less than this share of its frame covered by the
+        # map (figures of simulated and real flights: method/coverage.py; 0: off) ...
+        min_coverage: float = 0.2
+        # ... or its camera less than this (map units) above the map's ground under it (-1e9: off)
+        min_height_m: float = 10.0
+        # ERROR when the first this many views of a run are all refused (0: never)
+        off_map_views: int = 5
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -76,6 +94,14 @@ class AccumulatorNode(Node):
             raise ParameterError(f"{where}: features must be 2d or 2d3d and 0 <= lambda_f <= 1, got {params}")
         if params.disk_warn_views < 0:
             raise ParameterError(f"{where}: disk_warn_views must be >= 0 (0: never), got {params.disk_warn_views}")
+        if params.off_map_views < 0:
+            raise ParameterError(f"{where}: off_map_views must be >= 0 (0: never), got {params.off_map_views}")
+        from ..method.coverage import CoverageGate
+
+        try:
+            CoverageGate(params.min_coverage, params.min_height_m)
+        except ValueError as exc:
+            raise ParameterError(f"{where}: {exc}") from exc
         if params.features == "2d3d":  # the 3D branch: open3d always, torch for a MinkUNet
             require("open3d", f"{where}: features=2d3d (the 3D branch)")
             if params.minkunet:
@@ -110,6 +136,7 @@ class AccumulatorNode(Node):
         from ..aggregate.tiles import TileShard  # heavy imports here: the launcher imports node classes
         from ..durable import DiskRunway
         from ..method import claim_store, method_params_of, warm_up
+        from ..method.coverage import CoverageGate
         from ..scene import read_ply
 
         p = self.params
@@ -126,6 +153,14 @@ class AccumulatorNode(Node):
         self.runway = DiskRunway()  # the bytes this run writes per view, to tell when the disk fills
         self.disk_warning = ""
         self.disk_values: dict = {}
+        self.gate = CoverageGate(p.min_coverage, p.min_height_m)
+        # the prior map's path and SHA-256 into the store, hashed off the loop (a 1 GB map: ~1 s)
+        threading.Thread(target=self._record_prior_map, name=f"{self.name}-prior-map", daemon=True).start()
+        self.refused = ""  # the last view's refusal ("" once a view is taken)
+        self.off_map = ""  # the ERROR when the run's first views were all refused ("" once one is taken)
+        # the first views this node judged, by name: their figures (None: taken); a resumed store is past them
+        self.first_views: dict[str, object] = {} if not len(self.shard) else dict.fromkeys(range(p.off_map_views))
+        self.seen_values: dict = {}
         if self.structure is not None and self.branch_file.exists():
             self.branch = self._restore_branch()
         # before "ready": a fresh install compiles the per-view kernels here, not on a flight's first frames
@@ -154,10 +189,15 @@ class AccumulatorNode(Node):
         if self.diag is not None:
             values = self.stats.with_sockets(self.sub.stats, queue_depth=len(batch), views=len(self.shard))
             values.update(self.disk_values)
+            values.update(self.seen_values)
             if self.store_error:
                 self.diag.beat(DiagnosticStatus.ERROR, self.store_error, values)
+            elif self.off_map:
+                self.diag.beat(DiagnosticStatus.ERROR, self.off_map, values)
             elif self.disk_warning:
                 self.diag.beat(DiagnosticStatus.WARN, self.disk_warning, values)
+            elif self.refused:
+                self.diag.beat(DiagnosticStatus.WARN, self.refused, values)
             else:
                 self.diag.beat(DiagnosticStatus.OK, f"{len(self.shard)} views in the store", values)
         return None
@@ -186,6 +226,49 @@ class AccumulatorNode(Node):
             )
             if not warned:
                 log.warning(self.disk_warning)
+
+    def _judged(self, name: str, refusal) -> None:
+        """Book a view the coverage gate judged (``refusal``: its ``ViewOffMap``, or None when
+        taken): the WARN of a refused view, and the ERROR when the run's first views all were."""
+        from ..method.coverage import off_map_error
+
+        if len(self.first_views) < self.params.off_map_views:
+            self.first_views.setdefault(name, refusal)
+        if refusal is None:
+            self.refused = self.off_map = ""
+            return
+        self.stats.count("views_refused")
+        self.refused = str(refusal)
+        log.warning("%s; acknowledged, not aggregated", refusal)
+        first = list(self.first_views.values())
+        n = self.params.off_map_views
+        if n and not self.off_map and len(first) == n and all(r is not None for r in first):
+            self.off_map = off_map_error([(r.name, r.seen) for r in first], self.gate, self.params.map)
+            log.error(self.off_map)
+            if self.diag is not None:  # now: the operator should not wait for the next beat
+                self.diag.beat_now(DiagnosticStatus.ERROR, self.off_map, self.stats.with_sockets(self.sub.stats))
+
+    def _record_prior_map(self) -> None:
+        from ..aggregate.prior import record_prior_map
+
+        try:
+            record = record_prior_map(self.params.store, self.params.map)
+        except OSError as exc:  # the run goes on; a review of it will ask for --map
+            log.warning("the prior map's record was not written to %s: %s", self.params.store, exc)
+            return
+        log.info(
+            "prior map %s: SHA-256 %s (%.1f MB, hashed in %.2f s) recorded in the store",
+            record.path,
+            record.sha256[:16],
+            record.bytes / 2**20,
+            record.hash_seconds,
+        )
+
+    def _seen(self, coverage: float, height_m: float) -> None:
+        """The last judged view's figures, for the heartbeat."""
+        self.seen_values = {"map_coverage": round(float(coverage), 4)}
+        if np.isfinite(height_m):
+            self.seen_values["height_above_map_m"] = round(float(height_m), 2)
 
     def _not_stored(self, message: RegionFeatures, exc: OSError) -> None:
         """A view the disk would not take (full, a file-size limit, a folder gone): the node goes
@@ -234,6 +317,7 @@ class AccumulatorNode(Node):
         from ..aggregate import save_view
         from ..aggregate.store import segment_bytes
         from ..method import view_observations, write_manifest
+        from ..method.view_step import ViewOffMap
 
         start = time.perf_counter()
         duplicate = message.name in self.shard.names
@@ -251,19 +335,26 @@ class AccumulatorNode(Node):
                 manifest = replace(self.manifest, encoder=message.encoder, feature_dim=int(bank[0].shape[1]))
                 write_manifest(self.params.store, manifest)
                 self.manifest = manifest  # after the write: a failed one is tried again with the next view
-            nbytes = save_view(self.params.views, len(self.shard.store), camera, image)
             if self.structure is not None and self.branch is None:
                 from ..structure.branch import StructuralBranch
 
                 self.branch = StructuralBranch.build(self.gaussians, camera.center[None], self.structure)
-            observations, stacked, _ = view_observations(
-                self.gaussians, camera, label_maps, bank, self.method, self.branch
-            )
-            self.shard.record(message.name, observations, stacked)
-            self._disk_after_view(nbytes + segment_bytes(observations, stacked))
-            kept = len(observations)
-            if self.branch is not None:  # after the view is stored: a restart goes on from h as it is now
-                self._save_branch()
+            try:  # refused right after the render: the 3D branch does not train on a view off the map
+                observations, stacked, stages = view_observations(
+                    self.gaussians, camera, label_maps, bank, self.method, self.branch, self.gate
+                )
+            except ViewOffMap as refusal:
+                self._seen(refusal.seen.coverage, refusal.seen.height_m)
+                self._judged(message.name, refusal)
+            else:
+                self._seen(stages["coverage"], stages["height_m"])
+                nbytes = save_view(self.params.views, len(self.shard.store), camera, image)
+                self.shard.record(message.name, observations, stacked)
+                self._disk_after_view(nbytes + segment_bytes(observations, stacked))
+                kept = len(observations)
+                if self.branch is not None:  # after the view is stored: a restart goes on from h as it is now
+                    self._save_branch()
+                self._judged(message.name, None)
         added = ObservationsAdded(
             stamp_ns=message.stamp_ns,
             frame_id=message.frame_id,

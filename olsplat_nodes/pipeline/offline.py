@@ -1,7 +1,9 @@
 """The method end to end on a scene folder, offline (``olsplat aggregate`` / ``eval``): every
 view through the same per-view step the live accumulator runs, then one refinement, into a
 language map. Same inputs for every method, so the comparisons are fair: the map, the SfM
-cameras, the frames and one region/feature cache."""
+cameras, the frames and one region/feature cache. Views that do not see the prior map are
+refused as the live accumulator refuses them (``method.coverage``): a WARN per view, and an
+error when the run's first ``OFF_MAP_VIEWS`` views all are."""
 
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ from ..aggregate.tiles import TiledStore, TileGrid, Tiling
 from ..durable import DiskRunway
 from ..errors import OlsplatInputError
 from ..method import Method
-from ..method.view_step import view_observations
+from ..method.coverage import CoverageGate, MapCoverage, off_map_error
+from ..method.view_step import ViewOffMap, view_observations
 from ..scene import Camera, Gaussians, read_ply
 from ..structure.branch import StructuralBranch, StructureConfig
 from ..structure.points import StructuralPoints
@@ -31,6 +34,7 @@ log = logging.getLogger(__name__)
 # Views after which a run's disk need is estimated again (bytes per view so far x views left):
 # the first estimate early, then as far views (which see more Gaussians) come in.
 DISK_CHECKS = (5, 25, 50, 100, 150, 200, 300, 400)
+OFF_MAP_VIEWS = 5  # the run stops when its first this many views are all refused (the accumulator's default)
 
 # (scene folder, map file state, what shapes the points) -> (points, features): the 3D branch's
 # point features are costly and the same for every run over one map.
@@ -117,22 +121,42 @@ def aggregate_flights(
     features_of: Callable[[Camera], tuple] | None = None,
     structure: StructureConfig | None = None,
     tile_m: float = 0.0,
+    gate: CoverageGate | None = CoverageGate(),  # noqa: B008 - frozen, a value
 ) -> dict:
     """``aggregate_scene`` over several flights of one prior map, into one language map: every
-    view of every flight, flight after flight, recorded once under ``flight_view_name``."""
+    view of every flight, flight after flight, recorded once under ``flight_view_name``. A view
+    ``gate`` refuses is logged (WARN) and left out; when the first ``OFF_MAP_VIEWS`` views all
+    are, ``OlsplatInputError`` says the views do not overlap the map (None: every view is taken)."""
     gaussians = same_prior_map(scenes)
     store = TiledStore(out / "store", Tiling.of(gaussians.means, TileGrid(tile_m)), writer=True)
     if len(store):
         raise OlsplatInputError(f"{out / 'store'} already holds {len(store)} views: choose a new --out")
     start = time.perf_counter()
     total, done, written = sum(len(scene.cameras) for scene in scenes), 0, 0
+    first: list[tuple[str, MapCoverage | None]] = []  # the first views' figures when refused (None: taken)
+    refused_views = 0
     for flight, scene in enumerate(scenes):
         branch = _structural_branch(scene, gaussians, structure) if structure else None
         cameras = progress(scene.cameras) if progress else scene.cameras
         for camera in cameras:
             label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
-            observations, stacked, _stages = view_observations(gaussians, camera, label_maps, bank, method, branch)
-            store.append(flight_view_name(flight, len(scenes), camera), observations, stacked)
+            name = flight_view_name(flight, len(scenes), camera)
+            try:
+                observations, stacked, _stages = view_observations(
+                    gaussians, camera, label_maps, bank, method, branch, gate
+                )
+            except ViewOffMap as refusal:
+                log.warning("%s; left out", refusal)
+                refused_views += 1
+                if len(first) < OFF_MAP_VIEWS:
+                    first.append((name, refusal.seen))
+                refused = [(n, seen) for n, seen in first if isinstance(seen, MapCoverage)]
+                if len(refused) == OFF_MAP_VIEWS:  # the first views, every one refused
+                    raise OlsplatInputError(off_map_error(refused, refusal.gate, str(scenes[0].ply))) from None
+                continue
+            if len(first) < OFF_MAP_VIEWS:
+                first.append((name, None))
+            store.append(name, observations, stacked)
             done, written = done + 1, written + segment_bytes(observations, stacked)
             if done in DISK_CHECKS and done < total:
                 warning = disk_warning(out, written, done, total, shutil.disk_usage(out).free)
@@ -152,4 +176,5 @@ def aggregate_flights(
         "peak_rss_mb": peak_rss_mb(),
         "observed_gaussians": int(observed.sum()),
         "tiles": len(store.tiling),
+        "views_refused": refused_views,  # left out: they did not see the map
     }

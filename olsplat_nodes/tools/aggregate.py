@@ -118,7 +118,9 @@ def run_aggregate(args: argparse.Namespace) -> int:
             tile_m=args.tile_m,
         )
     print(
-        f"{args.method}: {views} views of {len(scenes)} flight(s), {stats['tiles']} tile(s), in "
+        f"{args.method}: {views} views of {len(scenes)} flight(s)"
+        + (f" ({stats['views_refused']} refused: off the map)" if stats.get("views_refused") else "")
+        + f", {stats['tiles']} tile(s), in "
         f"{stats['seconds']:.1f} s ({stats['views_per_second']:.2f} views/s), "
         f"peak memory {stats['peak_rss_mb']:.0f} MB, "
         f"{stats['observed_gaussians']:,} Gaussians observed -> {args.out}"

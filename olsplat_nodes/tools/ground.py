@@ -54,7 +54,8 @@ def add_parser(subparsers) -> None:
     web.add_argument(
         "--map",
         type=Path,
-        help="with --run: the prior map PLY the run was made with (default: RUN/../flight/map/point_cloud.ply)",
+        help="with --run: the prior map PLY the run was made with (default: the one the run recorded, "
+        "RUN/store/prior_map.json, checked by its SHA-256; for older runs RUN/../flight/map/point_cloud.ply)",
     )
     web.add_argument("--client-key", type=Path, help="with --connect: CURVE secret key file of this ground station")
     web.add_argument("--server-key", type=Path, help="with --connect: CURVE public key file of the drone's server")
@@ -107,12 +108,21 @@ def _run_source(args: argparse.Namespace):
 
     if args.client_key or args.server_key:
         raise OlsplatInputError("--client-key and --server-key go with --connect, not --run")
-    prior = args.map or args.run_dir / ".." / "flight" / "map" / "point_cloud.ply"
     if not args.run_dir.is_dir():
         raise OlsplatInputError(f"{args.run_dir}: no such run folder")
+    prior = args.map or _recorded_prior_map(args.run_dir)
     if not prior.exists():
         raise OlsplatInputError(f"{prior}: prior map not found: give the PLY the run was made with (--map)")
     return RunReview(args.run_dir, prior, args.max_splats)
+
+
+def _recorded_prior_map(run_dir: Path) -> Path:
+    """The map the run's accumulator recorded (RUN/store/prior_map.json: path and SHA-256, checked
+    here); a run without that record (made before it was written): RUN/../flight/map/point_cloud.ply,
+    the demo's layout."""
+    from ..aggregate.prior import recorded_prior_map
+
+    return recorded_prior_map(run_dir / "store") or run_dir / ".." / "flight" / "map" / "point_cloud.ply"
 
 
 def _mission_negatives(prior_map: Path) -> str | None:

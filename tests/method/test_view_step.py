@@ -60,7 +60,7 @@ def test_add_view_stores_what_the_reference_equations_give(tmp_path, settings):
     np.testing.assert_allclose(observations.strength, dense_d[kept], rtol=1e-3, atol=1e-5)
     np.testing.assert_allclose(observations.features(np.asarray(stacked, np.float32)), dense_f[kept], atol=2e-3)
     assert (observations.strength > method.aggregation.tau_d).all()
-    assert set(stages) == {"rasterize", "fuse", "observe", "append", "kept"}
+    assert set(stages) == {"rasterize", "fuse", "observe", "append", "kept", "coverage", "height_m"}
 
 
 def test_a_method_parameter_changes_what_the_step_keeps(tmp_path):
