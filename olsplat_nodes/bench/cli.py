@@ -6,6 +6,7 @@ from . import (
     aggregate,
     cluster,
     compression,
+    diagnose,
     encode,
     frame,
     graph,
@@ -37,3 +38,4 @@ def add_parser(subparsers) -> None:
     robustness.add_parser(targets)
     structure.add_parser(targets)
     tune.add_parser(targets)
+    diagnose.add_parser(targets)
