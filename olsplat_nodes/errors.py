@@ -56,9 +56,11 @@ def classify_failure(exc: BaseException) -> tuple[int, str] | None:
     if isinstance(exc, (OlsplatInputError, FileNotFoundError)):
         return EXIT_BAD_INPUT, _one_line(str(exc))
     notes = [n for n in getattr(exc, "__notes__", ()) if n.startswith("while binding ")]
-    if notes and getattr(exc, "errno", None) in _BIND_ERRNOS:
-        endpoint = notes[-1][len("while binding ") :]
-        return EXIT_CONFIG, _one_line(f"cannot bind {endpoint}: {exc} (is another graph running?)")
+    code = getattr(exc, "errno", None)
+    # an address in use or not of this machine only ever comes from a bind; EACCES only with the note
+    if code in _BIND_ERRNOS and (notes or code != errno.EACCES):
+        endpoint = f" {notes[-1][len('while binding ') :]}" if notes else ""
+        return EXIT_CONFIG, _one_line(f"cannot bind{endpoint}: {exc} (is another graph running?)")
     return None
 
 

@@ -6,7 +6,9 @@ shares one context. ``run(stop)`` is the same for every node: ``setup`` (open th
 and the sockets), then ``spin`` until ``stop`` is set or ``spin`` returns an exit code, then
 ``teardown`` and every socket closed, also after an exception. It returns the exit code: 0
 when the node has finished its job (a finite replay fully processed), ``EXIT_INTERRUPTED``
-when stopped, non-zero on failure; the supervisor restarts on failure.
+when stopped, non-zero on failure; the supervisor restarts a crash, not a failure on bad input
+or configuration (an ``OlsplatInputError`` from ``setup``: the process exits with
+``errors.EXIT_BAD_INPUT`` / ``EXIT_CONFIG`` and its one-line reason).
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@ import argparse
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "launch", help="run the nodes of a launch file (restarts, per-node logs, Ctrl-C stops all)",
-        description="Exit code: 0 when the exit_when nodes have finished, 1 on failure, "
-        "130 on Ctrl-C (143 on SIGTERM).",
+        description="Exit code: 0 when the exit_when nodes have finished, 1 on failure, 65 / 78 when a node "
+        "failed on its input / configuration (not restarted), 130 on Ctrl-C (143 on SIGTERM).",
     )  # fmt: skip
     parser.add_argument("file", nargs="?", metavar="NAME|FILE",
                         help="a shipped launch file by name (replay, drone, field_drone, ground, field_ground) "

@@ -15,6 +15,7 @@ from typing import Any
 import zmq
 
 from olsplat_nodes.nodes.base import Node
+from olsplat_nodes.transport._sockets import attach
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ class Talker(Node):
         sock = self.context.socket(zmq.PUB)
         sock.linger = 0
         try:
-            sock.bind(self.params.endpoint)
+            attach(sock, [self.params.endpoint], bind=True)  # as the real nodes bind
             log.info("%s publishing %s on %s", self.name, self.params.topic_out, self.params.endpoint)
             i = 0
             while not stop.wait(self.params.period_s):
@@ -135,4 +136,44 @@ class Listener(Node):
                     got += 1
         finally:
             sock.close()
+        return 0
+
+
+class Crasher(Node):
+    """Appends ``time.time()`` to ``starts_file`` (one line per start), then raises an unexpected
+    exception: a crash, every time."""
+
+    @dataclass(frozen=True)
+    class Params:
+        starts_file: str = ""
+
+    def run(self, stop: threading.Event) -> int:
+        with open(self.params.starts_file, "a") as file:
+            file.write(f"{time.time()}\n")
+        raise RuntimeError(f"{self.name} crashes on purpose")
+
+
+class Beater(Node):
+    """Sends a heartbeat (``Diagnostics`` to ``diagnostics``, the node's ``stats.values()``) every
+    ``period_s`` until stopped; with ``crash_once`` (a path) the first run creates that file and
+    exits with 3 after one beat."""
+
+    @dataclass(frozen=True)
+    class Params:
+        diagnostics: str = ""
+        period_s: float = 0.05
+        crash_once: str = ""
+
+    def run(self, stop: threading.Event) -> int:
+        from olsplat_nodes.transport.diagnostics import Diagnostics
+
+        diag = Diagnostics(self.context, self.params.diagnostics, self.name, period_s=0.0)
+        try:
+            while not stop.wait(self.params.period_s):
+                diag.beat_now(0, "beating", self.stats.values())
+                if self.params.crash_once and not os.path.exists(self.params.crash_once):
+                    Path(self.params.crash_once).touch()
+                    return 3
+        finally:
+            diag.close()
         return 0
