@@ -54,6 +54,21 @@ def add_parser(subparsers) -> None:
         "--motion-blur", type=float, default=0.0, metavar="SECONDS", help="shutter time for motion blur (0: none)"
     )
     make.add_argument("--no-pose-noise", action="store_true", help="write the true poses to sparse/0 and the log")
+    make.add_argument(
+        "--world",
+        choices=("v1", "v2"),
+        default="v1",
+        help="the evaluation world (sim/README.md, 'Worlds'): v1 as before; v2 adds view-dependent appearance, "
+        "a varying altitude, tilted nadir views, haze, cloud shadows and a calibrated camera (default v1)",
+    )
+    make.add_argument(
+        "--world-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one world setting (repeatable; dotted keys, YAML values), "
+        "e.g. --world-set sensor.vignette=0 --world-set haze.beta=0.002 --world-set clouds.wind_mps=[3,0]",
+    )
     make.set_defaults(run=run_make)
 
     train = commands.add_parser("train-encoders", help="train the compact encoders shipped in the package")
@@ -103,7 +118,7 @@ def run_make(args: argparse.Namespace) -> int:
 
     from .make import MakeOptions, make_dataset
     from .reconstruct import ReconstructionSpec
-    from .sensor import SensorSpec
+    from .world import WORLDS, with_settings
 
     preset = PRESETS[args.preset]
     changes = {k: v for k, v in (("n_views", args.views), ("n_gaussians", args.gaussians)) if v is not None}
@@ -116,11 +131,17 @@ def run_make(args: argparse.Namespace) -> int:
     if args.flight_seed is not None and args.flight_seed < 0:
         raise OlsplatInputError(f"--flight-seed must be >= 0, got {args.flight_seed}")
     preset = dataclasses.replace(preset, **changes)
+    try:
+        world = with_settings(WORLDS[args.world], args.world_set)
+    except ValueError as exc:
+        raise OlsplatInputError(str(exc)) from None
+    if args.motion_blur:
+        world = dataclasses.replace(world, sensor=dataclasses.replace(world.sensor, blur_exposure_s=args.motion_blur))
     empty_output_folder(args.out, args.force)
     recon = (
         ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
     )
-    options = MakeOptions(SensorSpec(blur_exposure_s=args.motion_blur), recon, rate_hz=args.rate, fov_deg=args.fov)
+    options = MakeOptions(world, recon, rate_hz=args.rate, fov_deg=args.fov)
     make_dataset(preset, args.seed, args.out, options, flight_seed=args.flight_seed)
     return 0
 

@@ -15,6 +15,8 @@ Output folder (documented in sim/README.md):
 Everything is a pure function of (preset, seed, flight seed, options): same inputs, same bytes.
 The town and its map depend on the seed alone; a flight seed flies the same town again on
 another path (see ``_streams``), so that several flights of one map can be aggregated together.
+``options.world`` (world.py) is the evaluation world: v1 (the default) or v2 (view-dependent
+appearance, varying altitude, haze, cloud shadows, a calibrated camera).
 """
 
 from __future__ import annotations
@@ -33,13 +35,16 @@ from olsplat_nodes.sources import SourceFrame
 from olsplat_nodes.sources.replay_log import encode_jpeg, write_mcap, write_timestamps
 
 from .annotate import annotate_view, label_maps
-from .flight import FlightFrame, FlightSpec, plan_flight
+from .appearance import sun_vector, with_view_dependence
+from .atmosphere import CloudField, apply_haze, shadow_light, surface_points
+from .flight import EPOCH_NS, FlightFrame, FlightSpec, plan_flight
 from .labels import CATEGORIES, LABELS, QUERIES
 from .presets import Preset
 from .preview import contact_sheet, overlay, overview
 from .reconstruct import ReconstructionSpec, perturb_pose, reconstruct
 from .scene import generate_scene
-from .sensor import SensorSpec, apply_sensor, exposure_gains, to_uint8
+from .sensor import SensorSpec, apply_sensor, exposure_gains, focus_blur, focus_blurs, to_uint8
+from .world import V1, WorldSpec, world_streams
 
 BACKGROUND = (0.45, 0.43, 0.38)  # beyond the town: bare land, not a black void
 # A town seed S draws from the first four children of SeedSequence(S) (flight, sensor,
@@ -50,11 +55,15 @@ FLIGHT_SEED_CHILD = 4
 
 @dataclass(frozen=True)
 class MakeOptions:
-    sensor: SensorSpec = field(default_factory=SensorSpec)
+    world: WorldSpec = V1  # the evaluation world, its camera (``world.sensor``) included
     reconstruction: ReconstructionSpec = field(default_factory=ReconstructionSpec)
     jpeg_quality: int = 92
     rate_hz: float = 1.0  # frame rate of the flight
     fov_deg: float = 50.0  # horizontal field of view
+
+    @property
+    def sensor(self) -> SensorSpec:
+        return self.world.sensor
 
 
 def _render_frame(gaussians, frame: FlightFrame, velocity: np.ndarray, sensor: SensorSpec):
@@ -101,14 +110,31 @@ def _flight_spec(preset: Preset, options: MakeOptions, flight_seed: int | None, 
 
 
 def _town_flight_map(preset: Preset, seed: int, options: MakeOptions, flight_seed: int | None = None):
-    """(true scene, flight spec, flight frames, reconstructed map, (sensor rng, pose rng)) of
-    (preset, seed, flight seed): each part drawn from its own stream, so any part can be made alone."""
+    """(true scene, flight spec, flight frames, reconstructed map, (sensor rng, pose rng, world
+    flight rng)) of (preset, seed, flight seed): each part drawn from its own stream, so any part
+    can be made alone. The true scene carries the world's view-dependent appearance; the map is
+    made from it as in v1 (its colour from the truth's DC term, its own degree-1 residue)."""
     flight_rng, sensor_rng, recon_rng, pose_rng = _streams(seed, flight_seed)
+    town_world_rng, flight_world_rng = world_streams(seed, flight_seed)
     truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
+    truth = with_view_dependence(truth, options.world.appearance, town_world_rng)
     spec = _flight_spec(preset, options, flight_seed, flight_rng)
-    frames = plan_flight(preset.size_m, spec, flight_rng)
+    frames = plan_flight(preset.size_m, spec, flight_rng, options.world.flight, flight_world_rng)
     recon = reconstruct(truth, options.reconstruction, recon_rng)
-    return truth, spec, frames, recon, (sensor_rng, pose_rng)
+    return truth, spec, frames, recon, (sensor_rng, pose_rng, flight_world_rng)
+
+
+def _atmosphere(rgb: np.ndarray, result, frame: FlightFrame, world: WorldSpec, clouds: CloudField | None):
+    """[H, W, 3] rendered rgb -> the same under the world's cloud shadows and haze (no-op in v1)."""
+    if clouds is None and world.haze.beta <= 0:
+        return rgb
+    points, depth = surface_points(frame.camera, result.depth, result.alpha)
+    if clouds is not None:
+        t_s = (frame.stamp_ns - EPOCH_NS) / 1e9
+        rgb = rgb * shadow_light(clouds, points, sun_vector(world.appearance), t_s)[..., None]
+    if world.haze.beta > 0:
+        rgb = apply_haze(rgb, depth, world.haze)
+    return rgb
 
 
 def prior_map(
@@ -135,11 +161,14 @@ def make_dataset(
     start = time.perf_counter()
     for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    truth, spec, frames, recon, (sensor_rng, pose_rng) = _town_flight_map(preset, seed, options, flight_seed)
+    truth, spec, frames, recon, (sensor_rng, pose_rng, world_rng) = _town_flight_map(preset, seed, options, flight_seed)
     log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
         f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x "
         f"{preset.size_m:.0f} m")  # fmt: skip
     gains = exposure_gains(len(frames), options.sensor, sensor_rng)
+    blurs = focus_blurs(len(frames), options.sensor, sensor_rng)
+    world = options.world
+    clouds = CloudField(world.clouds, world_rng) if world.clouds.coverage > 0 else None
     sfm_cameras = [perturb_pose(f.camera, options.reconstruction, pose_rng) for f in frames]
 
     write_ply(out / "map" / "point_cloud.ply", recon.gaussians)
@@ -164,6 +193,7 @@ def make_dataset(
             a, b = frames[max(i - 1, 0)], frames[min(i + 1, len(frames) - 1)]  # central difference
             velocity = (b.camera.center - a.camera.center) / max((b.stamp_ns - a.stamp_ns) / 1e9, 1e-9)
             rgb, result = _render_frame(truth.gaussians, frame, velocity, options.sensor)
+            rgb = focus_blur(_atmosphere(rgb, result, frame, world, clouds), blurs[i])
             image = to_uint8(apply_sensor(rgb, gains[i], options.sensor, sensor_rng))
             jpeg = encode_jpeg(image, options.jpeg_quality)
             (out / "images" / frame.camera.name).write_bytes(jpeg)

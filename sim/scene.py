@@ -37,6 +37,7 @@ class TruthScene:
     instance: np.ndarray  # [N] int32 building/tree/car id, -1 for stuff
     label: np.ndarray  # [N] int16 index into labels.LABELS
     layout: Layout
+    glass: np.ndarray | None = None  # [N] bool: windows and car glass (world v2's specular material)
 
     @property
     def size_m(self) -> float:
@@ -51,6 +52,7 @@ class _Part:
     category: np.ndarray  # [M]
     instance: np.ndarray  # [M]
     label: np.ndarray  # [M]
+    glass: np.ndarray | None = None  # [M] bool, None: no glass
 
 
 def _shade(normals: np.ndarray) -> np.ndarray:
@@ -58,11 +60,11 @@ def _shade(normals: np.ndarray) -> np.ndarray:
     return 0.55 + 0.6 * np.clip(normals @ sun_direction(), 0.0, None)
 
 
-def _part(means, normals, colors, category, instance, label) -> _Part:
+def _part(means, normals, colors, category, instance, label, glass=None) -> _Part:
     m = len(means)
     return _Part(
         np.asarray(means, float), normals, np.clip(colors, 0.0, 1.0),
-        np.full(m, category, np.int16), np.full(m, instance, np.int32), np.full(m, label, np.int16),
+        np.full(m, category, np.int16), np.full(m, instance, np.int32), np.full(m, label, np.int16), glass,
     )  # fmt: skip
 
 
@@ -152,7 +154,9 @@ def _building(b: Building, density: float, rng, noise: Noise2D) -> list[_Part]:
             colors = np.asarray(b.wall_rgb) * (1.0 + 0.06 * noise(np.c_[s, z] + 31.0 * b.instance, 2.0))[:, None]
             colors[window] = GLASS * (1.0 + 0.3 * noise(np.c_[s, z][window], 1.0))[:, None]
             colors *= (_shade(normal[None])[0] * (0.8 + 0.2 * np.clip(z / 1.5, 0, 1)))[:, None]
-            parts.append(_part(np.c_[xy, z], np.tile(normal, (len(z), 1)), colors, CATEGORY["wall"], b.instance, label))
+            parts.append(
+                _part(np.c_[xy, z], np.tile(normal, (len(z), 1)), colors, CATEGORY["wall"], b.instance, label, window)
+            )
         # roof, overhanging the walls by 0.3 m
         rx0, ry0, rx1, ry1 = x0 - 0.3, y0 - 0.3, x1 + 0.3, y1 + 0.3
         area_flat = (rx1 - rx0) * (ry1 - ry0)
@@ -228,7 +232,7 @@ def _car(car, density: float, rng) -> _Part:
         ((0, hw, car.height / 2), (0, 1, 0), (hl, 0, 0), (0, 0, car.height / 2)),
         ((0, -hw, car.height / 2), (0, -1, 0), (hl, 0, 0), (0, 0, car.height / 2)),
     ]
-    parts: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] = ([], [], [])  # means, normals, colours
+    parts: tuple[list[np.ndarray], ...] = ([], [], [], [])  # means, normals, colours, glass
     for centre, normal, eu, ev in faces:
         area = 4 * np.linalg.norm(eu) * np.linalg.norm(ev)
         m = max(3, rng.poisson(density * area))
@@ -243,12 +247,13 @@ def _car(car, density: float, rng) -> _Part:
         parts[0].append(local)
         parts[1].append(np.tile(normal, (m, 1)).astype(float))
         parts[2].append(rgb * _shade(np.asarray(normal, float)[None])[0])
-    means, normals, colors = (np.concatenate(p) for p in parts)
+        parts[3].append(glass)
+    means, normals, colors, glass = (np.concatenate(p) for p in parts)
     if not car.along_x:  # rotate the car frame by 90 degrees about z
         means = means[:, [1, 0, 2]] * [-1, 1, 1]
         normals = normals[:, [1, 0, 2]] * [-1, 1, 1]
     means = means + np.array([car.x, car.y, 0.0])  # an array: a shift, not list concatenation
-    return _part(means, normals, colors, CATEGORY["car"], car.instance, LABEL["car"])
+    return _part(means, normals, colors, CATEGORY["car"], car.instance, LABEL["car"], glass)
 
 
 def _quats_from_normals(normals: np.ndarray, rng) -> np.ndarray:
@@ -301,6 +306,7 @@ def generate_scene(n_gaussians: int, size_m: float, seed: int) -> TruthScene:
         instance=np.concatenate([p.instance for p in parts]),
         label=np.concatenate([p.label for p in parts]),
         layout=layout,
+        glass=np.concatenate([p.glass if p.glass is not None else np.zeros(len(p.means), bool) for p in parts]),
     )
 
 

@@ -1,8 +1,9 @@
-"""What the camera does to a rendered image: exposure, vignetting, noise, motion blur.
+"""What the camera does to a rendered image: exposure, vignetting, noise, motion and focus blur.
 
 Images are float RGB in 0..1 until ``to_uint8``. The exposure gain drifts from frame to frame
 (auto-exposure hunting over bright roofs and dark lawns), the vignette darkens the corners,
-and the noise is signal-dependent (shot noise) plus a read-noise floor.
+and the noise is signal-dependent (shot noise) plus a read-noise floor. World v2's camera also
+varies its sharpness from frame to frame (focus, vibration): a Gaussian blur of a per-frame sigma.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ class SensorSpec:
     read_noise: float = 0.006  # std of the signal-independent noise
     blur_exposure_s: float = 0.0  # > 0: motion blur over this shutter time (renders several poses)
     blur_samples: int = 5
+    focus_blur_px: tuple[float, float] = (0.0, 0.0)  # per-frame Gaussian blur sigma, uniform in this range (pixels)
 
 
 def exposure_gains(n: int, spec: SensorSpec, rng: np.random.Generator) -> np.ndarray:
@@ -33,6 +35,23 @@ def exposure_gains(n: int, spec: SensorSpec, rng: np.random.Generator) -> np.nda
         log_gain = float(np.clip(log_gain + step, lo, hi))
         out[i] = np.exp(log_gain)
     return out
+
+
+def focus_blurs(n: int, spec: SensorSpec, rng: np.random.Generator) -> np.ndarray:
+    """[n] Gaussian blur sigma per frame (pixels); no draw from ``rng`` when the range is (0, 0)."""
+    lo, hi = spec.focus_blur_px
+    if hi <= 0:
+        return np.zeros(n)
+    return rng.uniform(lo, hi, n)
+
+
+def focus_blur(rgb: np.ndarray, sigma_px: float) -> np.ndarray:
+    """[H, W, 3] float -> the same blurred by a Gaussian of ``sigma_px`` pixels (unchanged if <= 0.05)."""
+    if sigma_px <= 0.05:
+        return rgb
+    import cv2
+
+    return cv2.GaussianBlur(rgb.astype(np.float32), (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
 
 
 def apply_sensor(rgb: np.ndarray, gain: float, spec: SensorSpec, rng: np.random.Generator) -> np.ndarray:
