@@ -19,12 +19,13 @@ from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..query.answer import QueryFeatures
 from ..query.localize import Instance3D, VoxelIndex, default_cluster_radius
+from ..query.negatives import AERIAL_VOCABULARY
 from ..scene import Camera
 from .splats import BrowserSplats, browser_splats, relevance_margin
 
 MAX_TEXT_CHARS = 200  # as the query server's max_text_chars
 MAX_NEGATIVES = 32  # as the query server's max_negatives
-DEFAULT_NEGATIVES = ("object", "things", "stuff", "texture")  # as the query server's
+DEFAULT_NEGATIVES = AERIAL_VOCABULARY  # as the query server's (the page shows them; the operator may edit)
 CLUSTER_MIN_POINTS = 20  # as the query server's cluster_min_points
 
 
@@ -43,10 +44,11 @@ def query_text_problem(text: str, negatives: list[str]) -> str | None:
 
 
 def prepared_query(text: str, negatives: list[str]) -> tuple[str, list[str], str | None]:
-    """(text stripped, negatives without the text itself (the query server's four when none is
-    left), the reason the page cannot ask it or None): what both page sources ask."""
+    """(text stripped, negatives without the text itself (the aerial vocabulary without it when
+    none is left), the reason the page cannot ask it or None): what both page sources ask."""
     text = text.strip()
-    negatives = [n for n in negatives if n != text] or list(DEFAULT_NEGATIVES)
+    negatives = [n for n in negatives if n.lower() != text.lower()]
+    negatives = negatives or [n for n in DEFAULT_NEGATIVES if n.lower() != text.lower()]
     return text, negatives, query_text_problem(text, negatives)
 
 

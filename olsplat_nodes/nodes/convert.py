@@ -162,7 +162,8 @@ def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray
         frame_id="map",
         request_id=request.request_id,
         status="ok",
-        message=f"{answer.chosen_count} Gaussians pick it over {len(answer.negatives)} negatives"
+        message=f"{answer.chosen_count} Gaussians pick it over {len(answer.negatives)} negatives "
+        f"({', '.join(answer.negatives)})"
         + (f"; words the encoder does not know: {', '.join(answer.unknown_words)}" if answer.unknown_words else ""),
         text=answer.text,
         view=request.view,

@@ -91,8 +91,9 @@ class QueryServerNode(Node):
         map: str = ""  # the prior Gaussian map (INRIA PLY)
         map_dir: str = "{run_dir}/map"
         views: str = "{run_dir}/views"
-        # query.CANONICAL_NEGATIVES: texts a query must beat, unless the request names its own
-        negatives: tuple[str, ...] = ("object", "things", "stuff", "texture")
+        # texts a query must beat unless the request names its own; empty: the aerial vocabulary
+        # (query/negatives.py) without the query itself and its near-duplicates
+        negatives: tuple[str, ...] = ()
         query_endpoint: str = "tcp://127.0.0.1:5600"
         diagnostics_bind: str = "ipc://{run_dir}/diagnostics.sock"
         map_in: str = "ipc://{run_dir}/map.sock"
@@ -444,6 +445,7 @@ class QueryServerNode(Node):
     def _query(self, request: QueryRequest) -> QueryReply:
         from ..ground.splats import MAX_SPLATS, relevance_margin
         from ..query.answer import answer_query
+        from ..query.negatives import vocabulary_negatives
         from ..scene import select_view
 
         def refuse(status: str, text: str) -> QueryReply:
@@ -487,7 +489,7 @@ class QueryServerNode(Node):
                         f"{reply_mb:.1f} MB, over max_reply_mb {self.params.max_reply_mb:g}",
                     )
             encoder = self._encoder(self.language_map)
-            negatives = request.negatives or list(self.params.negatives)
+            negatives = list(request.negatives or self.params.negatives) or vocabulary_negatives(text, encoder)
             threshold = request.threshold if math.isfinite(request.threshold) else None  # NaN: beat the negatives
             answer = answer_query(
                 self.language_map,

@@ -47,8 +47,8 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import label_texts, load_queries
     from ..pipeline import Scene
-    from ..query import CANONICAL_NEGATIVES
     from ..query.answer import answer_query, encoder_for_map
+    from ..query.negatives import vocabulary_negatives
     from ..query.tiled import answer_tiled, is_tiled, tile_maps
     from ..scene import read_ply, select_view
     from ..viz import write_query_pictures
@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         labels, queries = load_queries(scene.folder)
         negatives = [t for t in label_texts(labels, queries) if t != text]
     else:
-        negatives = list(CANONICAL_NEGATIVES)
+        negatives = vocabulary_negatives(text, encoder_for_map(language_map))
     camera = select_view(scene.cameras, args.view if args.view is not None else 0)
     if not ((args.cluster_radius is None or args.cluster_radius > 0) and args.min_points >= 1):
         raise OlsplatInputError(

@@ -117,7 +117,7 @@ def test_reply_instances_on_the_wire_are_the_documented_records(ctx, sockdir, ti
     dealer = raw_socket(ctx, zmq.DEALER, endpoint, bind=False)  # raw frames: what any client receives
     try:
         with NodeThread(node) as running:
-            request = QueryRequest(request_id="rec", text="red roof buildings", view=ENCODE_VIEW, heatmap=True)
+            request = QueryRequest(request_id="rec", text="parking lot", view=ENCODE_VIEW, heatmap=True)
             dealer.send_multipart([b"", *encode(request, "query")])
             assert dealer.poll(60_000), "no reply from the query server"
             frames = dealer.recv_multipart()
@@ -314,3 +314,51 @@ def test_a_level_of_detail_heatmap_is_the_merged_render_and_relevance_stays_exac
     assert np.abs(merged.heatmap - exact.heatmap).max() > 1e-3  # it is another render
     exact_3d = [i for i in exact.instances if i["kind"] == "3d"]
     assert [i for i in merged.instances if i["kind"] == "3d"] == exact_3d
+
+
+def test_a_query_without_negatives_beats_the_aerial_vocabulary_and_says_so(ctx, sockdir, tiny, tiny_run, tmp_path):
+    """The live default: the query must beat the land-cover classes of an aerial scene (not
+    "object", "things"), the reply's message names them, and the roof query no longer marks
+    road and bare ground: its mask is the one the offline query with the flight's labels makes."""
+    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
+    from olsplat_nodes.evaluate.scene_eval import label_texts, load_queries
+    from olsplat_nodes.query import CANONICAL_NEGATIVES
+    from olsplat_nodes.query.answer import answer_query, encoder_for_map
+    from olsplat_nodes.query.negatives import AERIAL_VOCABULARY
+    from olsplat_nodes.scene import read_ply
+
+    scene, _ = tiny
+    shutil.copytree(tiny_run / "views", tmp_path / "views")
+    shutil.copytree(tiny_run / "map", tmp_path / "map")
+    node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views")
+    with NodeThread(node), QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=60.0) as client:
+        reply = client.request(QueryRequest(request_id="d", text="red roof buildings", view=ENCODE_VIEW))
+    assert reply.status == "ok", reply.message
+    used = [n for n in AERIAL_VOCABULARY if n != "red roof buildings"]
+    assert f"over {len(used)} negatives ({', '.join(used)})" in reply.message
+
+    language_map = LanguageMap.load(latest_map(tmp_path / "map")["path"])
+    view = next(v for v in load_views(tmp_path / "views") if v.camera.name == ENCODE_VIEW)
+    gaussians, encoder = read_ply(scene / "map" / "point_cloud.ply"), encoder_for_map(language_map)
+    labels, queries = load_queries(scene)
+    own = [t for t in label_texts(labels, queries) if t != "red roof buildings"]
+    offline = answer_query(language_map, gaussians, encoder, "red roof buildings", own, view.camera).mask
+    generic = answer_query(language_map, gaussians, encoder, "red roof buildings", CANONICAL_NEGATIVES, view.camera)
+    np.testing.assert_array_equal(reply.mask.astype(bool), offline)
+    assert generic.mask.mean() > 5 * max(offline.mean(), 0.002)  # what the old default marked
+
+
+def test_vocabulary_negatives_drop_the_query_and_its_near_duplicates():
+    from olsplat_nodes.query.negatives import AERIAL_VOCABULARY, vocabulary_negatives
+
+    class Words:  # text embeddings by hand: one axis per text, but "roofs" is "red roof buildings"
+        def encode_text(self, texts):
+            axes = [*AERIAL_VOCABULARY, "road", "Road"]
+            rows = np.zeros((len(texts), len(axes)), np.float32)
+            for i, text in enumerate(texts):
+                rows[i, axes.index("red roof buildings" if text == "roofs" else text)] = 1.0
+            return rows
+
+    assert vocabulary_negatives("Road", Words()) == [v for v in AERIAL_VOCABULARY if v != "road"]
+    assert "red roof buildings" not in vocabulary_negatives("roofs", Words())
+    assert vocabulary_negatives("road", Words(), vocabulary=["road"]) == ["object", "things", "stuff", "texture"]
