@@ -50,6 +50,7 @@ from .base import Node
 from .convert import view_of
 
 log = logging.getLogger(__name__)
+DISK_RECHECK_S = 5.0  # free space is read again this often between views (a statvfs: microseconds)
 
 
 class AccumulatorNode(Node):
@@ -151,6 +152,7 @@ class AccumulatorNode(Node):
         self.store_error = ""  # why the last view could not be stored ("" once one is)
         self.branch_file = Path(p.store) / "branch.npz"
         self.runway = DiskRunway()  # the bytes this run writes per view, to tell when the disk fills
+        self.disk_checked = 0.0  # monotonic s of the last free-space reading
         self.disk_warning = ""
         self.disk_values: dict = {}
         self.gate = CoverageGate(p.min_coverage, p.min_height_m)
@@ -186,6 +188,8 @@ class AccumulatorNode(Node):
                     self._not_stored(message, exc)
             else:
                 self.unexpected(message, p.topic_regions)
+        if time.monotonic() - self.disk_checked > DISK_RECHECK_S:
+            self._disk_status()
         if self.diag is not None:
             values = self.stats.with_sockets(self.sub.stats, queue_depth=len(batch), views=len(self.shard))
             values.update(self.disk_values)
@@ -205,9 +209,18 @@ class AccumulatorNode(Node):
     def _disk_after_view(self, nbytes: int) -> None:
         """Count a stored view's bytes and tell, while the flight goes on, when the store's disk
         will be full soon at this rate (a status, not an error: space can be made meanwhile)."""
+        self.runway.add(nbytes)
+        self._disk_status()
+
+    def _disk_status(self) -> None:
+        """The disk runway at the run's bytes per view so far, from the free space now (after a
+        view, and every ``DISK_RECHECK_S`` meanwhile: a WARN ends once space is made, with or
+        without new views)."""
         from ..durable import free_mb
 
-        self.runway.add(nbytes)
+        self.disk_checked = time.monotonic()
+        if not self.runway.bytes_per_view:
+            return
         free = free_mb(self.params.store) * 2**20
         warned, self.disk_warning, self.disk_values = bool(self.disk_warning), "", {}
         if not np.isfinite(free):  # the free space could not be read: nothing to tell

@@ -106,6 +106,7 @@ class Node:
             while not stop.is_set():
                 code = self.spin()
                 if code is not None:
+                    self.stats.finished = code == 0  # its last heartbeat (teardown) says it is done
                     return code
             return EXIT_INTERRUPTED
         finally:
@@ -196,6 +197,7 @@ class NodeStats:
         # the child's environment by the supervisor (``RESTARTS_ENV``, ``LAST_EXIT_ENV``), set
         # on ``stats`` directly for a node running as a thread of a composed launch
         self.restarts, self.last_exit = launch_history()
+        self.finished = False  # the node ended its job (exit 0): heartbeats say ``finished: 1``
         self.events: collections.deque = collections.deque()  # (monotonic end, latency s, busy s)
         self.counts: dict[str, int] = {
             "received": 0,
@@ -226,6 +228,8 @@ class NodeStats:
         out["latency_ms"] = round(1e3 * float(np.mean([e[1] for e in recent])), 1) if recent else 0.0
         out["busy_ms"] = round(1e3 * float(np.mean([e[2] for e in recent])), 1) if recent else 0.0
         out["restarts"] = self.restarts
+        if self.finished:
+            out["finished"] = 1
         if self.last_exit:
             out["last_exit"] = self.last_exit
         out.update(extra)

@@ -86,6 +86,7 @@ class IngestNode(Node):
         self.final_map = False
         # name -> (frame, last send time, sends so far)
         self.pending: OrderedDict[str, tuple[object, float, int]] = OrderedDict()
+        self.first_sent: dict[str, float] = {}  # frame -> when it was first sent (monotonic s)
         self.heard_back = False  # an acknowledgement came: the graph is connected
         self.names: list[str] = []
         self.state_error = ""  # why the last acknowledged frame could not be recorded
@@ -138,6 +139,7 @@ class IngestNode(Node):
             if frame.name in self.acked:
                 return  # a restarted ingest: this view is already in the map
             self.pending[frame.name] = (frame, time.monotonic(), 1)
+            self.first_sent[frame.name] = time.monotonic()
         self._send(frame)
         self._service(0)
 
@@ -167,6 +169,7 @@ class IngestNode(Node):
             if isinstance(message, ObservationsAdded) and message.name not in self.acked:
                 self.acked.add(message.name)
                 self.pending.pop(message.name, None)
+                self.first_sent.pop(message.name, None)
                 if p.state_file:  # fsynced: a frame once acknowledged is never sent again, power cut or not
                     self._record_acknowledged(message.name)
             elif isinstance(message, MapUpdated) and message.final:
@@ -211,4 +214,23 @@ class IngestNode(Node):
             values.update({f"source_{key}": value for key, value in self.source.stats.items()})
         if self.state_error:
             level, message = max(level, 1), f"{message}; {self.state_error}"
+        waiting = self._longest_wait()
+        if waiting is not None:
+            name, seconds = waiting
+            values["oldest_unacknowledged_s"] = round(seconds, 1)
+            sends = self.pending[name][2] if name in self.pending else 0
+            level = max(level, 1)
+            message = f"{message}; frame {name} unacknowledged for {seconds:.0f} s (sent {sends}x)"
+        if self.stats.finished:
+            message = f"finished: {len(self.acked)} frames acknowledged, the final map received"
         (self.diag.beat_now if force else self.diag.beat)(level, message, values)
+
+    def _longest_wait(self) -> tuple[str, float] | None:
+        """(frame, seconds) of the frame waiting longest for its acknowledgement, when that is
+        longer than ``ack_timeout_s`` after the graph first answered (before, the graph is
+        starting: frames wait for its subscribers, not for a stuck stage)."""
+        if not self.heard_back or not self.first_sent:
+            return None
+        name, first = min(self.first_sent.items(), key=lambda item: item[1])
+        seconds = time.monotonic() - first
+        return (name, seconds) if seconds > self.params.ack_timeout_s else None

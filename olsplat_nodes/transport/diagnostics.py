@@ -83,7 +83,9 @@ class DiagnosticsCollector(Closable):
     """The collector: a SUB bound to ``endpoint`` (every node's ``Diagnostics`` connects to it).
     ``poll`` takes in what arrived; ``nodes()`` gives the latest status of each node as a dict with
     ``age_s`` (seconds since it arrived), level forced to STALE when older than ``stale_after_s``
-    (three missed beats at the default 1 s period) — the shape ``StatusReply.nodes`` carries."""
+    (three missed beats at the default 1 s period) unless its last status said it had finished
+    its job (``values["finished"]``: a replay's ingest after the final map) — the shape
+    ``StatusReply.nodes`` carries."""
 
     def __init__(
         self,
@@ -126,7 +128,8 @@ class DiagnosticsCollector(Closable):
             status, arrived = self._latest[node]
             entry = dataclasses.asdict(status)
             entry["age_s"] = now - arrived
-            if entry["age_s"] > self.stale_after_s:
+            # a node that finished its job (its last beat says ``finished``) is silent, not stale
+            if entry["age_s"] > self.stale_after_s and not entry["values"].get("finished"):
                 entry["level"] = DiagnosticStatus.STALE
             out.append(entry)
         return out

@@ -341,3 +341,70 @@ def test_the_accumulator_tells_how_many_more_views_its_disk_holds(
         assert str(tmp_path / "store") in status.message
     else:
         assert status.level == DiagnosticStatus.OK and status.message == "1 views in the store", status
+
+
+def test_the_disk_warning_ends_once_space_is_made_without_new_views(ctx, sockdir, tmp_path, tiny, region_features):
+    """The accumulator reads the free space again every few seconds, not only after a view: an
+    operator who frees space mid-flight (or while the drone waits) sees the WARN go. Space is
+    taken and given back by a preallocated file on the store's disk, the warning threshold set
+    halfway between the views the disk holds with and without it."""
+    import os
+    import shutil
+
+    from olsplat_nodes.nodes.accumulator import DISK_RECHECK_S, AccumulatorNode
+
+    from .conftest import NodeThread
+
+    scene, _ = tiny
+    hog_gb = 4
+
+    def run_until(folder: Path, warn_views: int, until, what: str, between=None):
+        regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
+        beats = Heartbeats(ctx)
+        observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
+        params = _accumulator_params(scene, folder, sockdir, beats, disk_warn_views=warn_views)
+        try:
+            with NodeThread(AccumulatorNode("accumulator", params)) as running:
+                wait_for(
+                    lambda: observations.got(ObservationsAdded),
+                    60,
+                    "the view acknowledged",
+                    step=every(1.0, lambda: send(regions, encode(region_features, "regions"))),
+                )
+                first = wait_for(lambda: [s for s in _statuses(beats) if "disk_views_left" in s.values], 30, what)
+                last = first[-1]
+                if between is not None:
+                    between()
+                    last = wait_for(lambda: [s for s in _statuses(beats) if until(s)], 3 * DISK_RECHECK_S + 10, what)[
+                        -1
+                    ]
+                running.assert_running()
+                return first[-1], last
+        finally:
+            regions.close()
+            beats.close()
+            observations.close()
+
+    probe, _ = run_until(tmp_path / "probe", 0, None, "the bytes per view")
+    per_view_mb = probe.values["disk_mb_per_view"] * 1.2  # DiskRunway's margin
+    hog = tmp_path / "hog"
+    fd = os.open(hog, os.O_CREAT | os.O_WRONLY)
+    try:
+        os.posix_fallocate(fd, 0, hog_gb * 2**30)
+    finally:
+        os.close(fd)
+    free_mb = shutil.disk_usage(tmp_path).free / 2**20
+    threshold = int((free_mb + hog_gb * 2**10 / 2) / per_view_mb)  # halfway: 2 GB of room either way
+    try:
+        warned, cleared = run_until(
+            tmp_path / "run",
+            threshold,
+            lambda s: s.level == DiagnosticStatus.OK,
+            "the WARN gone after space was made",
+            between=hog.unlink,
+        )
+    finally:
+        hog.unlink(missing_ok=True)
+    assert warned.level == DiagnosticStatus.WARN and warned.message.startswith("disk nearly full"), warned
+    assert cleared.message == "1 views in the store", cleared
+    assert cleared.values["disk_views_left"] > threshold > warned.values["disk_views_left"], (warned, cleared)

@@ -103,3 +103,23 @@ def test_keys_generate_command(tmp_path, capsys):
     assert "--force" in capsys.readouterr().err
     assert main(["keys", "generate", "--out", str(tmp_path / "keys"), "--name", "ground1", "--force"]) == 0
     assert main(["keys", "generate", "--out", str(tmp_path / "keys"), "--name", "../x"]) == 1
+
+
+def test_a_node_that_finished_its_job_is_silent_not_stale(ctx):
+    """A replay's ingest ends after the final map: its last status says ``finished`` and the
+    collector keeps its level (OK) however long ago it came; a node that just went silent is STALE."""
+    with (
+        DiagnosticsCollector(ctx, LOCAL, stale_after_s=0.3) as collector,
+        Diagnostics(ctx, collector.endpoint, "ingest", period_s=0.01) as done,
+        Diagnostics(ctx, collector.endpoint, "refiner", period_s=0.01) as silent,
+    ):
+
+        def both_seen():
+            collector.poll(5)
+            return {n["node"] for n in collector.nodes()} == {"ingest", "refiner"}
+
+        assert wait_for(both_seen, step=lambda: (done.beat_now(0, "finished", {"finished": 1}), silent.beat(0)))
+        time.sleep(0.6)
+        collector.poll(5)
+        levels = {n["node"]: n["level"] for n in collector.nodes()}
+        assert levels == {"ingest": DiagnosticStatus.OK, "refiner": DiagnosticStatus.STALE}
