@@ -4,7 +4,9 @@ The unit it prints (install it as /etc/systemd/system/olsplat-NAME.service; docs
 
 - ``ExecStartPre=`` ``olsplat launch --check`` of the same launch and arguments: a blocker
   (a missing map, keys readable by others, a port taken, no camera) stops the start with the
-  table in the journal, and ``Restart=on-failure`` tries again after ``RestartSec``;
+  table in the journal, and ``Restart=on-failure`` tries again after ``RestartSec``, except
+  after exit 65 (``RestartPreventExitStatus``: a node refused its input, a corrupt map or log,
+  which a restart cannot mend; 78, a configuration such as a port taken, may pass on a retry);
 - ``ExecStart=`` the installed ``olsplat`` executable (absolute path) with ``launch`` and the
   same arguments: the launch by its shipped name (it survives an upgrade) or the file's
   absolute path, ``--run-dir`` absolute, every ``--set``;
@@ -34,6 +36,8 @@ import shutil
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+from ..errors import EXIT_BAD_INPUT
 
 EPILOG = """examples:
   cd /var/lib/olsplat && olsplat service --launch field_drone --run-dir run --user uav \\
@@ -211,6 +215,7 @@ def unit_text(
         f"ExecStart={command_line(executable, ['launch', *arguments])}",
         "Restart=on-failure",
         f"RestartSec={RESTART_SEC}",
+        f"RestartPreventExitStatus={EXIT_BAD_INPUT}",
         "KillMode=mixed",
         "KillSignal=SIGINT",
         "SuccessExitStatus=130 143",
