@@ -9,6 +9,7 @@ above it and never see an evaluation scene.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +19,7 @@ from olsplat_nodes.raster import rasterize
 from olsplat_nodes.regions import RegionConfig, propose_regions
 
 from .annotate import label_maps
-from .flight import FlightSpec, plan_flight
+from .flight import FlightFrame, FlightSpec, plan_flight
 from .labels import LABELS
 from .make import BACKGROUND
 from .scene import generate_scene
@@ -83,8 +84,14 @@ def collect(
     image: tuple[int, int] = (320, 240),
     min_purity: float = 0.75,
     min_pixels: int = 40,
+    plan_frames: Callable[[float, float, np.random.Generator], list[FlightFrame]] | None = None,
 ) -> RegionSamples:
-    """Region crops (one array per named crop style: size and CropConfig) with their majority labels."""
+    """Region crops (one array per named crop style: size and CropConfig) with their majority labels.
+
+    ``plan_frames(size_m, altitude_m, rng)``: the views of each seed instead of the default flight
+    (``views_per_seed`` views at ``altitude_m``, drawn in [60, 90] m per seed); ``sim.train_pair``
+    uses it for nadir-only low views and oblique-only high views.
+    """
     crops: dict[str, list[np.ndarray]] = {name: [] for name in crop_styles}
     labels, purities = [], []
     sensor = SensorSpec()
@@ -93,7 +100,10 @@ def collect(
         rng = np.random.default_rng(seed)
         truth = generate_scene(n_gaussians, size_m, seed)
         altitude = float(rng.uniform(60, 90))
-        frames = plan_flight(size_m, FlightSpec(views_per_seed, image[0], image[1], altitude_m=altitude), rng)
+        if plan_frames is None:
+            frames = plan_flight(size_m, FlightSpec(views_per_seed, image[0], image[1], altitude_m=altitude), rng)
+        else:
+            frames = plan_frames(size_m, altitude, rng)
         gains = exposure_gains(len(frames), sensor, rng)
         for frame, gain in zip(frames, gains, strict=True):
             result = rasterize(truth.gaussians, frame.camera, background=BACKGROUND)

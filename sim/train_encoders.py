@@ -98,10 +98,11 @@ class WordTextTower(nn.Module):
         return self.mlp(mean)
 
 
-def vocabulary() -> list[str]:
-    """Every word of the training captions (query texts are left out on purpose)."""
+def vocabulary(captions: dict[str, list[str]] | None = None) -> list[str]:
+    """Every word of the training captions (``CAPTIONS`` by default; query texts are left out on purpose)."""
     probe = WordTokenizer.__new__(WordTokenizer)  # only its text splitting is used
-    return sorted({word for captions in CAPTIONS.values() for text in captions for word in probe.words(text)})
+    table = CAPTIONS if captions is None else captions
+    return sorted({word for texts in table.values() for text in texts for word in probe.words(text)})
 
 
 def _augment(batch: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
@@ -114,13 +115,20 @@ def _augment(batch: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     return batch * gain
 
 
-def train_design(design: Design, samples: RegionSamples, tokenizer: WordTokenizer, epochs: int, seed: int, log=print):
-    """(image tower, text tower) trained on ``samples`` (see the module docstring)."""
+def train_design(design: Design, samples: RegionSamples, tokenizer: WordTokenizer, epochs: int, seed: int, log=print,
+                 captions: dict[str, list[str]] | None = None, on_step=None):  # fmt: skip
+    """(image tower, text tower) trained on ``samples`` (see the module docstring).
+
+    ``captions``: label -> training texts (default ``CAPTIONS``); ``on_step(step, image_tower,
+    text_tower)``: called after every optimizer step (1, 2, ...), towers in training mode, e.g. to
+    keep checkpoints (``sim.train_pair``); it must not draw random numbers or change the towers.
+    """
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     image_tower = CnnImageTower(EMBED_DIM) if design.kind == "cnn" else VitImageTower(EMBED_DIM, design.image_size)
     text_tower = WordTextTower(tokenizer.vocab_size, EMBED_DIM)
-    captions = [(LABELS.index(label), text) for label, texts in CAPTIONS.items() for text in texts]
+    table = CAPTIONS if captions is None else captions
+    captions = [(LABELS.index(label), text) for label, texts in table.items() for text in texts]
     caption_tokens = torch.from_numpy(tokenizer([text for _, text in captions]))
     caption_label = torch.tensor([label for label, _ in captions])
     target_table = (caption_label[None, :] == torch.arange(len(LABELS))[:, None]).float()
@@ -154,6 +162,8 @@ def train_design(design: Design, samples: RegionSamples, tokenizer: WordTokenize
             loss.backward()
             optimizer.step()
             schedule.step()
+            if on_step is not None:
+                on_step(schedule.last_epoch, image_tower, text_tower)
             total += float(loss.detach()) * len(index)
             predicted = caption_label[logits.argmax(-1)]
             correct += int((predicted == labels[index]).sum())
@@ -162,7 +172,8 @@ def train_design(design: Design, samples: RegionSamples, tokenizer: WordTokenize
     return image_tower.eval(), text_tower.eval()
 
 
-def export_design(design: Design, image_tower, text_tower, vocab: list[str], out: Path) -> Path:
+def export_design(design: Design, image_tower, text_tower, vocab: list[str], out: Path, trained_on: str | None = None,
+                  ) -> Path:  # fmt: skip
     folder = out / design.name
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "vocab.json").write_text(json.dumps(vocab))
@@ -175,7 +186,7 @@ def export_design(design: Design, image_tower, text_tower, vocab: list[str], out
     write_manifest(
         folder, design.name, EMBED_DIM, design.image_size, CONTEXT, tokenizer.vocab_size, MEAN, STD, "vocab.json",
         "words", crop={"context": design.crop.context, "fade": design.crop.fade, "min_box_px": design.crop.min_box_px},
-        trained_on="olsplat simulator renders, seeds >= 1000 (never the evaluation seeds)",
+        trained_on=trained_on or "olsplat simulator renders, seeds >= 1000 (never the evaluation seeds)",
     )  # fmt: skip
     return folder
 

@@ -13,13 +13,17 @@ from .onnx_encoder import OnnxEncoder
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 SHIPPED = ("olsplat-cnn64", "olsplat-vit48")
+# the independent pair (issue 43): disjoint seeds, views and captions (``python -m olsplat_sim.train_pair``);
+# loadable by name, never part of the default or of "shipped"
+INDEPENDENT_PAIR = ("olsplat-nadir32", "olsplat-oblique48")
+REGISTERED = SHIPPED + INDEPENDENT_PAIR
 DEFAULT_WEIGHTS = (0.6, 0.4)  # the paper's lambda_2D = 0.6 for the first encoder
 
 
 def shipped_encoder(name: str, threads: int = 0) -> OnnxEncoder:
     """A shipped encoder; ``threads``: onnxruntime's intra-op threads (0 = one per core)."""
-    if name not in SHIPPED:
-        raise ValueError(f"no shipped encoder {name!r}; shipped: {', '.join(SHIPPED)}")
+    if name not in REGISTERED:
+        raise ValueError(f"no shipped encoder {name!r}; shipped: {', '.join(REGISTERED)}")
     return OnnxEncoder(ASSETS / name, threads)
 
 
