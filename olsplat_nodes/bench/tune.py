@@ -7,7 +7,10 @@ the chosen setting has the best mean mIoU over the scenes, where a lead of less 
 default first): a default is not replaced on noise. Scenes must be simulator scenes of training seeds (>= 1000, their
 ``scene.json``): choices made on the held-out seeds of the results would flatter whoever is
 tuned most. The chosen values are the defaults of ``method/table.py``; docs/evaluation.md ("Comparisons")
-shows the sweep.
+shows the sweep. ``--encoders``/``--weights`` tune with the encoder configuration of the table
+the choice is for (``olsplat bench paper`` passes its own); the ``--json`` file records them and
+is what ``olsplat eval --tuned`` reads. ``--grid-limit N`` (hidden) runs only the first N
+settings of each grid: for tests, never for a table.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from ..tools.method_names import DEFAULT_ENCODER
 
 TRAINING_SEEDS = 1000  # scenes of seeds below this are held out for results
 TIE_MIOU = 0.1  # mean mIoU points: closer than this is a tie
@@ -49,8 +54,17 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("tune", help="the same tuning budget for every method, on training scenes")
     parser.add_argument("--scene", required=True, type=Path, action="append", help="a training scene; repeatable")
     parser.add_argument("--methods", default=",".join(GRIDS), help="comma-separated, from: " + ", ".join(GRIDS))
+    parser.add_argument(
+        "--encoders",
+        default=DEFAULT_ENCODER,
+        help=f"the encoder configuration of the table the choice is for, as `olsplat eval --encoders` takes it "
+        f"(default {DEFAULT_ENCODER})",
+    )
+    parser.add_argument("--weights", help="lambda_2D fusion weights of --encoders, e.g. 0.6,0.4")
     parser.add_argument("--json", type=Path, help="write every setting's scores and the choices here")
     parser.add_argument("--md", type=Path, help="write the sweep as a Markdown table here")
+    # tests only: the first N settings of each grid (a smaller budget than the protocol's)
+    parser.add_argument("--grid-limit", type=int, help=argparse.SUPPRESS)
     parser.set_defaults(run=run)
 
 
@@ -92,7 +106,30 @@ def _seed_of(folder: Path) -> int | None:
         return None
 
 
-def run(args: argparse.Namespace) -> int:
+def check_training_scenes(folders: list[Path]) -> None:
+    """Refuse (one line) any folder that is not a simulator scene of a training seed."""
+    from ..errors import OlsplatInputError
+
+    for folder in folders:
+        seed = _seed_of(folder)
+        if seed is None or seed < TRAINING_SEEDS:
+            raise OlsplatInputError(
+                f"{folder}: tune on training scenes only (simulator seed >= {TRAINING_SEEDS} in scene.json), "
+                f"found seed {seed}"
+            )
+
+
+def tune_methods(
+    folders: list[Path],
+    names: list[str],
+    encoders: str = DEFAULT_ENCODER,
+    weights: str | None = None,
+    grid_limit: int | None = None,
+) -> dict[str, Any]:
+    """Run each method's grid (its first ``grid_limit`` settings, or all) on the training scenes
+    ``folders`` with the encoder configuration ``encoders`` / ``weights`` (as ``olsplat eval``
+    takes them); returns the ``--json`` document: ``{"scenes", "encoders", "weights", "methods":
+    {name: {"rows", "chosen"}}}``. Every scene, name and setting is checked before any work."""
     import numpy as np
 
     from ..aggregate.snapshot import LanguageMap
@@ -103,27 +140,23 @@ def run(args: argparse.Namespace) -> int:
     from ..params import parse_params
     from ..pipeline import Scene, aggregate_scene
 
-    names = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = [n for n in names if n not in GRIDS]
     if unknown:
         raise OlsplatInputError(f"--methods: no tuning grid for {', '.join(unknown)}; known: {', '.join(GRIDS)}")
-    for folder in args.scene:
-        seed = _seed_of(folder)
-        if seed is None or seed < TRAINING_SEEDS:
-            raise OlsplatInputError(
-                f"{folder}: tune on training scenes only (simulator seed >= {TRAINING_SEEDS} in scene.json), "
-                f"found seed {seed}"
-            )
-    scenes = [Scene.open(folder) for folder in args.scene]
+    if grid_limit is not None and grid_limit < 1:
+        raise OlsplatInputError(f"--grid-limit must be >= 1, got {grid_limit}")
+    check_training_scenes(folders)
+    scenes = [Scene.open(folder) for folder in folders]
+    grids = {name: GRIDS[name][:grid_limit] for name in names}
     settings = {  # every setting is checked before any work
-        name: [parse_params(MethodParams, {**s, "method": name}, f"{name} {s}").resolve() for s in GRIDS[name]]
+        name: [parse_params(MethodParams, {**s, "method": name}, f"{name} {s}").resolve() for s in grids[name]]
         for name in names
     }
-    encoder = encoder_from_spec()
+    encoder = encoder_from_spec(encoders, weights)
     results: dict[str, Any] = {}
     for name in names:
         rows: list[dict[str, Any]] = []
-        for grid, method in zip(GRIDS[name], settings[name], strict=True):
+        for grid, method in zip(grids[name], settings[name], strict=True):
             scores = []
             start = time.perf_counter()
             for scene in scenes:
@@ -145,10 +178,16 @@ def run(args: argparse.Namespace) -> int:
         best = choose(rows)
         results[name] = {"rows": rows, "chosen": rows[best]["setting"]}
         print(f"{name:20s} chosen: {json.dumps(rows[best]['setting'])}", flush=True)
+    return {"scenes": [str(s.folder) for s in scenes], "encoders": encoders, "weights": weights, "methods": results}
+
+
+def run(args: argparse.Namespace) -> int:
+    names = [m.strip() for m in args.methods.split(",") if m.strip()]
+    document = tune_methods(args.scene, names, args.encoders, args.weights, args.grid_limit)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"scenes": [str(s.folder) for s in scenes], "methods": results}, indent=1))
+        args.json.write_text(json.dumps(document, indent=1))
         print(f"figures -> {args.json}")
     if args.md:
-        args.md.write_text(tune_table(results) + "\n")
+        args.md.write_text(tune_table(document["methods"]) + "\n")
     return 0

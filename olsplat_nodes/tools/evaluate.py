@@ -63,6 +63,13 @@ def add_parser(subparsers) -> None:
         help="a method parameter for every method, as in launch files (tau_d=0.3, beta=[1,2,4], topk_max=24); "
         "repeatable; names: olsplat_nodes/method/params.py",
     )
+    ev.add_argument(
+        "--tuned",
+        type=Path,
+        metavar="TUNE.json",
+        help="each method's chosen setting from `olsplat bench tune --json` (under --set, which still applies to "
+        "every method); a method not in the file keeps its defaults",
+    )
     ev.add_argument("--work", type=Path, help="folder for the per-run maps (default: SCENE/eval)")
     ev.add_argument("--json", type=Path, help="write the results here")
     ev.add_argument("--md", type=Path, help="write the paper's tables (Markdown) here")
@@ -111,8 +118,20 @@ def run(args: argparse.Namespace) -> int:
     runs = plan_runs(
         names, args.encoders, weights, args.features == "2d3d", args.feature_ablation, args.fusion_sweep, structure
     )
+    tuned = read_tuned(args.tuned, args.encoders, args.weights) if args.tuned else None
+    chosen: dict[str, dict | None] = {}  # per method: the tuned setting, None when not tuned
+    for r in runs:
+        if r.method not in chosen:
+            chosen[r.method] = tuned.get(r.method) if tuned is not None else None
+            if tuned is not None and chosen[r.method] is None:
+                print(f"{r.method}: not in {args.tuned}, its default setting")
+            elif tuned is not None:
+                print(f"{r.method}: tuned setting {json.dumps(chosen[r.method])} from {args.tuned}")
+    used = {m: {**(setting or {}), **settings} for m, setting in chosen.items()}  # --set over the tuned setting
     methods = {  # unknown names and bad values fail before any work
-        r.method: parse_params(MethodParams, {**settings, "method": r.method}, "--set").resolve("--set") for r in runs
+        m: parse_params(MethodParams, {**values, "method": m}, where).resolve(where)
+        for m, values in used.items()
+        for where in ["--set" if chosen[m] is None else f"--tuned/--set ({m})"]
     }
     encoders = {}
     for r in runs:  # every encoder is loaded before any work
@@ -154,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
                 timing = {"seconds": stats["seconds"], "score_seconds": scored_s, "peak_rss_mb": peak_rss_mb()}
                 done[key] = ({**scores, **timing}, kept)
             scores, kept = done[key]
-            results[title][r.label] = {**scores, "run": {**r.describe(), "settings": settings}}
+            described = {**r.describe(), "settings": used[r.method], "tuned": chosen[r.method]}
+            results[title][r.label] = {**scores, "run": described}
             if kept is not None:
                 maps[r.label] = kept
             print(f"{title}: {r.label:28s} mIoU {scores['mIoU']:5.1f}  mAcc {scores['mAcc']:5.1f}  Loc@40/50/60 "
@@ -170,10 +190,38 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(tables)
     if args.json:
-        args.json.write_text(json.dumps(_document(results, overall, spread), indent=2))
+        document = _document(results, overall, spread)
+        if tuned is not None:  # what each method ran with: its tuned setting, or null (its defaults)
+            document["tuned"] = {"file": str(args.tuned), "chosen": chosen}
+        args.json.write_text(json.dumps(document, indent=2))
     if args.md:
         args.md.write_text(tables)
     return 0
+
+
+def read_tuned(path: Path, encoders: str | None = None, weights: str | None = None) -> dict[str, dict]:
+    """Each method's chosen setting in a ``bench tune --json`` file: {method: {name: value}}.
+    Anything else is one line (OlsplatInputError) naming the file. A note is printed when the
+    file was tuned with other encoders than ``encoders`` / ``weights`` (this run's)."""
+    from ..errors import OlsplatInputError
+
+    try:
+        document = json.loads(path.read_text())
+        chosen = {name: result["chosen"] for name, result in document["methods"].items()}
+    except FileNotFoundError:
+        raise OlsplatInputError(f"--tuned {path}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
+        raise OlsplatInputError(
+            f"--tuned {path}: not a tuning result of `olsplat bench tune --json` ({type(exc).__name__}: {exc})"
+        ) from None
+    bad = [name for name, setting in chosen.items() if not isinstance(setting, dict)]
+    if bad:
+        raise OlsplatInputError(f"--tuned {path}: not a tuning result (the chosen setting of {bad[0]} is no mapping)")
+    tuned_with = (document.get("encoders"), document.get("weights"))
+    if encoders is not None and tuned_with[0] is not None and tuned_with != (encoders, weights):
+        print(f"note: {path} was tuned with --encoders {tuned_with[0]} --weights {tuned_with[1]}, this run uses "
+              f"--encoders {encoders} --weights {weights}")  # fmt: skip
+    return chosen
 
 
 def _document(results: dict, overall, spread) -> dict:
