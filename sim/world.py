@@ -114,10 +114,10 @@ V2 = WorldSpec(
     name="v2",
     flight=FlightWorld(altitude_span=0.5, altitude_profile="smooth", nadir_tilt_deg=3.0),
     appearance=AppearanceWorld(
-        sh_degree=3, roof_specular=(0.02, 0.25), car_specular=0.3, glass_specular=0.5, hotspot=0.15
+        sh_degree=3, roof_specular=(0.02, 0.25), car_specular=0.3, glass_specular=0.5, hotspot=0.1
     ),
-    haze=HazeWorld(beta=0.0015),
-    clouds=CloudWorld(coverage=0.3, darkness=0.6),
+    haze=HazeWorld(beta=0.0008),
+    clouds=CloudWorld(coverage=0.3, darkness=0.8, softness=1.0, wind_mps=(2.0, 0.8)),
     sensor=SensorSpec(exposure_drift=0.015, exposure_range=(0.9, 1.1), vignette=0.03, focus_blur_px=(0.0, 0.7)),
 )
 WORLDS = {"v1": V1, "v2": V2}
