@@ -55,6 +55,24 @@ def _make(out, *extra: str) -> None:
     assert main(["sim", "make", "--preset", "tiny", "--seed", "0", "--out", str(out), *extra]) == 0
 
 
+# the machine the digests were made on: a render's float results (numba compiles for the host
+# CPU, numpy dispatches its SIMD by it) may differ in their last bits on another CPU
+RECORDED_ON = ("znver3", "X86_V3")
+
+
+def _this_machine() -> tuple[str, str]:
+    import llvmlite.binding
+
+    simd = np.__config__.CONFIG.get("SIMD Extensions", {}).get("found", [])
+    return llvmlite.binding.get_host_cpu_name(), (simd[-1] if simd else "")
+
+
+def test_the_default_world_is_v1(tiny, tmp_path):
+    _make(tmp_path / "v1", "--world", "v1")
+    assert _digest(tmp_path / "v1") == _digest(tiny[0])
+
+
+@pytest.mark.skipif(_this_machine() != RECORDED_ON, reason=f"the digests were made on {RECORDED_ON}")
 def test_world_v1_is_the_world_of_before(tiny, tmp_path):
     assert _digest(tiny[0]) == TINY  # the default is v1
     _make(tmp_path / "f3", "--world", "v1", "--flight-seed", "3", "--views", "5", "--motion-blur", "0.02")
