@@ -58,7 +58,7 @@ def _lawnmower(
         return []
     lines = max(2, int(round(np.sqrt(n / 2))))
     per_line = int(np.ceil(n / lines))
-    out = []
+    out: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     for k in range(lines):
         x = -extent + 2 * extent * k / (lines - 1)
         ys = np.linspace(-extent, extent, per_line)
@@ -183,7 +183,7 @@ def plan_flight(
     frames = []
     for i, (kind, eye, target, up) in enumerate(poses):
         pose = look_at(eye, target, up)
-        if kind == "nadir" and world.nadir_tilt_deg > 0:
+        if kind == "nadir" and world.nadir_tilt_deg > 0 and world_rng is not None:
             pose = _tilted(pose, world.nadir_tilt_deg, world_rng)
         name = f"{spec.name_prefix}frame_{i:04d}.jpg"
         stamp = EPOCH_NS + int(round(i * 1e9 / spec.rate_hz))

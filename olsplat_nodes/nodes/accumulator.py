@@ -36,6 +36,7 @@ import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,6 +44,9 @@ from olsplat_msgs import DiagnosticStatus, EndOfStream, ObservationsAdded, Regio
 
 from ..errors import OlsplatInputError
 from ..extras import require
+
+if TYPE_CHECKING:
+    from ..method.view_step import ViewOffMap
 from ..method import MethodParams
 from ..params import ParameterError
 from ..transport import Diagnostics, Publisher, Subscriber
@@ -161,7 +165,9 @@ class AccumulatorNode(Node):
         self.refused = ""  # the last view's refusal ("" once a view is taken)
         self.off_map = ""  # the ERROR when the run's first views were all refused ("" once one is taken)
         # the first views this node judged, by name: their figures (None: taken); a resumed store is past them
-        self.first_views: dict[str, object] = {} if not len(self.shard) else dict.fromkeys(range(p.off_map_views))
+        self.first_views: dict[str, ViewOffMap | None] = (
+            {} if not len(self.shard) else dict.fromkeys(f"(resumed {i})" for i in range(p.off_map_views))
+        )
         self.seen_values: dict = {}
         if self.structure is not None and self.branch_file.exists():
             self.branch = self._restore_branch()
@@ -256,7 +262,7 @@ class AccumulatorNode(Node):
         first = list(self.first_views.values())
         n = self.params.off_map_views
         if n and not self.off_map and len(first) == n and all(r is not None for r in first):
-            self.off_map = off_map_error([(r.name, r.seen) for r in first], self.gate, self.params.map)
+            self.off_map = off_map_error([(r.name, r.seen) for r in first if r is not None], self.gate, self.params.map)
             log.error(self.off_map)
             if self.diag is not None:  # now: the operator should not wait for the next beat
                 self.diag.beat_now(DiagnosticStatus.ERROR, self.off_map, self.stats.with_sockets(self.sub.stats))

@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -117,7 +118,7 @@ def collect_flight(
     folder: Path,
     cameras: Sequence[Camera],
     image_of: Callable[[Camera], np.ndarray],
-    encoders: Mapping[str, object],
+    encoders: Mapping[str, Any],
     *,
     region_config: RegionConfig | None = None,
     min_purity: float = 0.5,

@@ -189,7 +189,7 @@ def ground_patch_pairs(
         raise ValueError(f"patch_px must be at least 4, got {patch_px}")
     if any(int(s) < 1 for s in steps):
         raise ValueError(f"steps must be positive, got {tuple(steps)}")
-    sift = cv2.SIFT_create(nfeatures=max_features)
+    sift = cv2.SIFT_create(nfeatures=max_features)  # type: ignore[attr-defined]  # OpenCV >= 4.4, not in its stubs
     features = [_features(image, sift) for image in images]
     pairs: list[PatchPair] = []
     for step in sorted({int(s) for s in steps}):
@@ -251,7 +251,7 @@ def laplacian_variance(patch: np.ndarray, sigma: float = 1.0) -> float:
     """Variance of the 3x3 Laplacian of a [S, S, 3] uint8 RGB patch's grey levels after a Gaussian
     blur of ``sigma`` px (0: none), in grey levels squared. A border of ceil(3 sigma) + 1 pixels is
     dropped so that no padding enters."""
-    grey = _grey(patch).astype(np.float32)
+    grey: np.ndarray = _grey(patch).astype(np.float32)
     if sigma > 0:
         grey = cv2.GaussianBlur(grey, (0, 0), sigma)
     lap = cv2.Laplacian(grey, cv2.CV_32F, ksize=1)
