@@ -223,16 +223,26 @@ def collect_training(pair_design: PairDesign, n_seeds: int, views: int) -> Regio
     return samples
 
 
+class _Stop(Exception):
+    """Raised by a checkpoint callback to end a run early (a refined ladder needs no more steps)."""
+
+
 def train_ladder(pair_design: PairDesign, samples: RegionSamples, validation: RegionSamples,
-                 rungs: Sequence[float] = RUNG_EPOCHS, log=print) -> list[dict]:  # fmt: skip
-    """One seeded run of ``rungs[-1]`` epochs; per rung: {"epochs", "step", "accuracy", "towers"}
-    (the towers' eval-mode copies at that step, ``accuracy`` on ``validation``)."""
+                 rungs: Sequence[float] = RUNG_EPOCHS, log=print, steps: Sequence[int] | None = None,
+                 schedule_epochs: int | None = None) -> list[dict]:  # fmt: skip
+    """One seeded run of ``schedule_epochs`` (default: the last rung, rounded up) epochs; per rung:
+    {"epochs", "step", "accuracy", "towers"} (the towers' eval-mode copies at that step,
+    ``accuracy`` on ``validation``). ``steps``: rungs as optimizer steps instead of epochs; the run
+    ends after the last one. The same design and samples give the same run whatever the rungs."""
     d = pair_design.design
     tokenizer = _tokenizer(vocabulary(pair_design.captions))
     steps_per_epoch = math.ceil(len(samples.labels) / 256)
     at_step: dict[int, list[float]] = {}  # a tiny run may put two rungs on one step
-    for r in rungs:
+    for r in rungs if steps is None else []:
         at_step.setdefault(max(1, math.ceil(r * steps_per_epoch)), []).append(r)
+    for step in steps or []:
+        at_step.setdefault(step, []).append(step / steps_per_epoch)
+    last = max(at_step) if steps else None
     ladder: list[dict] = []
 
     def keep(step: int, image_tower, text_tower) -> None:
@@ -242,11 +252,38 @@ def train_ladder(pair_design: PairDesign, samples: RegionSamples, validation: Re
         accuracy = tower_accuracy(*towers, tokenizer, validation.crops[d.name], validation.labels)
         for epochs in at_step[step]:
             ladder.append({"epochs": epochs, "step": step, "accuracy": accuracy, "towers": towers})
-            log(f"{d.name} rung {epochs:g} epochs (step {step}): validation region accuracy {accuracy:.3f}")
+            log(f"{d.name} rung {epochs:.3g} epochs (step {step}): validation region accuracy {accuracy:.3f}")
+        if last is not None and step >= last:
+            raise _Stop
 
-    epochs = math.ceil(max(rungs))
-    train_design(d, samples, tokenizer, epochs, pair_design.init_seed, log, pair_design.captions, keep)
+    epochs = schedule_epochs or math.ceil(max(rungs))
+    try:
+        train_design(d, samples, tokenizer, epochs, pair_design.init_seed, log, pair_design.captions, keep)
+    except _Stop:
+        pass
     return ladder
+
+
+def refine_stronger(ladders: list[list[dict]], chosen: tuple[int, int], samples: list[RegionSamples],
+                    validation: RegionSamples, rungs: Sequence[float] = RUNG_EPOCHS,
+                    log=print) -> dict | None:  # fmt: skip
+    """The budget rule's last step: when the chosen rungs are more than ``MAX_GAP`` apart, re-run
+    the stronger encoder (the same run, deterministic) with a checkpoint at every step between its
+    rung below and its chosen rung, and stop it at the first step whose validation accuracy reaches
+    the weaker one's. Returns {"encoder" (0 or 1), "rung", "fine" (the refined ladder)} or None
+    when nothing is to refine (gap within ``MAX_GAP``, or the chosen rung is the first)."""
+    accs = [ladders[i][chosen[i]]["accuracy"] for i in (0, 1)]
+    if abs(accs[0] - accs[1]) <= MAX_GAP:
+        return None
+    strong = 0 if accs[0] > accs[1] else 1
+    k = chosen[strong]
+    if k == 0 or ladders[strong][k - 1]["step"] >= ladders[strong][k]["step"]:
+        return None
+    low, high = ladders[strong][k - 1]["step"], ladders[strong][k]["step"]
+    fine = train_ladder(PAIR[strong], samples[strong], validation, rungs, log, steps=range(low + 1, high + 1),
+                        schedule_epochs=math.ceil(max(rungs)))  # fmt: skip
+    rung = next((r for r in fine if r["accuracy"] >= accs[1 - strong]), ladders[strong][k])
+    return {"encoder": strong, "rung": rung, "fine": fine}
 
 
 def trained_on(pair_design: PairDesign, n_seeds: int, views: int, rung: dict) -> str:
@@ -257,7 +294,7 @@ def trained_on(pair_design: PairDesign, n_seeds: int, views: int, rung: dict) ->
     )
     return (
         f"olsplat simulator world v1 renders, seeds {seeds[0]}-{seeds[-1]}, {views} {pair_design.domain} per seed; "
-        f"{captions}{noise}; init seed {pair_design.init_seed}; rung {rung['epochs']:g} epochs "
+        f"{captions}{noise}; init seed {pair_design.init_seed}; rung {rung['epochs']:.3g} epochs (step {rung['step']}) "
         f"(validation region accuracy {rung['accuracy']:.3f} on seeds {VALIDATION_SEEDS[0]}-{VALIDATION_SEEDS[-1]})"
     )
 
@@ -280,7 +317,7 @@ def train_pair(out: Path = ASSETS, n_seeds: int = 10, views: int = 16, validatio
     log(f"validation: {len(validation.labels)} region crops from seeds {tuple(validation_seeds)} ({seconds:.0f} s)")
     report: dict = {"target": TARGET_ACCURACY, "max_gap": MAX_GAP, "validation_seeds": tuple(validation_seeds),
                     "validation_crops": len(validation.labels), "designs": {}}  # fmt: skip
-    ladders = []
+    ladders, all_samples = [], []
     for p in PAIR:
         started = time.perf_counter()
         samples = collect_training(p, n_seeds, views)
@@ -288,6 +325,7 @@ def train_pair(out: Path = ASSETS, n_seeds: int = 10, views: int = 16, validatio
         log(f"{p.design.name}: {len(samples.labels)} training crops in {collected:.0f} s")
         ladder = train_ladder(p, samples, validation, rungs, log)
         ladders.append(ladder)
+        all_samples.append(samples)
         report["designs"][p.design.name] = {
             "crops": len(samples.labels),
             "collect_seconds": collected,
@@ -295,15 +333,24 @@ def train_pair(out: Path = ASSETS, n_seeds: int = 10, views: int = 16, validatio
             "ladder": [{k: r[k] for k in ("epochs", "step", "accuracy")} for r in ladder],
         }
     chosen = choose_rungs([r["accuracy"] for r in ladders[0]], [r["accuracy"] for r in ladders[1]])
+    rungs_chosen = [ladders[i][chosen[i]] for i in (0, 1)]
+    refined = refine_stronger(ladders, chosen, all_samples, validation, rungs, log)
+    if refined is not None:
+        rungs_chosen[refined["encoder"]] = refined["rung"]
+        report["designs"][PAIR[refined["encoder"]].design.name]["refined_ladder"] = [
+            {k: r[k] for k in ("epochs", "step", "accuracy")} for r in refined["fine"]
+        ]
     out.mkdir(parents=True, exist_ok=True)
-    for p, ladder, index in zip(PAIR, ladders, chosen, strict=True):
-        rung = ladder[index]
+    for p, rung in zip(PAIR, rungs_chosen, strict=True):
         folder = export_design(
             p.design, *rung["towers"], vocabulary(p.captions), out, trained_on(p, n_seeds, views, rung)
         )
         write_checksums(folder)
-        report["designs"][p.design.name]["chosen"] = {"epochs": rung["epochs"], "accuracy": rung["accuracy"]}
-        log(f"{p.design.name}: rung {rung['epochs']:g} epochs, validation accuracy {rung['accuracy']:.3f} -> {folder}")
+        report["designs"][p.design.name]["chosen"] = {k: rung[k] for k in ("epochs", "step", "accuracy")}
+        log(
+            f"{p.design.name}: rung {rung['epochs']:.3g} epochs (step {rung['step']}), "
+            f"validation accuracy {rung['accuracy']:.3f} -> {folder}"
+        )
     for p in PAIR:
         unknown = sorted({w for text, _, _ in QUERIES for w in _tokenizer(vocabulary(p.captions)).unknown_words(text)})
         report["designs"][p.design.name]["unknown_query_words"] = unknown

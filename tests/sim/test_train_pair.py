@@ -117,3 +117,21 @@ def test_tiny_run_exports_loadable_encoders(tmp_path):
         crops = np.random.default_rng(0).integers(0, 256, (3, p.design.image_size, p.design.image_size, 3), np.uint8)
         for rows in (encoder.encode_images(crops), encoder.encode_text(label_queries())):
             assert np.allclose(np.linalg.norm(rows, axis=1), 1.0, atol=1e-5)
+
+
+def test_refine_stronger_stops_where_it_crosses_the_weaker(monkeypatch):
+    ladders = [
+        [{"step": 10, "accuracy": 0.60}, {"step": 20, "accuracy": 0.80}],
+        [{"step": 5, "accuracy": 0.50}, {"step": 9, "accuracy": 0.70}],
+    ]
+    calls = {}
+
+    def fine_ladder(design, samples, validation, rungs, log, steps, schedule_epochs):
+        calls.update(design=design, steps=list(steps), schedule_epochs=schedule_epochs)
+        return [{"step": s, "accuracy": 0.60 + 0.02 * (s - 10)} for s in steps]
+
+    monkeypatch.setattr(tp, "train_ladder", fine_ladder)
+    refined = tp.refine_stronger(ladders, (1, 1), ["a", "b"], None, rungs=(1.0, 8.0), log=lambda _: None)
+    assert calls == {"design": tp.DESIGN_A, "steps": list(range(11, 21)), "schedule_epochs": 8}  # the same run
+    assert refined["encoder"] == 0 and refined["rung"]["step"] == 15  # 0.70 reaches B's 0.70
+    assert tp.refine_stronger([ladders[0], ladders[0]], (1, 1), ["a", "b"], None) is None  # no gap
