@@ -78,6 +78,14 @@ def add_parser(subparsers) -> None:
     train.add_argument("--epochs", type=int, default=8, help="passes over the training crops")
     train.set_defaults(run=run_train)
 
+    pair = commands.add_parser(
+        "train-pair", help="train the independent encoder pair (olsplat-nadir32, olsplat-oblique48; sim/train_pair.py)"
+    )
+    pair.add_argument("--out", type=Path, help="output folder (default: the package's encoders/assets)")
+    pair.add_argument("--seeds", type=int, default=10, help="training scenes per encoder (A: 3000..., B: 4000...)")
+    pair.add_argument("--views", type=int, default=16, help="views per scene")
+    pair.set_defaults(run=run_train_pair)
+
     structure = commands.add_parser(
         "train-structure",
         help="pre-train the 3D branch's MinkUNet (SegContrast, no labels) on training-seed maps",
@@ -162,6 +170,19 @@ def run_replay(args: argparse.Namespace) -> int:
             break
     elapsed = time.monotonic() - start
     print(f"{count} frames in {elapsed:.2f} s ({count / max(elapsed, 1e-9):.1f} frames/s)")
+    return 0
+
+
+def run_train_pair(args: argparse.Namespace) -> int:
+    from olsplat_nodes.extras import require
+
+    require("torch", "olsplat sim train-pair", "sim")
+    import torch
+
+    torch.set_num_threads(1)  # the budget ladder's timings and results are those of one thread
+    from .train_pair import ASSETS, train_pair
+
+    train_pair(args.out or ASSETS, args.seeds, args.views)
     return 0
 
 

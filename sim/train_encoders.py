@@ -128,9 +128,9 @@ def train_design(design: Design, samples: RegionSamples, tokenizer: WordTokenize
     image_tower = CnnImageTower(EMBED_DIM) if design.kind == "cnn" else VitImageTower(EMBED_DIM, design.image_size)
     text_tower = WordTextTower(tokenizer.vocab_size, EMBED_DIM)
     table = CAPTIONS if captions is None else captions
-    captions = [(LABELS.index(label), text) for label, texts in table.items() for text in texts]
-    caption_tokens = torch.from_numpy(tokenizer([text for _, text in captions]))
-    caption_label = torch.tensor([label for label, _ in captions])
+    caption_rows = [(LABELS.index(label), text) for label, texts in table.items() for text in texts]
+    caption_tokens = torch.from_numpy(tokenizer([text for _, text in caption_rows]))
+    caption_label = torch.tensor([label for label, _ in caption_rows])
     target_table = (caption_label[None, :] == torch.arange(len(LABELS))[:, None]).float()
     target_table /= target_table.sum(1, keepdim=True).clamp(min=1.0)  # [labels, captions]
     counts = np.bincount(samples.labels, minlength=len(LABELS)).astype(np.float64)

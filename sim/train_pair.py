@@ -342,8 +342,9 @@ def train_pair(out: Path = ASSETS, n_seeds: int = 10, views: int = 16, validatio
         ]
     out.mkdir(parents=True, exist_ok=True)
     for p, rung in zip(PAIR, rungs_chosen, strict=True):
+        image_tower, text_tower = rung["towers"]
         folder = export_design(
-            p.design, *rung["towers"], vocabulary(p.captions), out, trained_on(p, n_seeds, views, rung)
+            p.design, image_tower, text_tower, vocabulary(p.captions), out, trained_on(p, n_seeds, views, rung)
         )
         write_checksums(folder)
         report["designs"][p.design.name]["chosen"] = {k: rung[k] for k in ("epochs", "step", "accuracy")}

@@ -13,7 +13,7 @@ from typing import Literal
 from ..errors import OlsplatInputError
 from .fusion import FusedEncoder
 from .onnx_encoder import OnnxEncoder
-from .shipped import DEFAULT_WEIGHTS, SHIPPED, default_encoder, shipped_encoder
+from .shipped import DEFAULT_WEIGHTS, REGISTERED, default_encoder, shipped_encoder
 
 DEFAULT_SPEC = "olsplat-cnn64"
 
@@ -38,7 +38,7 @@ def encoder_from_spec(
         if spec == "shipped":
             return default_encoder(tuple(parsed) if parsed else DEFAULT_WEIGHTS, threads)
         members = [
-            shipped_encoder(p, threads) if p in SHIPPED else OnnxEncoder(Path(p), threads) for p in spec.split(",")
+            shipped_encoder(p, threads) if p in REGISTERED else OnnxEncoder(Path(p), threads) for p in spec.split(",")
         ]
         return FusedEncoder(members, parsed, fusion) if len(members) > 1 or parsed else members[0]
     except ValueError as exc:

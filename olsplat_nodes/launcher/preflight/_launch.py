@@ -107,10 +107,10 @@ def input_rows(plan: LaunchPlan) -> list[Row]:
         elif exec_name == "ingest" and params.get("source_kind") in ("replay", "exif_folder"):
             wanted.setdefault((params["source_kind"], params.get("source", "")), []).append(f"{name}.source")
         elif exec_name == "region_encoder":
-            from ...encoders.shipped import SHIPPED
+            from ...encoders.shipped import REGISTERED
 
             for part in str(params.get("encoder", "")).split(","):
-                if part and part != "shipped" and part not in SHIPPED:
+                if part and part != "shipped" and part not in REGISTERED:
                     wanted.setdefault(("encoder", part), []).append(f"{name}.encoder")
     return [_input(kind, path, given) for (kind, path), given in wanted.items()]
 
