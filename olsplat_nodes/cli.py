@@ -72,6 +72,9 @@ EXAMPLES = {
     "olsplat bench compression --scene small0 --aggregated maps/small0",
     "bench robustness": "olsplat bench robustness --scene small31 --confusion 0,0.15,0.3,0.45 --md robust.md",
     "bench tune": "olsplat bench tune --scene small1001 --scene small1002 --json tune.json",
+    "bench paper": "olsplat bench paper --world v1 --world v2 --seeds 0,1,2,3,4 --train-seeds 1001,1002 "
+    "--preset small --encoders olsplat-nadir32,olsplat-oblique48 --weights 0.6,0.4 --work paper --json paper.json "
+    "--md paper.md\nolsplat bench paper --work paper --dry-run",
     "bench structure": "olsplat bench structure --scene small0",
     "bench cluster": "olsplat bench cluster --scene medium0 --tile-m 0,100 --workers 1,2 --work /tmp/bc --json c.json",
     "record": "olsplat record --source scene/replay.mcap --out session.mcap --frames 20\n"

@@ -11,6 +11,7 @@ from . import (
     frame,
     graph,
     live,
+    paper,
     query,
     raster,
     regions,
@@ -39,3 +40,4 @@ def add_parser(subparsers) -> None:
     structure.add_parser(targets)
     tune.add_parser(targets)
     diagnose.add_parser(targets)
+    paper.add_parser(targets)
