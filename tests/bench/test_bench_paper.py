@@ -94,7 +94,7 @@ def test_bench_paper_end_to_end_on_the_tiny_preset(tmp_path, monkeypatch, capsys
     assert "scenes: 3 to make, 0 reused" in printed and "2 tuning runs" in printed
     assert f"[v1] made {work / 'v1' / 'tiny1000'}" in printed
     tune = json.loads((work / "v1" / "tune.json").read_text())
-    assert tune["encoders"] == "olsplat-cnn64,olsplat-vit48" and tune["weights"] == "0.6,0.4"
+    assert tune["encoders"] == "olsplat-nadir32,olsplat-oblique48" and tune["weights"] == "0.6,0.4"
     assert set(tune["methods"]) == {"outlangsplat", "projection"} and tune["scenes"] == [str(work / "v1" / "tiny1000")]
     evaluated = json.loads((work / "v1" / "eval.json").read_text())
     assert set(evaluated["scenes"]) == {"tiny0", "tiny1"} and evaluated["tuned"]["file"] == str(
