@@ -33,6 +33,7 @@ NEEDS_TORCH = {
     "olsplat_nodes.structure.segcontrast",
     "olsplat_nodes.structure.sparse_conv",
     "olsplat_sim.train_encoders",
+    "olsplat_sim.train_pair",
     "olsplat_sim.train_structure",
 }
 
