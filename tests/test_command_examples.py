@@ -94,8 +94,7 @@ def test_every_source_of_examples_is_read():
 def _launch_of(args: argparse.Namespace) -> tuple[str, list[str], str | None] | None:
     """The launch a parsed command names: (file or name, overrides, run dir), or None."""
     if args.command == "launch" and not getattr(args, "list", False):
-        target = getattr(args, "check", None) or args.file
-        return (target, args.overrides, args.run_dir) if target else None
+        return (args.file, args.overrides, args.run_dir) if args.file else None  # a launch, or --check of it
     if args.command in ("doctor", "service") and getattr(args, "launch", None):
         return args.launch, getattr(args, "overrides", []) or [], getattr(args, "run_dir", None)
     return None
