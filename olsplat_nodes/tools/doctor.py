@@ -38,16 +38,10 @@ def add_launch_options(parser: argparse.ArgumentParser, launch_flag: bool) -> No
     """The launch options doctor and ``launch --check`` share (``--launch`` for doctor only:
     ``launch`` takes the file as its argument)."""
     if launch_flag:
+        from .launch import add_override_options
+
         parser.add_argument("--launch", metavar="NAME|FILE", help="also check this launch (a shipped name or a file)")
-        parser.add_argument(
-            "--set",
-            dest="overrides",
-            action="append",
-            default=[],
-            metavar="NODE.PARAM=VALUE",
-            help="override a parameter of the launch, as olsplat launch does; repeatable",
-        )
-        parser.add_argument("--run-dir", help="the launch's run folder (overrides the file's run_dir)")
+        add_override_options(parser)
     parser.add_argument(
         "--minutes", type=float, default=30.0, help="flight time the disk must hold, in minutes (with a launch)"
     )

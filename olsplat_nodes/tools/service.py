@@ -54,6 +54,8 @@ RESTART_SEC = 5
 
 
 def add_parser(subparsers) -> None:
+    from .launch import add_override_options
+
     parser = subparsers.add_parser(
         "service",
         help="print a systemd unit that runs a launch on boot (checked first, restarted on failure)",
@@ -61,15 +63,7 @@ def add_parser(subparsers) -> None:
         epilog=EPILOG,
     )
     parser.add_argument("--launch", required=True, metavar="NAME|FILE", help="a shipped launch name or a file")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="NODE.PARAM=VALUE",
-        help="override a parameter, as olsplat launch does; repeatable",
-    )
-    parser.add_argument("--run-dir", help="the run folder (made absolute); default: the launch file's run_dir")
+    add_override_options(parser)
     parser.add_argument("--user", help="run as this user (User=); default: root")
     parser.add_argument("--workdir", help="WorkingDirectory=: where relative paths are taken from (default: here)")
     parser.set_defaults(run=run)
