@@ -71,7 +71,9 @@ EXAMPLES = {
     "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json",
     "bench compression": "olsplat aggregate --scene small0 --out maps/small0\n"
     "olsplat bench compression --scene small0 --aggregated maps/small0",
-    "bench robustness": "olsplat bench robustness --scene small31 --confusion 0,0.15,0.3,0.45 --md robust.md",
+    "bench robustness": "olsplat bench robustness --scene small31 --confusion 0,0.15,0.3,0.45 --md robust.md\n"
+    "olsplat bench robustness --scene small31 --mode lookalike --correlation 1 --confusion 0.3\n"
+    "olsplat bench robustness --scene small31 --mode swap --confusion 0.3",
     "bench tune": "olsplat bench tune --scene small1001 --scene small1002 --json tune.json",
     "bench paper": "olsplat bench paper --world v1 --world v2 --seeds 0,1,2,3,4 --train-seeds 1001,1002 "
     "--preset small --encoders olsplat-nadir32,olsplat-oblique48 --weights 0.6,0.4 --work paper --json paper.json "

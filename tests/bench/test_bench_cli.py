@@ -55,60 +55,6 @@ def test_aggregation_query_and_compression_benchmarks_print_their_figures(tiny, 
     assert "no aggregated views" in capsys.readouterr().err
 
 
-def test_confusion_replaces_rows_by_rows_of_the_same_view():
-    import numpy as np
-
-    from olsplat_nodes.bench.robustness import confuse
-
-    rng = np.random.default_rng(0)
-    bank = [rng.normal(size=(40, 8)).astype(np.float32), rng.normal(size=(200, 8)).astype(np.float32)]
-    assert all(np.array_equal(a, b) for a, b in zip(confuse(bank, 0.0, rng), bank, strict=True))
-    confused = confuse(bank, 0.5, np.random.default_rng(1))
-    for before, after in zip(bank, confused, strict=True):
-        changed = (before != after).any(1)
-        assert 0.3 < changed.mean() < 0.7  # about p of the rows (a few draw themselves)
-        rows = {r.tobytes() for r in before}
-        assert all(r.tobytes() in rows for r in after)  # every row is some region's feature of this view
-    assert np.array_equal(confuse(bank, 0.5, np.random.default_rng(1))[1], confused[1])  # seeded: same for every method
-
-
-def test_robustness_benchmark_runs(tiny, tmp_path, capsys):
-    scene = tmp_path / "scene"
-    shutil.copytree(tiny[0], scene)
-    table, scores = tmp_path / "r.md", tmp_path / "r.json"
-    argv = ["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--confusion", "0.5"]
-    assert main([*argv, "--md", str(table), "--json", str(scores)]) == 0
-    printed = re.search(
-        r"p 0\.50\s+topk\s+mIoU\s+(\d+\.\d)\s+mAcc\s+\d+\.\d\s+Loc@50\s+(\d+\.\d)", capsys.readouterr().out
-    )
-    assert printed
-    assert f"| topk | **{printed[1]} / {printed[2]}** |" in table.read_text()  # one scene: the mean is the run
-    assert json.loads(scores.read_text())["topk"]["0.5"]["scene"]["mIoU"] == pytest.approx(float(printed[1]), abs=0.05)
-    assert (
-        main(
-            [
-                "bench",
-                "robustness",
-                "--scene",
-                str(scene),
-                "--methods",
-                "topk",
-                "--confusion",
-                "0.5",
-                "--features",
-                "2d,2d3d",
-            ]
-        )
-        == 0
-    )
-    out = capsys.readouterr().out
-    assert re.search(r"p 0\.50\s+topk 2d\s+mIoU\s+\d+\.\d", out) and re.search(
-        r"p 0\.50\s+topk 2d3d\s+mIoU\s+\d+\.\d", out
-    ), out
-    assert main(["bench", "robustness", "--scene", str(scene), "--methods", "topk", "--features", "3d"]) == 1
-    assert "--features" in capsys.readouterr().err
-
-
 def test_structure_benchmark_runs(tiny, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(tiny[0], scene)
