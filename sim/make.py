@@ -116,7 +116,7 @@ def _town_flight_map(preset: Preset, seed: int, options: MakeOptions, flight_see
     made from it as in v1 (its colour from the truth's DC term, its own degree-1 residue)."""
     flight_rng, sensor_rng, recon_rng, pose_rng = _streams(seed, flight_seed)
     town_world_rng, flight_world_rng = world_streams(seed, flight_seed)
-    truth = generate_scene(preset.n_gaussians, preset.size_m, seed)
+    truth = generate_scene(preset.n_gaussians, preset.size_m, seed, options.world.geometry)
     truth = with_view_dependence(truth, options.world.appearance, town_world_rng)
     spec = _flight_spec(preset, options, flight_seed, flight_rng)
     frames = plan_flight(preset.size_m, spec, flight_rng, options.world.flight, flight_world_rng)

@@ -15,9 +15,11 @@ import numpy as np
 
 from olsplat_nodes.scene import Gaussians
 
+from . import geometry as geo
 from .labels import CATEGORY, LABEL, ROOF_COLORS, STUFF_LABEL, building_label
 from .layout import GROUND_RES, Building, Layout, generate_layout, sun_direction
 from .noise import Noise2D
+from .world import GEOMETRY_WORLD_KEY, GeometryWorld
 
 GROUND_COLORS = {
     "bare ground": (0.50, 0.44, 0.35),
@@ -267,25 +269,9 @@ def _quats_from_normals(normals: np.ndarray, rng) -> np.ndarray:
     return np.c_[w1 * w2 - (v1 * v2).sum(1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)]
 
 
-def generate_scene(n_gaussians: int, size_m: float, seed: int) -> TruthScene:
-    """A town of side ``size_m`` metres with about ``n_gaussians`` labelled Gaussians."""
-    rng = np.random.default_rng(seed)
-    noise = Noise2D(seed + 1)
-    layout = generate_layout(size_m, rng)
-    footprint = footprint_mask(layout)
-    areas = [size_m**2 * (1.0 - footprint.mean())]
-    areas += [sum(_building_area(b)) for b in layout.buildings]
-    areas += [0.8 * 4 * np.pi * t.radius**2 for t in layout.trees]
-    areas += [c.length * c.width + 2 * (c.length + c.width) * c.height for c in layout.cars]
-    density = n_gaussians / sum(areas)  # Gaussians per square metre of surface
-    spacing = 1.0 / np.sqrt(density)
-
-    parts = [_ground(layout, int(round(areas[0] * density)), footprint, rng, noise)]
-    for b in layout.buildings:
-        parts += _building(b, density, rng, noise)
-    parts.append(_trees(layout, density, rng))
-    parts += [_car(c, density, rng) for c in layout.cars]
-
+def _shapes(parts: list[_Part], spacing: float, rng) -> tuple[np.ndarray, ...]:
+    """(means [N, 3] jittered along their normals, quats [N, 4], scales [N, 3], opacities [N]) of
+    the parts' Gaussians: flat surface ones thin along their normal, crown ones rounder."""
     means = np.concatenate([p.means for p in parts])
     n = len(means)
     flat = np.concatenate([np.full(len(p.means), p.normals is not None) for p in parts])
@@ -299,6 +285,60 @@ def generate_scene(n_gaussians: int, size_m: float, seed: int) -> TruthScene:
     scales[~flat, :2] *= 1.5  # leaf clumps: larger and rounder
     means[flat] += normals[flat] * rng.normal(0, 0.01, (int(flat.sum()), 1))
     opacities = np.where(flat, rng.uniform(0.85, 0.99, n), rng.uniform(0.55, 0.95, n))
+    return means, quats, scales, opacities
+
+
+def _follow_labels(ground: _Part, trees: _Part, layout: Layout, density: float, strength: float, noise, rng) -> _Part:
+    """geometry.py's ground and crown ties on the parts (in place); returns the kerb faces' part."""
+    assert ground.normals is not None  # the ground's Gaussians are flat
+    ground.means, ground.normals = geo.roughen_lawns(
+        geo.raise_pavements(ground.means, ground.category, strength),
+        ground.normals,
+        ground.category,
+        strength,
+        lambda xy: noise(xy * 1.7 + 913.0, 3.0),  # turf bumps: the texture noise, elsewhere on its lattice
+        rng,
+    )
+    trees.means = geo.shape_crowns(trees.means, trees.instance, layout, strength)
+    means, normals, colors = geo.kerb_faces(layout, density, strength, rng)
+    colors = colors * _shade(normals)[:, None]
+    return _part(means, normals, colors, CATEGORY["pavement"], -1, LABEL[STUFF_LABEL["pavement"]])
+
+
+def generate_scene(n_gaussians: int, size_m: float, seed: int, geometry: GeometryWorld | None = None) -> TruthScene:
+    """A town of side ``size_m`` metres with about ``n_gaussians`` labelled Gaussians; ``geometry``
+    (world.GeometryWorld) ties its geometry to its labels (geometry.py), None or strength 0: not."""
+    rng = np.random.default_rng(seed)
+    noise = Noise2D(seed + 1)
+    layout = generate_layout(size_m, rng)
+    strength = geometry.strength if geometry is not None else 0.0
+    geo_rng = None
+    if strength > 0:  # its own stream: at strength 0 no draw is made from it nor any other
+        geo_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=GEOMETRY_WORLD_KEY))
+        geo.tie_roof_colors(layout, strength, geo_rng)
+        geo.raise_crowns(layout, strength)
+    footprint = footprint_mask(layout)
+    areas = [size_m**2 * (1.0 - footprint.mean())]
+    areas += [sum(_building_area(b)) for b in layout.buildings]
+    areas += [0.8 * 4 * np.pi * t.radius**2 for t in layout.trees]
+    areas += [c.length * c.width + 2 * (c.length + c.width) * c.height for c in layout.cars]
+    density = n_gaussians / sum(areas)  # Gaussians per square metre of surface
+    spacing = 1.0 / np.sqrt(density)
+
+    parts = [_ground(layout, int(round(areas[0] * density)), footprint, rng, noise)]
+    for b in layout.buildings:
+        parts += _building(b, density, rng, noise)
+    trees = _trees(layout, density, rng)
+    parts.append(trees)
+    parts += [_car(c, density, rng) for c in layout.cars]
+    kerbs = [] if geo_rng is None else [_follow_labels(parts[0], trees, layout, density, strength, noise, geo_rng)]
+    means, quats, scales, opacities = _shapes(parts, spacing, rng)
+    if kerbs:  # last, from their own stream: the other Gaussians keep their spins, sizes and opacities
+        extra = _shapes(kerbs, spacing, geo_rng)
+        means, quats, scales, opacities = (
+            np.concatenate(pair) for pair in zip((means, quats, scales, opacities), extra, strict=True)
+        )
+        parts += kerbs
     colors = np.concatenate([p.colors for p in parts])
     return TruthScene(
         gaussians=Gaussians.from_colors(means, colors, scales, opacities, quats),

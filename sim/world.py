@@ -99,6 +99,24 @@ class CloudWorld:
     modes: int = 16  # plane waves summed
 
 
+# the town's geometry draws (geometry.py), only made when geometry.strength > 0
+GEOMETRY_WORLD_KEY = (7,)
+
+
+@dataclass(frozen=True)
+class GeometryWorld:
+    """Geometry that partly follows labels (sim/geometry.py; docs/world.md, "Geometry that follows
+    labels"). ``strength`` S in [0, 1] scales every tie: with probability S a roof takes the colour
+    tied to its building's type and size (large flat: grey/white; gabled: mostly red; small flat:
+    mostly white/blue), else today's independent draw; pavements stand 0.12 m x S above the road
+    behind a vertical kerb face; lawn Gaussians rise by 0-6 cm x S (blades) plus +-4 cm x S (turf
+    bumps) and tilt by N(0, 12 degrees x S), roads and parking stay flat; tree crowns' vertical
+    semi-axis grows from 0.85 to 0.85 + 0.45 S of their radius, base kept. 0 (v1 and v2): the town
+    of before, byte for byte (no draw is made from any stream)."""
+
+    strength: float = 0.0  # 0: labels independent of geometry (today); 1: the full ties above
+
+
 @dataclass(frozen=True)
 class WorldSpec:
     name: str = "v1"  # the world it was made from (``WORLDS``); "v2+" once a setting is overridden
@@ -107,6 +125,7 @@ class WorldSpec:
     haze: HazeWorld = field(default_factory=HazeWorld)
     clouds: CloudWorld = field(default_factory=CloudWorld)
     sensor: SensorSpec = field(default_factory=SensorSpec)
+    geometry: GeometryWorld = field(default_factory=GeometryWorld)
 
 
 V1 = WorldSpec()
@@ -194,6 +213,7 @@ def _validate(record: Any, key: str) -> None:
             and "need 0 <= coverage <= 1, scale_m > 0, modes >= 1"
         ),
         HazeWorld: lambda r: r.beta < 0 and "beta must be >= 0",
+        GeometryWorld: lambda r: not 0.0 <= r.strength <= 1.0 and "need 0 <= strength <= 1",
         FlightWorld: lambda r: (
             (not 0.0 <= r.altitude_span < 1.5 or r.nadir_tilt_deg < 0 or r.altitude_waves < 1)
             and "need 0 <= altitude_span < 1.5, nadir_tilt_deg >= 0, altitude_waves >= 1"

@@ -27,7 +27,8 @@ from olsplat_sim.world import V1, V2, AppearanceWorld, CloudWorld, FlightWorld, 
 # (TINY) and of `... --flight-seed 3 --views 5 --motion-blur 0.02` (TINY_F3), made on the 2-core VM
 # by the code of before world v2 (commit a4ab56e). scene.json now holds the camera under
 # options.world.sensor (with v2's focus_blur_px) instead of options.sensor: it is compared after
-# moving it back (``_old_scene_json``); every other file is compared as it is.
+# moving it back (``_old_scene_json``; options.world.geometry, strength 0, is dropped with the rest of
+# options.world); every other file is compared as it is.
 TINY = "02ae5ba5a19f3bd70ff7bbf4d881bd0c8684fb4b4abde529e12a587ce8cfd4e3"
 TINY_F3 = "e07fccfc4428954616a118199f49b10a6c8ca6a07a10fbb4eaaf37f365c8f5e2"
 
@@ -37,6 +38,9 @@ def _old_scene_json(data: bytes) -> bytes:
     options = doc["options"]
     assert options["world"]["name"] == "v1"
     sensor = {k: v for k, v in options["world"]["sensor"].items() if k != "focus_blur_px"}
+    # options.world.geometry (issue 43 part 4, at strength 0 the town of before) is dropped with the
+    # rest of options.world: only its sensor is moved back to options.sensor
+    assert options["world"]["geometry"] == {"strength": 0.0}
     doc["options"] = {("sensor" if k == "world" else k): (sensor if k == "world" else v) for k, v in options.items()}
     return json.dumps(doc, indent=2).encode()
 
