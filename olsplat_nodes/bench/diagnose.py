@@ -15,12 +15,16 @@ the same ground patch changes between overlapping frames, and the flight's altit
 - ``patches.*``: ground patches tracked between consecutive frames by a ground-plane homography
   (``evaluate/diagnose/patches.py``): colour and sharpness change, and how often the first
   encoder's label of the same patch flips;
-- ``flight.*``: the viewpoint's variation (camera heights and tilt; EXIF altitude for photos).
+- ``flight.*``: the viewpoint's variation (camera heights and tilt; EXIF altitude for photos);
+  ``relative_tilt_deg`` (median, and ``_p90``): the tilt between consecutive views, read from the
+  ground patches' homographies (``patches.relative_tilts_deg``; the lens from the scene's cameras
+  or the first photo's EXIF), so it is measured the same way on real photos.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import time
@@ -91,7 +95,22 @@ def diagnose(scenes: list[Path], photos: list[Path], encoder_names: list[str], v
         surface_statistics,
     )
     from ..evaluate.diagnose.flight import FlightRecords, collect_flight, flight_geometry
-    from ..evaluate.diagnose.patches import ground_patch_pairs, label_of_encoder, patch_statistics, read_flight_images
+    from ..evaluate.diagnose.patches import (
+        ground_patch_pairs,
+        label_of_encoder,
+        patch_statistics,
+        read_flight_images,
+        relative_tilts_deg,
+    )
+    from ..sources.exif import focal_length_px, read_exif
+
+    def tilt_section(pairs, focal_px: float, centre: tuple[float, float]) -> dict:
+        """The tilt between consecutive views (degrees): median and p90 over the frame pairs."""
+        tilts = relative_tilts_deg(pairs, focal_px, centre)
+        if len(tilts) == 0:
+            return {"relative_tilt_deg": float("nan"), "relative_tilt_deg_p90": float("nan")}
+        return {"relative_tilt_deg": float(np.median(tilts)), "relative_tilt_deg_p90": float(np.percentile(tilts, 90))}
+
     from ..evaluate.scene_eval import label_texts, load_queries
     from ..pipeline import Scene
 
@@ -138,7 +157,10 @@ def diagnose(scenes: list[Path], photos: list[Path], encoder_names: list[str], v
         sources[folder.name] = {
             "kind": "scene",
             "folder": str(folder),
-            "flight": flight_geometry(cameras),
+            "flight": {
+                **flight_geometry(cameras),
+                **tilt_section(pairs, cameras[0].fx, (cameras[0].cx - 0.5, cameras[0].cy - 0.5)),
+            },  # OpenCV pixels
             **encoder_section([record]),
             "patches": patch_statistics(pairs, label_of),
             "seconds": time.perf_counter() - started,
@@ -148,19 +170,26 @@ def diagnose(scenes: list[Path], photos: list[Path], encoder_names: list[str], v
         images = read_flight_images(folder)
         pairs = ground_patch_pairs(images)
         label_of = label_of_encoder(encoders[first], list(_default_label_texts()))
+        flight = photo_altitudes(folder)
+        try:  # the first photo's lens (EXIF), at the stored image's size
+            photo = read_exif(sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))[0])
+            height, width = images[0].shape[:2]
+            flight.update(tilt_section(pairs, focal_length_px(photo)[0], ((width - 1) / 2, (height - 1) / 2)))
+        except (IndexError, ValueError):  # no JPEG or no focal length in its EXIF: no tilt figure
+            pass
         sources[folder.name] = {
             "kind": "photos",
             "folder": str(folder),
-            "flight": photo_altitudes(folder),
+            "flight": flight,
             "patches": patch_statistics(pairs, label_of),
             "seconds": time.perf_counter() - started,
         }
     report: dict[str, Any] = {"encoder_pair": encoder_names, "sources": sources}
     if records:
         report.update(encoder_section(records))
-        pooled = [p for pairs, _ in all_pairs for p in pairs]
+        # each flight's frame pairs apart: frame pair (0, 1) of two flights has two exposure gains
+        pooled = [dataclasses.replace(p, flight=k) for k, (pairs, _) in enumerate(all_pairs) for p in pairs]
         report["patches"] = patch_statistics(pooled, all_pairs[0][1])  # one label vocabulary: the first scene's
-        report["patches"]["frame_pairs"] = sum(sources[f.name]["patches"]["frame_pairs"] for f in scenes)
     return report
 
 
@@ -221,10 +250,13 @@ def summary_markdown(report: dict) -> str:
         "patches.pairs",
         "patches.label_flip_rate",
         "patches.colour_change",
+        "patches.colour_change_p90",
         "patches.colour_change_global",
         "patches.sharpness_change",
         "flight.height_range_m",
         "flight.tilt_median_deg",
+        "flight.relative_tilt_deg",
+        "flight.relative_tilt_deg_p90",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:

@@ -4,6 +4,20 @@
 its colour, sharpness and encoder label change between them).
 """
 
-from .patches import PatchPair, ground_patch_pairs, label_of_encoder, patch_statistics, read_flight_images
+from .patches import (
+    PatchPair,
+    ground_patch_pairs,
+    label_of_encoder,
+    patch_statistics,
+    read_flight_images,
+    relative_tilts_deg,
+)
 
-__all__ = ["PatchPair", "ground_patch_pairs", "label_of_encoder", "patch_statistics", "read_flight_images"]
+__all__ = [
+    "PatchPair",
+    "ground_patch_pairs",
+    "label_of_encoder",
+    "patch_statistics",
+    "read_flight_images",
+    "relative_tilts_deg",
+]

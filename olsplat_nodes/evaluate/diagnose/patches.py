@@ -3,10 +3,17 @@
 For consecutive frames (i, i + step) the ground plane's homography is estimated from SIFT matches,
 frame i + step is warped onto frame i's pixels, and a grid of square patches inside the overlap is
 cut from both. The patches whose grey levels still agree after the warp (normalised
-cross-correlation >= ``min_ncc``) are "ground patches": flat, textured and static, so what
+cross-correlation >= ``min_ncc``, 0.9) are "ground patches": flat, textured and static, so what
 differs between the two copies is what the camera did (exposure, white balance, blur, JPEG,
-viewing angle), not misalignment. ``patch_statistics`` then says how much their colour, their
-sharpness and (given an encoder) their label change.
+viewing angle), not misalignment; a patch must also align best at no shift (``locally_aligned``,
+within 2 px). Why so strict: on simulated flights, patches holding a tree crown or a roof edge
+that moved with parallax still reach NCC 0.6-0.9 (smooth, high-contrast renders), or even 0.9
+with a shift of a pixel or two when flat colour fills most of the patch, and their "colour
+change" is another object in the patch: with NCC >= 0.6 alone they made up most of the median
+on world v1 (docs/world.md, "The colour floor"). On the real photos (caliterra) the statistics
+hardly depend on the rule (colour_change_global 0.31 with NCC >= 0.6 alone, 0.28 with both
+tests), so the strict rule measures the camera and not the geometry in both.
+``patch_statistics`` then says how much their colour, their sharpness and (given an encoder) their label change.
 
 Conventions: images are [H, W, 3] uint8 RGB; pixel coordinates are OpenCV's (x right, y down,
 the centre of pixel (0, 0) at (0, 0)), which is what SIFT keypoints, ``cv2.findHomography`` and
@@ -45,6 +52,8 @@ class PatchPair:
     ncc: normalised cross-correlation of the two grey patches, in [-1, 1].
     homography: [3, 3] float64, frame b's pixel from frame a's pixel (homogeneous, H[2, 2] = 1),
     the frame pair's ground-plane estimate (shared by all patches of the pair).
+    flight: 0 from ``ground_patch_pairs``; set it (``dataclasses.replace``) to tell flights apart
+    when their pairs are pooled: a frame pair is (flight, frame_a, frame_b).
     """
 
     frame_a: int
@@ -54,6 +63,7 @@ class PatchPair:
     patch_b: np.ndarray = field(repr=False)
     ncc: float
     homography: np.ndarray = field(repr=False)
+    flight: int = 0  # which flight the frames belong to, when pairs of several flights are pooled
 
 
 def read_flight_images(folder: str | Path) -> list[np.ndarray]:
@@ -155,12 +165,32 @@ def ncc(grey_a: np.ndarray, grey_b: np.ndarray, min_std: float = 2.0) -> float:
     return float((a * b).mean() / (sa * sb))
 
 
+def locally_aligned(grey_a: np.ndarray, grey_b: np.ndarray, box: tuple[int, int, int], radius: int) -> bool:
+    """Whether frame b (already warped onto frame a, same shape) aligns best with frame a at no
+    shift: the inner square of the patch (x0, y0, side S), its border of ``radius`` px dropped,
+    correlates with b at shift (0, 0) at least as well as at every integer shift (dx, dy) with
+    |dx|, |dy| <= ``radius`` (``ncc``). A shift that reads outside frame b counts as not better."""
+    x0, y0, side = box
+    inner = slice(y0 + radius, y0 + side - radius), slice(x0 + radius, x0 + side - radius)
+    height, width = grey_b.shape
+    centred = ncc(grey_a[inner], grey_b[inner])
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            top, left = y0 + radius + dy, x0 + radius + dx
+            bottom, right = top + side - 2 * radius, left + side - 2 * radius
+            if (dx or dy) and top >= 0 and left >= 0 and bottom <= height and right <= width:
+                if ncc(grey_a[inner], grey_b[top:bottom, left:right]) > centred:
+                    return False
+    return True
+
+
 def ground_patch_pairs(
     images: Sequence[np.ndarray],
     patch_px: int | None = None,
     *,
     steps: Sequence[int] = (1,),
-    min_ncc: float = 0.6,
+    min_ncc: float = 0.9,
+    max_shift_px: int = 2,
     min_inliers: int = 30,
     ratio: float = 0.75,
     ransac_px: float = 3.0,
@@ -176,7 +206,10 @@ def ground_patch_pairs(
     its pixels, plus one pixel of margin for the interpolation, lie inside the warped frame b.
     Frame b is warped with Lanczos interpolation, which blurs less than bilinear does (see
     ``patch_statistics`` for how the sharpness statistic keeps clear of the rest).
-    Kept: patches whose grey NCC >= ``min_ncc`` (see ``ncc``). A frame pair is skipped (logged
+    Kept: patches whose grey NCC >= ``min_ncc`` (see ``ncc``) and, with ``max_shift_px`` = R > 0,
+    that the warp aligns best (``locally_aligned``: no integer shift of up to R px correlates
+    better; a roof edge or a crown that moved by a pixel or two with parallax can still reach 0.9
+    when flat colour fills most of the patch). A frame pair is skipped (logged
     at debug level) when its homography fails (``estimate_homography``: too few inliers, e.g.
     across a turn of a lawnmower flight, or implausible)."""
     if len(images) < 2:
@@ -219,6 +252,8 @@ def ground_patch_pairs(
                     score = ncc(grey_a[y0 : y0 + size, x0 : x0 + size], grey_w[y0 : y0 + size, x0 : x0 + size])
                     if score < min_ncc:
                         continue
+                    if max_shift_px > 0 and not locally_aligned(grey_a, grey_w, (x0, y0, size), max_shift_px):
+                        continue
                     pairs.append(
                         PatchPair(
                             i,
@@ -231,6 +266,29 @@ def ground_patch_pairs(
                         )
                     )
     return pairs
+
+
+def relative_tilts_deg(pairs: Sequence[PatchPair], focal_px: float, centre: tuple[float, float]) -> np.ndarray:
+    """[F] the tilt between the two views of each frame pair (degrees; the frame pairs of
+    ``pairs``, in order of first appearance), read from its ground-plane homography.
+
+    For cameras K (focal ``focal_px``, principal point ``centre`` = (cx, cy) in OpenCV pixels) and
+    the ground plane at distance d along its normal n in frame a's camera axes, the homography is
+    H ~ K (R + t n^T / d) K^-1 (R, t: frame b's camera from frame a's). With n the optical axis (a
+    nadir frame a), t n^T only touches the last column, so the normalised H_n = K^-1 H K has as
+    the first two entries of its last row R's (r31, r32), and as its (3, 3) entry r33 + t_z / d; the
+    angle is atan(|(r31, r32)| / (r33 + t_z / d)). A translation alone reads 0; a camera tilted by
+    a degrees against a nadir one at the same height reads a exactly (|(r31, r32)| = sin a, r33 =
+    cos a); a climb t_z between the frames reads atan(sin a / (cos a + t_z / d)), slightly off."""
+    seen: dict[tuple[int, int, int], np.ndarray] = {}
+    for p in pairs:
+        seen.setdefault((p.flight, p.frame_a, p.frame_b), p.homography)
+    K = np.array([[focal_px, 0.0, centre[0]], [0.0, focal_px, centre[1]], [0.0, 0.0, 1.0]])
+    out = []
+    for H in seen.values():
+        Hn = np.linalg.inv(K) @ H @ K
+        out.append(np.degrees(np.arctan2(float(np.hypot(Hn[2, 0], Hn[2, 1])), abs(float(Hn[2, 2])))))
+    return np.array(out, np.float64)
 
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
@@ -292,7 +350,7 @@ def patch_statistics(
     n = len(pairs)
     out: dict = {
         "pairs": n,
-        "frame_pairs": len({(p.frame_a, p.frame_b) for p in pairs}),
+        "frame_pairs": len({(p.flight, p.frame_a, p.frame_b) for p in pairs}),
         "patch_px": int(pairs[0].patch_a.shape[0]) if n else None,
     }
     if n == 0:
@@ -311,7 +369,7 @@ def patch_statistics(
     lin_a = np.array([_srgb_to_linear(x).reshape(-1, 3).mean(0) for x in srgb_a])  # [N, 3]
     lin_b = np.array([_srgb_to_linear(x).reshape(-1, 3).mean(0) for x in srgb_b])
     ratios = lin_b / np.maximum(lin_a, 1e-6)
-    _, group = np.unique([(p.frame_a, p.frame_b) for p in pairs], axis=0, return_inverse=True)
+    _, group = np.unique([(p.flight, p.frame_a, p.frame_b) for p in pairs], axis=0, return_inverse=True)
     group = group.ravel()  # [N] frame pair index of each patch pair
     gains = np.array([np.median(ratios[group == g], axis=0) for g in range(group.max() + 1)])  # [G, 3]
     lin_b_fixed = [_srgb_to_linear(x) / np.maximum(gains[g], 1e-6) for x, g in zip(srgb_b, group, strict=True)]
