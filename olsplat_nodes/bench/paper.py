@@ -10,6 +10,12 @@ mean and the paired 95 % interval over the held-out seeds beside the paper's fig
 claims table: each claim's paired difference, its interval and the verdict by the protocol's
 rule (holds: the interval above zero; fails: below; tie: otherwise).
 
+An interrupted run continues where it stopped when the same command is given again: scenes whose
+scene.json is what sim make writes are reused, a world's tuning is reused when ``tune.json`` was
+made with the same training scenes, methods, grids and encoder files (``tuning_key``), and each
+held-out scene's results when its ``results.json`` under ``WORK/<world>/eval`` matches its runs
+and settings (``olsplat eval --resume``). A changed encoder or setting is run again, not reused.
+
 Training seeds are >= 1000 and held-out seeds below (``bench tune``'s ``TRAINING_SEEDS``): a
 choice of settings never sees a seed whose results are reported. ``--grid-limit N`` (hidden)
 gives each method only the first N settings of its grid, ``--views N`` (hidden) makes scenes of N
@@ -410,15 +416,25 @@ def run(args: argparse.Namespace) -> int:
             if states[world, seed] == "make":
                 _make_scene(folders[world, seed], args.preset, seed, world, args.views)
         base = args.work / world
-        print(f"[{world}] tuning {', '.join(methods)} on seeds {train} ({time.perf_counter() - started:.0f} s)")
-        tune = tune_methods([folders[world, s] for s in train], methods, args.encoders, args.weights, args.grid_limit)
-        (base / "tune.json").write_text(json.dumps(tune, indent=1))
-        (base / "tune.md").write_text(tune_table(tune["methods"]) + "\n")
+        key = tuning_key([folders[world, s] for s in train], methods, args.encoders, args.weights, args.grid_limit)
+        tune = saved_tuning(base / "tune.json", key)
+        if tune is not None:
+            print(f"[{world}] tuning reused from {base / 'tune.json'} (same scenes, methods, grids and encoder files)")
+        else:
+            print(f"[{world}] tuning {', '.join(methods)} on seeds {train} ({time.perf_counter() - started:.0f} s)")
+            tune = tune_methods(
+                [folders[world, s] for s in train], methods, args.encoders, args.weights, args.grid_limit
+            )
+            tune["key"] = key
+            partial = base / "tune.json.partial"
+            partial.write_text(json.dumps(tune, indent=1))
+            partial.replace(base / "tune.json")  # whole or not at all: a rerun never reads half a tuning
+            (base / "tune.md").write_text(tune_table(tune["methods"]) + "\n")
         print(f"[{world}] held-out seeds {seeds}: eval --tuned {base / 'tune.json'} "
               f"({time.perf_counter() - started:.0f} s)")  # fmt: skip
         argv = [a for s in seeds for a in ("--scene", str(folders[world, s]))]
         argv += ["--methods", ",".join(methods), "--encoders", args.encoders, "--feature-ablation", "--fusion-sweep"]
-        argv += ["--tuned", str(base / "tune.json"), "--work", str(base / "eval")]
+        argv += ["--tuned", str(base / "tune.json"), "--work", str(base / "eval"), "--resume"]
         argv += ["--json", str(base / "eval.json"), "--md", str(base / "eval.md")]
         if args.weights:
             argv += ["--weights", args.weights]
@@ -443,6 +459,32 @@ def run(args: argparse.Namespace) -> int:
         args.json.write_text(json.dumps(document, indent=1))
         print(f"figures -> {args.json}")
     return 0
+
+
+def tuning_key(folders: list[Path], methods: list[str], encoders: str, weights: str | None,
+               grid_limit: int | None) -> dict[str, Any]:  # fmt: skip
+    """What a saved tuning must have been made with to be reused: the training scenes (each
+    scene.json's sha256), the methods and their grids as tuned, the encoders, their weights and
+    their files (``encoder_fingerprint``)."""
+    import hashlib
+
+    from ..encoders.spec import encoder_fingerprint
+    from .tune import GRIDS
+
+    return json.loads(json.dumps({
+        "scenes": {str(f): hashlib.sha256((f / "scene.json").read_bytes()).hexdigest() for f in folders},
+        "grids": {m: GRIDS[m][:grid_limit] for m in methods},
+        "encoders": encoders, "weights": weights, "encoder_files": encoder_fingerprint(encoders),
+    }))  # fmt: skip
+
+
+def saved_tuning(path: Path, key: dict[str, Any]) -> dict[str, Any] | None:
+    """The tuning document at ``path`` when it was made with ``key`` (``tuning_key``), else None."""
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return saved if isinstance(saved, dict) and saved.get("key") == key else None
 
 
 def _make_scene(folder: Path, preset: str, seed: int, world: str, views: int | None) -> None:

@@ -43,3 +43,23 @@ def encoder_from_spec(
         return FusedEncoder(members, parsed, fusion) if len(members) > 1 or parsed else members[0]
     except ValueError as exc:
         raise OlsplatInputError(str(exc)) from None
+
+
+def encoder_fingerprint(spec: str = DEFAULT_SPEC) -> str:
+    """sha256 (hex) over the files of every model a spec names (as ``encoder_from_spec`` reads it:
+    'shipped', shipped names, or exported folders), in order, each file's name and bytes: a saved
+    result made with other weights under the same name does not match. ``SHA256SUMS`` is left
+    out (it is derived from the rest)."""
+    import hashlib
+
+    from .shipped import ASSETS, SHIPPED
+
+    names = list(SHIPPED) if spec == "shipped" else spec.split(",")
+    digest = hashlib.sha256()
+    for name in names:
+        folder = ASSETS / name if name in REGISTERED else Path(name)
+        for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+            if path.is_file() and path.name != "SHA256SUMS":
+                digest.update(f"{name}/{path.name}\0".encode())
+                digest.update(path.read_bytes())
+    return digest.hexdigest()

@@ -71,6 +71,12 @@ def add_parser(subparsers) -> None:
         "every method); a method not in the file keeps its defaults",
     )
     ev.add_argument("--work", type=Path, help="folder for the per-run maps (default: SCENE/eval)")
+    ev.add_argument(
+        "--resume",
+        action="store_true",
+        help="reuse a scene's results saved in its work folder (results.json) by an earlier run with the same scene, "
+        "runs, settings and encoder files; an interrupted evaluation continues where it stopped",
+    )
     ev.add_argument("--json", type=Path, help="write the results here")
     ev.add_argument("--md", type=Path, help="write the paper's tables (Markdown) here")
     ev.add_argument("--figures", type=Path, help="write side-by-side heatmaps per view and query here")
@@ -89,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..aggregate.snapshot import LanguageMap
-    from ..encoders.spec import encoder_from_spec
+    from ..encoders.spec import encoder_fingerprint, encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
     from ..evaluate.figures import qualitative_figures
@@ -143,8 +149,15 @@ def run(args: argparse.Namespace) -> int:
     if len(set(titles)) < len(titles):
         titles = [str(s.folder) for s in scenes]
     results: dict[str, dict] = {}
+    fingerprints = {spec: encoder_fingerprint(spec) for spec in {r.encoders for r in runs}}
     for title, scene in zip(titles, scenes, strict=True):
         work = (args.work / title if len(scenes) > 1 else args.work) if args.work else scene.folder / "eval"
+        resume_key = _resume_key(scene, runs, used, fingerprints)
+        saved = _saved_results(work, resume_key) if args.resume and not args.figures else None
+        if saved is not None:
+            results[title] = saved
+            print(f"{title}: {len(saved)} runs reused from {work / RESULTS_FILE} (--resume)")
+            continue
         results[title], maps, done = {}, {}, {}
         for r in runs:
             encoder = encoders[r.encoders, r.weights]
@@ -180,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{title}: {r.label:28s} mIoU {scores['mIoU']:5.1f}  mAcc {scores['mAcc']:5.1f}  Loc@40/50/60 "
                   f"{scores['loc40']:5.1f} {scores['loc50']:5.1f} {scores['loc60']:5.1f}  ({scores['seconds']:.0f} "
                   "s)")  # fmt: skip
+        _save_results(work, resume_key, results[title])
         if args.figures:
             folder = args.figures / title if len(scenes) > 1 else args.figures
             files = qualitative_figures(
@@ -197,6 +211,47 @@ def run(args: argparse.Namespace) -> int:
     if args.md:
         args.md.write_text(tables)
     return 0
+
+
+RESULTS_FILE = "results.json"  # a scene's results in its work folder, for --resume
+
+
+def _resume_key(scene, runs, used: dict, fingerprints: dict[str, str]) -> dict:
+    """What a scene's saved results must have been made with to be reused: the scene (its
+    scene.json, sha256), every run as described and with its settings, and the encoder files."""
+    import hashlib
+
+    scene_json = scene.folder / "scene.json"
+    return json.loads(
+        json.dumps(
+            {
+                "scene": hashlib.sha256(scene_json.read_bytes()).hexdigest() if scene_json.is_file() else None,
+                "runs": [
+                    {"label": r.label, **r.describe(), "structure": str(r.structure), "settings": used[r.method]}
+                    for r in runs
+                ],
+                "encoders": fingerprints,
+            }
+        )
+    )
+
+
+def _saved_results(work: Path, key: dict) -> dict | None:
+    """A scene's saved results (run label -> scores) when ``work``/results.json was made with
+    ``key``; None when absent, unreadable or made otherwise."""
+    try:
+        saved = json.loads((work / RESULTS_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return saved.get("results") if isinstance(saved, dict) and saved.get("key") == key else None
+
+
+def _save_results(work: Path, key: dict, results: dict) -> None:
+    """``work``/results.json, written whole or not at all (a temporary file renamed over it)."""
+    work.mkdir(parents=True, exist_ok=True)
+    partial = work / (RESULTS_FILE + ".partial")
+    partial.write_text(json.dumps({"key": key, "results": results}, indent=1))
+    partial.replace(work / RESULTS_FILE)
 
 
 def read_tuned(path: Path, encoders: str | None = None, weights: str | None = None) -> dict[str, dict]:

@@ -134,6 +134,18 @@ def test_bench_paper_end_to_end_on_the_tiny_preset(tmp_path, monkeypatch, capsys
     assert "| 58.99 (RS5M) |" in markdown  # Table 6: the second encoder beside the paper's second (RS5M)
     assert "68.31 vs 65.44 (Projection Agg.): +2.87" in markdown
 
+    # the same command again (as after an interruption): the tuning and each held-out scene reused
+    assert main([*argv, "--json", str(tmp_path / "again.json")]) == 0
+    again = capsys.readouterr().out
+    assert "[v1] tuning reused from" in again and again.count("runs reused from") == 2
+    assert json.loads((tmp_path / "again.json").read_text())["worlds"] == document["worlds"]
+    results = work / "v1" / "eval" / "tiny0" / "results.json"
+    saved = json.loads(results.read_text())
+    saved["key"]["runs"][0]["settings"] = {"tau_d": 0.123}  # made with another setting: run again
+    results.write_text(json.dumps(saved))
+    assert main(argv) == 0
+    assert capsys.readouterr().out.count("runs reused from") == 1
+
     assert main([*argv, "--dry-run"]) == 0  # the same scenes again: reused, nothing run
     assert "scenes: 0 to make, 3 reused" in capsys.readouterr().out
     scene = json.loads((work / "v1" / "tiny1" / "scene.json").read_text())
@@ -178,3 +190,22 @@ def test_claims_pick_the_better_single_encoder_and_the_best_other_cell():
     assert peak["theirs"] == "cell" and peak["verdict"] == "fails"
     assert rows["its aggregation beats VALA"]["verdict"] == "not run"
     assert rows["2D-3D fusion (descriptors) beats 2D fusion"]["verdict"] == "not run"
+
+
+def test_encoder_fingerprint_follows_the_model_files(tmp_path):
+    """A saved tuning or result is reused only with the same encoder files: the fingerprint
+    changes with any model file, not with the derived SHA256SUMS."""
+    import shutil
+
+    from olsplat_nodes.encoders.shipped import ASSETS
+    from olsplat_nodes.encoders.spec import encoder_fingerprint
+
+    copy = tmp_path / "enc"
+    shutil.copytree(ASSETS / "olsplat-nadir32", copy)
+    first = encoder_fingerprint(str(copy))
+    assert first == encoder_fingerprint(str(copy)) and len(first) == 64
+    (copy / "SHA256SUMS").write_text("changed\n")
+    assert encoder_fingerprint(str(copy)) == first
+    (copy / "encoder.json").write_text((copy / "encoder.json").read_text() + " ")
+    assert encoder_fingerprint(str(copy)) != first
+    assert encoder_fingerprint("olsplat-nadir32") != encoder_fingerprint("olsplat-nadir32,olsplat-oblique48")
