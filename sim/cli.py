@@ -56,10 +56,11 @@ def add_parser(subparsers) -> None:
     make.add_argument("--no-pose-noise", action="store_true", help="write the true poses to sparse/0 and the log")
     make.add_argument(
         "--world",
-        choices=("v1", "v2"),
+        choices=("v1", "v2", "v2g"),
         default="v1",
         help="the evaluation world (sim/README.md, 'Worlds'): v1 as before; v2 adds view-dependent appearance, "
-        "a varying altitude, tilted nadir views, haze, cloud shadows and a calibrated camera (default v1)",
+        "a varying altitude, tilted nadir views, haze, cloud shadows and a calibrated camera; v2g is v2 with "
+        "geometry that follows the labels (geometry.strength=1) (default v1)",
     )
     make.add_argument(
         "--world-set",
@@ -81,7 +82,9 @@ def add_parser(subparsers) -> None:
     pair = commands.add_parser(
         "train-pair", help="train the independent encoder pair (olsplat-nadir32, olsplat-oblique48; sim/train_pair.py)"
     )
-    pair.add_argument("--out", type=Path, help="output folder (default: the package's encoders/assets)")
+    pair.add_argument("--work", type=Path, required=True, help="work folder: rungs, scores.json, train_pair.json")
+    pair.add_argument("--out", type=Path, help="export the chosen encoders to OUT/NAME (e.g. the package's assets)")
+    pair.add_argument("--scenes", type=Path, help="folder of the validation scenes val2000... (default WORK/scenes)")
     pair.add_argument("--seeds", type=int, default=10, help="training scenes per encoder (A: 3000..., B: 4000...)")
     pair.add_argument("--views", type=int, default=16, help="views per scene")
     pair.set_defaults(run=run_train_pair)
@@ -180,10 +183,12 @@ def run_train_pair(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)  # the budget ladder's timings and results are those of one thread
-    from .train_pair import ASSETS, train_pair
+    from .train_pair import main
 
-    train_pair(args.out or ASSETS, args.seeds, args.views)
-    return 0
+    argv = ["--work", str(args.work), "--seeds", str(args.seeds), "--views", str(args.views)]
+    argv += ["--out", str(args.out)] if args.out is not None else []
+    argv += ["--scenes", str(args.scenes)] if args.scenes is not None else []
+    return main(argv)
 
 
 def run_train(args: argparse.Namespace) -> int:

@@ -77,7 +77,10 @@ def add_parser(subparsers) -> None:
         "and the paper's figures (docs/evaluation-protocol.md)",
     )
     parser.add_argument(
-        "--world", action="append", choices=("v1", "v2"), help="a world; repeatable (default: v1 and v2)"
+        "--world",
+        action="append",
+        choices=("v1", "v2", "v2g"),
+        help="a world; repeatable (default: v1, v2 and v2g, v2 with geometry that follows its labels)",
     )
     parser.add_argument("--seeds", default="0,1,2,3,4", help="held-out seeds, each < 1000 (default 0,1,2,3,4)")
     parser.add_argument("--train-seeds", default="1001,1002", help="training seeds, each >= 1000 (default 1001,1002)")
@@ -357,7 +360,7 @@ def run(args: argparse.Namespace) -> int:
     if len(seeds) < 2:
         raise OlsplatInputError(f"--seeds: the paired intervals need two held-out seeds or more, got {seeds}")
     train = parse_seeds(args.train_seeds, "--train-seeds", training=True)
-    worlds = list(dict.fromkeys(args.world or ["v1", "v2"]))
+    worlds = list(dict.fromkeys(args.world or ["v1", "v2", "v2g"]))
     if args.preset not in PRESETS:
         raise OlsplatInputError(f"--preset must be one of {', '.join(PRESETS)}, got {args.preset!r}")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
