@@ -49,6 +49,10 @@ def add_parser(subparsers) -> None:
                         help="a folder of real UAV photos in flight order (label-free); repeatable")  # fmt: skip
     parser.add_argument("--encoders", default=DEFAULT_PAIR, help="the encoder pair A,B (shipped names or folders)")
     parser.add_argument("--views", type=int, default=0, help="the first N views of each scene (0: all)")
+    parser.add_argument("--min-ncc", type=float, default=0.9,
+                        help="ground patches: least grey correlation after the warp (default 0.9)")  # fmt: skip
+    parser.add_argument("--max-shift", type=int, default=2, metavar="PX",
+                        help="ground patches: no shift up to PX px aligns better (0: no test; default 2)")  # fmt: skip
     parser.add_argument("--json", type=Path, help="write every figure here")
     parser.add_argument("--md", type=Path, help="write the summary table here")
     parser.epilog = (
@@ -67,7 +71,12 @@ def run(args: argparse.Namespace) -> int:
     names = [n.strip() for n in args.encoders.split(",") if n.strip()]
     if len(names) != 2:
         raise OlsplatInputError(f"--encoders: give two encoders A,B, got {args.encoders!r}")
-    report = diagnose(args.scene, args.photos, names, args.views)
+    if not -1.0 <= args.min_ncc <= 1.0 or args.max_shift < 0:
+        raise OlsplatInputError(
+            f"--min-ncc must be in [-1, 1] and --max-shift >= 0, got {args.min_ncc}, {args.max_shift}"
+        )
+    gate = {"min_ncc": args.min_ncc, "max_shift_px": args.max_shift}
+    report = diagnose(args.scene, args.photos, names, args.views, gate)
     table = summary_markdown(report)
     print(table)
     if args.json:
@@ -82,9 +91,13 @@ def _plain(value: Any) -> Any:
     return value.item() if hasattr(value, "item") else str(value)
 
 
-def diagnose(scenes: list[Path], photos: list[Path], encoder_names: list[str], views: int = 0) -> dict:
+def diagnose(
+    scenes: list[Path], photos: list[Path], encoder_names: list[str], views: int = 0, gate: dict | None = None
+) -> dict:
     """The report (see the module's docstring): pooled sections over ``scenes`` and one entry
-    per source under ``sources``."""
+    per source under ``sources``. ``gate``: ``ground_patch_pairs``' ``min_ncc`` / ``max_shift_px``
+    (default: its own), recorded in the report as ``patch_gate``."""
+    gate = {"min_ncc": 0.9, "max_shift_px": 2, **(gate or {})}
     import numpy as np
 
     from ..encoders.spec import encoder_from_spec
@@ -150,7 +163,7 @@ def diagnose(scenes: list[Path], photos: list[Path], encoder_names: list[str], v
         cameras = scene.cameras[:views] if views else scene.cameras
         record = collect_flight(scene.folder, cameras, scene.image, encoders)
         labels, queries = load_queries(scene.folder)
-        pairs = ground_patch_pairs([scene.image(c) for c in cameras])
+        pairs = ground_patch_pairs([scene.image(c) for c in cameras], **gate)
         label_of = label_of_encoder(encoders[first], label_texts(labels, queries))
         records.append(record)
         all_pairs.append((pairs, label_of))
@@ -168,7 +181,7 @@ def diagnose(scenes: list[Path], photos: list[Path], encoder_names: list[str], v
     for folder in photos:
         started = time.perf_counter()
         images = read_flight_images(folder)
-        pairs = ground_patch_pairs(images)
+        pairs = ground_patch_pairs(images, **gate)
         label_of = label_of_encoder(encoders[first], list(_default_label_texts()))
         flight = photo_altitudes(folder)
         try:  # the first photo's lens (EXIF), at the stored image's size
@@ -184,7 +197,7 @@ def diagnose(scenes: list[Path], photos: list[Path], encoder_names: list[str], v
             "patches": patch_statistics(pairs, label_of),
             "seconds": time.perf_counter() - started,
         }
-    report: dict[str, Any] = {"encoder_pair": encoder_names, "sources": sources}
+    report: dict[str, Any] = {"encoder_pair": encoder_names, "patch_gate": gate, "sources": sources}
     if records:
         report.update(encoder_section(records))
         # each flight's frame pairs apart: frame pair (0, 1) of two flights has two exposure gains

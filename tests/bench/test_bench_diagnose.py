@@ -59,6 +59,15 @@ def test_diagnose_real_photos(shared_data, tmp_path):
     assert source["patches"]["pairs"] > 500 and source["patches"]["frame_pairs"] == 23
     assert 40 < source["flight"]["height_range_m"] < 60  # the drone climbs ~49 m over the 24 photos
     assert "encoders" not in source  # no labels on real photos: no accuracy
+    assert 0.8 < source["flight"]["relative_tilt_deg"] < 2.5  # 1.59 degrees between frames (EXIF focal length)
+    assert 0.2 < source["patches"]["colour_change_global"] < 0.35  # 0.28 (docs/world.md)
+    loose = tmp_path / "loose.json"  # the first gate (docs/world.md, "The colour floor"): NCC >= 0.6 alone
+    argv = ["bench", "diagnose", "--photos", str(shared_data / "caliterra"), "--min-ncc", "0.6", "--max-shift", "0"]
+    assert main([*argv, "--json", str(loose)]) == 0
+    document = json.loads(loose.read_text())
+    assert document["patch_gate"] == {"min_ncc": 0.6, "max_shift_px": 0}
+    looser = document["sources"]["caliterra"]["patches"]
+    assert looser["pairs"] > source["patches"]["pairs"] and 0.2 < looser["colour_change_global"] < 0.35
 
 
 def test_diagnose_refuses_bad_input_in_one_line(tmp_path, capsys):
