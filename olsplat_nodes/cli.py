@@ -38,7 +38,7 @@ EXAMPLES = {
     "service": "olsplat service --launch field_drone --run-dir /var/lib/olsplat/run --user uav "
     "> /etc/systemd/system/olsplat.service",
     "sim train-encoders": "olsplat sim train-encoders --out enc --seeds 10 --epochs 8",
-    "sim train-pair": "olsplat sim train-pair\nolsplat sim train-pair --out enc --seeds 2 --views 4",
+    "sim train-pair": "olsplat sim train-pair --work pair\nolsplat sim train-pair --work pair --scenes val --out enc",
     "sim zeroshot": "olsplat sim zeroshot --seeds 0 1 2 --views 12",
     "sim replay": "olsplat sim replay --log scene/replay.mcap --rate 2 --limit 10",
     "encode": "olsplat encode --scene scene --png\n"

@@ -9,7 +9,6 @@ import pytest
 
 pytest.importorskip("torch")
 
-from olsplat_nodes.encoders.onnx_encoder import OnnxEncoder
 from olsplat_sim import train_pair as tp
 from olsplat_sim.labels import LABELS, QUERIES
 from olsplat_sim.region_samples import TRAINING_SEED_BASE
@@ -72,66 +71,126 @@ def test_noisy_labels_share_and_seed():
 
 
 @pytest.mark.parametrize(
-    "acc_a, acc_b, expected",
+    "a, b, expected",
     [
-        ([0.50, 0.70, 0.76, 0.80], [0.60, 0.74, 0.77, 0.85], (2, 2)),  # both first reach T at rung 2, 1 point apart
-        ([0.50, 0.76, 0.80], [0.40, 0.60, 0.74, 0.85], (1, 2)),  # 9 points apart: B steps down to 0.74
-        ([0.60, 0.85, 0.90], [0.40, 0.60, 0.76, 0.80], (1, 2)),  # A jumps past B's band: 0.85 is nearer than 0.60
-        ([0.70, 0.74, 0.86], [0.40, 0.77, 0.80], (1, 1)),  # A's first rung over T is 9 points stronger: 0.74
-        ([0.40, 0.50, 0.60], [0.40, 0.76, 0.80], (2, 1)),  # A never reaches T: its last rung; B's 0.76 is nearest
-        ([0.80, 0.90], [0.70, 0.78], (0, 1)),  # rung 0 reaches T for A; B first at rung 1
+        ([40, 50, 56, 60], [45, 54, 57, 62], (2, 2)),  # both first reach T = 55 at rung 2, 1 point apart
+        ([40, 56, 60], [30, 45, 58, 70], (1, 2)),  # the first reaching, not the best: 56 and 58
+        ([50, 62, 66], [30, 45, 55.5, 70], (0, 2)),  # A's 62 vs B's 55.5: A steps down, 50 is nearer
+        ([45, 54.9, 70], [30, 56, 60], (1, 1)),  # A jumps to 70 at T: 14 points stronger, steps to 54.9
+        ([40, 48, 45], [30, 52, 58], (1, 1)),  # A never reaches T: its best, 48; B steps down to 52
+        ([56, 70], [57, 80], (0, 0)),  # the first rung reaches T for both
+        ([40, 52, 52], [44, 47, 49], (1, 2)),  # neither reaches T: best each, earlier on a tie; 3 apart: kept
+        ([40, 56, 60], [20, 30, 40], (0, 2)),  # B's best 40; A steps down to its 40 (rung 0)
+        ([50, 60, 60], [57, 58], (1, 0)),  # within 3 points: no step-down
     ],
 )
-def test_choose_rungs(acc_a, acc_b, expected):
-    assert tp.choose_rungs(acc_a, acc_b, target=0.75, max_gap=0.03) == expected
+def test_choose_rungs(a, b, expected):
+    assert tp.choose_rungs(a, b, target=55.0, max_gap=3.0) == expected
 
 
-def test_choose_rungs_rejects_an_empty_ladder():
-    with pytest.raises(ValueError, match="accuracy per rung"):
-        tp.choose_rungs([], [0.8])
+def test_choose_rungs_defaults_are_the_rule():
+    assert tp.TARGET_MIOU == 55.0 and tp.MAX_GAP_MIOU == 3.0
+    assert tp.RUNG_EPOCHS == (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0)
+    assert tp.choose_rungs([40, 56], [30, 54]) == (1, 1)  # 2 points apart at T = 55
 
 
-def test_tiny_run_exports_loadable_encoders(tmp_path):
+def test_choose_rungs_rejects_an_empty_or_unscanned_ladder():
+    with pytest.raises(ValueError, match="score per rung"):
+        tp.choose_rungs([], [60.0])
+    with pytest.raises(ValueError, match="rung 1 is not scored"):
+        tp.choose_rungs([40.0, None, 60.0], [60.0])  # a higher rung scored does not end the scan
+    with pytest.raises(ValueError, match="rung 2 is not scored"):
+        tp.choose_rungs([56.0], [40.0, 50.0, None])  # never reached T so far: every rung is needed
+
+
+def test_next_to_score_is_the_lowest_first_scan():
+    assert tp.next_to_score([None, None, None], 55) == 0
+    assert tp.next_to_score([40, None, None], 55) == 1
+    assert tp.next_to_score([40, 56, None], 55) is None  # reached T
+    assert tp.next_to_score([40, 50, 54], 55) is None  # every rung scored
+    assert tp.next_to_score([None, 80, 90], 55) == 0
+
+
+def _lazy(full, target):
+    scores = [None] * len(full)
+    while (i := tp.next_to_score(scores, target)) is not None:
+        scores[i] = full[i]
+    return scores
+
+
+@pytest.mark.parametrize("seed", range(200))
+def test_lazy_scoring_chooses_as_full_scoring(seed):
+    rng = np.random.default_rng(seed)
+    n_a, n_b = rng.integers(1, 12, 2)
+    steps = rng.normal(3.0, 5.0, (2, 11))  # not monotone: a rung may score below the one before
+    full_a = list(np.round(30 + np.cumsum(steps[0][:n_a]), 1))
+    full_b = list(np.round(35 + np.cumsum(steps[1][:n_b]), 1))
+    lazy_a, lazy_b = _lazy(full_a, 55.0), _lazy(full_b, 55.0)
+    assert tp.choose_rungs(lazy_a, lazy_b) == tp.choose_rungs(full_a, full_b)
+    first = next((i for i, s in enumerate(full_a) if s >= 55.0), None)
+    assert sum(s is not None for s in lazy_a) == (len(full_a) if first is None else first + 1)  # no more than needed
+
+
+class _Finished:
+    def poll(self):
+        return 0
+
+
+def test_tiny_run_scores_lazily_and_ships_the_chosen_rungs(tmp_path, monkeypatch):
+    """``run_pair`` on a tiny real training run (1 scene, 2 views) with a stand-in scorer and ONNX
+    export (an hour of ``olsplat eval`` and the exporter's minutes are not a unit test)."""
+    import json
+
     import torch
 
     torch.set_num_threads(1)
-    report = tp.train_pair(
-        tmp_path,
-        1,
-        2,
-        validation_views=1,
-        rungs=(0.5, 1.0),
-        log=lambda _: None,
-        validation_seeds=tp.VALIDATION_SEEDS[:1],
-    )
-    assert (tmp_path / "train_pair.json").is_file()
+    monkeypatch.setattr(tp, "validation_scenes", lambda folder, seeds, log: [folder / "val2000"])
+    exported = []
+
+    def fake_export(design, image_tower, text_tower, vocab, out, trained_on=None):
+        assert isinstance(image_tower, torch.nn.Module) and isinstance(text_tower, torch.nn.Module)
+        folder = out / design.name
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "encoder.json").write_text(json.dumps({"name": design.name, "trained_on": trained_on}))
+        exported.append(folder)
+        return folder
+
+    monkeypatch.setattr(tp, "export_design", fake_export)
+    scored = []
+
+    def fake_score(folder, scenes, log, crops=None):  # A reaches T at its first rung, B only at its second
+        name, epochs = folder.name, float(folder.parent.name)
+        scored.append((name, epochs))
+        return {"2000": {("olsplat-nadir32", 0.5): 60.0, ("olsplat-oblique48", 0.5): 40.0}.get((name, epochs), 57.0)}
+
+    def train_now(p, work, n_seeds, views, validation_views, rungs, validation_seeds):
+        tp.train_rungs(p, work, n_seeds, views, validation_views, rungs, lambda _: None, validation_seeds)
+        return _Finished()
+
+    out = tmp_path / "assets"
+    report = tp.run_pair(tmp_path / "work", out, n_seeds=1, views=2, validation_views=1, rungs=(0.5, 1.0),
+                         log=lambda _: None, validation_seeds=(2000,), score=fake_score,
+                         start_training=train_now)  # fmt: skip
+    assert scored == [("olsplat-nadir32", 0.5), ("olsplat-oblique48", 0.5), ("olsplat-oblique48", 1.0)]
+    a, b = (report["designs"][p.design.name] for p in tp.PAIR)
+    assert a["chosen"]["epochs"] == 0.5 and a["chosen"]["miou_mean"] == 60.0
+    assert b["chosen"]["epochs"] == 1.0 and b["chosen"]["miou"] == {"2000": 57.0}
+    assert [r["epochs"] for r in b["ladder"]] == [0.5, 1.0] and "miou" not in a["ladder"][1]
+    assert json.loads((tmp_path / "work" / "train_pair.json").read_text())["target_miou"] == 55.0
+    cached = json.loads((tmp_path / "work" / "scores.json").read_text())
+    assert cached["olsplat-oblique48"]["1"]["miou"] == {"2000": 57.0}
+    assert exported[-2:] == [out / "olsplat-nadir32", out / "olsplat-oblique48"]
     for p in tp.PAIR:
-        folder = tmp_path / p.design.name
-        entry = report["designs"][p.design.name]
-        assert [r["epochs"] for r in entry["ladder"]] == [0.5, 1.0] and entry["crops"] > 0
+        folder = out / p.design.name
+        manifest = json.loads((folder / "encoder.json").read_text())
+        assert (
+            "validation outlangsplat mIoU" in manifest["trained_on"]
+            and "of a 1-epoch one-cycle run" in (manifest["trained_on"])
+        )
         for line in (folder / "SHA256SUMS").read_text().splitlines():
             digest, name = line.split("  ")
             assert hashlib.sha256((folder / name).read_bytes()).hexdigest() == digest
-        encoder = OnnxEncoder(folder, 1)
-        assert encoder.name == p.design.name and encoder.input_size == p.design.image_size
-        crops = np.random.default_rng(0).integers(0, 256, (3, p.design.image_size, p.design.image_size, 3), np.uint8)
-        for rows in (encoder.encode_images(crops), encoder.encode_text(label_queries())):
-            assert np.allclose(np.linalg.norm(rows, axis=1), 1.0, atol=1e-5)
-
-
-def test_refine_stronger_stops_where_it_crosses_the_weaker(monkeypatch):
-    ladders = [
-        [{"step": 10, "accuracy": 0.60}, {"step": 20, "accuracy": 0.80}],
-        [{"step": 5, "accuracy": 0.50}, {"step": 9, "accuracy": 0.70}],
-    ]
-    calls = {}
-
-    def fine_ladder(design, samples, validation, rungs, log, steps, schedule_epochs):
-        calls.update(design=design, steps=list(steps), schedule_epochs=schedule_epochs)
-        return [{"step": s, "accuracy": 0.60 + 0.02 * (s - 10)} for s in steps]
-
-    monkeypatch.setattr(tp, "train_ladder", fine_ladder)
-    refined = tp.refine_stronger(ladders, (1, 1), ["a", "b"], None, rungs=(1.0, 8.0), log=lambda _: None)
-    assert calls == {"design": tp.DESIGN_A, "steps": list(range(11, 21)), "schedule_epochs": 8}  # the same run
-    assert refined["encoder"] == 0 and refined["rung"]["step"] == 15  # 0.70 reaches B's 0.70
-    assert tp.refine_stronger([ladders[0], ladders[0]], (1, 1), ["a", "b"], None) is None  # no gap
+    # a rerun continues from the cache: nothing is trained, scored or exported again, the same choice
+    again = tp.run_pair(tmp_path / "work", None, n_seeds=1, views=2, validation_views=1, rungs=(0.5, 1.0),
+                        log=lambda _: None, validation_seeds=(2000,), score=None, start_training=None)  # fmt: skip
+    assert again["designs"]["olsplat-oblique48"]["chosen"] == b["chosen"] and len(exported) == 5
