@@ -11,7 +11,7 @@ worlds ``olsplat sim make --world`` knows:
   cars and glass are specular towards the sun's mirror direction and vegetation has a hot spot
   (spherical harmonics of the true Gaussians), haze grows with depth, cloud shadows drift with the
   wind, and the camera's vignetting, exposure steps and focus blur are those of a corrected JPEG.
-  The nadir views' tilt (1.5 degrees per axis) follows the real photos' tilt between consecutive
+  The nadir views' tilt (0.8 degrees per axis) follows the real photos' tilt between consecutive
   frames (``flight.relative_tilt_deg``), the other settings the ground patches' colour and
   sharpness change (docs/world.md gives the figures).
 - ``v2g``: v2 with geometry that follows its labels at full strength (``GeometryWorld``).
@@ -135,12 +135,12 @@ class WorldSpec:
 V1 = WorldSpec()
 V2 = WorldSpec(
     name="v2",
-    flight=FlightWorld(altitude_span=0.5, altitude_profile="smooth", nadir_tilt_deg=1.5),
+    flight=FlightWorld(altitude_span=0.5, altitude_profile="smooth", nadir_tilt_deg=0.8),
     appearance=AppearanceWorld(
         sh_degree=3, roof_specular=(0.02, 0.25), car_specular=0.3, glass_specular=0.5, hotspot=0.1
     ),
     haze=HazeWorld(beta=0.0008),
-    clouds=CloudWorld(coverage=0.2, darkness=0.88, softness=1.0, wind_mps=(2.0, 0.8)),
+    clouds=CloudWorld(coverage=0.1, darkness=0.88, softness=1.0, wind_mps=(2.0, 0.8)),
     sensor=SensorSpec(exposure_drift=0.015, exposure_range=(0.9, 1.1), vignette=0.03, focus_blur_px=(0.0, 1.0)),
 )
 # v2 whose geometry follows its labels (geometry.py at full strength): the condition under which a
