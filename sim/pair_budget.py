@@ -88,6 +88,9 @@ class ScoreCache:
         return None if per_seed is None else sum(per_seed.values()) / len(per_seed)
 
     def put(self, encoder: str, epochs: float, per_seed: dict[str, float], seconds: float) -> None:
+        if self.path.is_file():  # keep what another writer added since
+            for name, entries in json.loads(self.path.read_text()).items():
+                self.data.setdefault(name, {}).update({k: v for k, v in entries.items() if k not in self.data[name]})
         self.data.setdefault(encoder, {})[f"{epochs:g}"] = {"miou": per_seed, "seconds": seconds}
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")

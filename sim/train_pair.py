@@ -317,8 +317,8 @@ class _Running:
         self.pid = pid
 
     @staticmethod
-    def find(work: Path, name: str) -> _Running | None:
-        path = work / name / "train.pid"
+    def find(work: Path, name: str, file: str = "train.pid") -> _Running | None:
+        path = work / name / file
         try:
             pid = int(path.read_text())
             cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
@@ -357,6 +357,10 @@ def run_pair(work: Path, out: Path | None = None, scenes_dir: Path | None = None
     Returns the report, also written to ``work``/train_pair.json."""
     start = time.perf_counter()
     work.mkdir(parents=True, exist_ok=True)
+    other = _Running.find(work, "", "run.pid")
+    if other is not None and other.pid != os.getpid():
+        raise RuntimeError(f"another train_pair run (pid {other.pid}) works in {work}: wait for it or stop it")
+    (work / "run.pid").write_text(str(os.getpid()))
     scenes = validation_scenes(scenes_dir or work / "scenes", validation_seeds, log)
     cache = ScoreCache(work / "scores.json")
     names = [p.design.name for p in PAIR]
@@ -462,6 +466,7 @@ def run_pair(work: Path, out: Path | None = None, scenes_dir: Path | None = None
             log(f"{name} -> {folder}")
     report["seconds"] = time.perf_counter() - start
     _write_json(work / "train_pair.json", report)
+    (work / "run.pid").unlink(missing_ok=True)
     return report
 
 
