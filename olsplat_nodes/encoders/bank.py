@@ -57,6 +57,22 @@ def encode_regions(
     return FeatureBank(features, encoder.name)
 
 
+def encode_cache_file(scene_folder: Path, view_stem: str, encoder_name: str | None) -> Path:
+    """Where a view's cached regions and features live: ``SCENE/cache/encode/<encoder>/<view>.npz``,
+    one folder per encoder name (``regions`` for label maps without features), so that runs
+    alternating encoders (Table 6's each-alone and fused, Table 7's weights) each keep their own
+    instead of overwriting one file. The folder name is the encoder name with anything but
+    letters, digits, ``.``, ``_``, ``-`` as ``_``, plus 8 hex digits of its sha1 (no collisions)."""
+    import re
+
+    if encoder_name is None:
+        folder = "regions"
+    else:
+        slug = re.sub(r"[^A-Za-z0-9._-]", "_", encoder_name)[:60]
+        folder = f"{slug}-{hashlib.sha1(encoder_name.encode()).hexdigest()[:8]}"
+    return Path(scene_folder) / "cache" / "encode" / folder / f"{view_stem}.npz"
+
+
 def view_key(image_path: Path, regions: str) -> str:
     """What a view's cache entry depends on: the region settings and the image's bytes (SHA-256),
     so that a new photo under an old name, or other settings, never reuses old regions. The

@@ -2,7 +2,8 @@
 the SfM cameras, the frames, and the cache of each view's regions and features.
 
 Layout: ``map/point_cloud.ply``, ``sparse/0/`` (COLMAP model), ``images/`` (the frames),
-``cache/encode/<frame stem>.npz`` (written by ``olsplat encode`` or on first use).
+``cache/encode/<encoder>/<frame stem>.npz`` (written by ``olsplat encode`` or on first use;
+``encoders.bank.encode_cache_file``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import cv2
 import numpy as np
 
 from ..encoders import encode_regions
-from ..encoders.bank import load_bank, save_bank, view_key
+from ..encoders.bank import encode_cache_file, load_bank, save_bank, view_key
 from ..errors import OlsplatInputError
 from ..regions import RegionConfig, propose_regions
 from ..scene import Camera, read_colmap
@@ -54,11 +55,13 @@ def view_features(
     """(label maps [L, H, W], bank per level) of one view, from the scene's cache when it holds
     this encoder's features for these region settings (``olsplat encode``), else computed and
     cached."""
-    cache = scene.folder / "cache" / "encode" / f"{Path(camera.name).stem}.npz"
+    cache = encode_cache_file(scene.folder, Path(camera.name).stem, encoder.name)
     region_config = region_config or RegionConfig()
     photo = scene.folder / "images" / camera.name
     key = view_key(photo, repr(region_config)) if photo.is_file() else repr(region_config)
     cached = load_bank(cache, encoder.name, key)
+    if cached is None:  # a cache file of the layout before per-encoder folders, when it is this encoder's
+        cached = load_bank(cache.parent.parent / cache.name, encoder.name, key)
     if cached is not None:
         return cached
     image = scene.image(camera)

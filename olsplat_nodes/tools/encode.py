@@ -1,6 +1,7 @@
 """``olsplat encode``: regions and region features for every view of a scene folder.
 
-Writes ``SCENE/cache/encode/<view>.npz`` per view with ``label_maps`` [L, H, W] int32 (coarse to
+Writes ``SCENE/cache/encode/<encoder>/<view>.npz`` per view (``encoders.bank.encode_cache_file``:
+one folder per encoder, ``regions`` without one) with ``label_maps`` [L, H, W] int32 (coarse to
 fine) and, when encoders are given, ``features_<l>`` [R_l, D] float16 per level (unit rows)
 plus the ``encoder`` name; ``--png`` also writes ``SCENE/cache/encode/<view>_regions.png``,
 the view with each level's region boundaries drawn over it. Views already in the cache are
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..encoders import encode_regions
-    from ..encoders.bank import save_bank, view_key
+    from ..encoders.bank import encode_cache_file, save_bank, view_key
     from ..encoders.spec import encoder_from_spec
     from ..regions import RegionConfig, propose_regions
     from ..viz import write_png
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     cache.mkdir(parents=True, exist_ok=True)
     encoded = 0
     for path in tqdm(views, desc="encode", unit="view"):
-        target = cache / f"{path.stem}.npz"
+        target = encode_cache_file(args.scene, path.stem, encoder.name if encoder is not None else None)
         key = view_key(path, repr(config))
         labels = None if args.force else _cached_labels(target, key, encoder.name if encoder is not None else None)
         if labels is not None and not args.png:
@@ -130,5 +131,5 @@ def run(args: argparse.Namespace) -> int:
             encoded += 1
         if args.png:  # also for views taken from the cache: the pictures are what was asked for
             write_png(cache / f"{path.stem}_regions.png", _overlay(image, labels))
-    print(f"{len(views)} views ({encoded} encoded, {len(views) - encoded} from the cache) -> {cache}")
+    print(f"{len(views)} views ({encoded} encoded, {len(views) - encoded} from the cache) -> {target.parent}")
     return 0
