@@ -226,3 +226,20 @@ def _figures() -> None:
 
 if __name__ == "__main__":
     _figures()
+
+
+def test_world_v2g_is_v2_with_full_geometry_ties(tmp_path):
+    """`sim make --world v2g` records v2's every setting but the geometry strength, which is 1."""
+    import dataclasses
+
+    out = tmp_path / "v2g"
+    assert (
+        main(["sim", "make", "--preset", "tiny", "--seed", "0", "--world", "v2g", "--views", "2", "--out", str(out)])
+        == 0
+    )
+    world = json.loads((out / "scene.json").read_text())["options"]["world"]
+    expected = json.loads(json.dumps(dataclasses.asdict(V2)))
+    assert world["name"] == "v2g" and world["geometry"] == {"strength": 1.0}
+    assert {k: v for k, v in world.items() if k not in ("name", "geometry")} == {
+        k: v for k, v in expected.items() if k not in ("name", "geometry")
+    }
