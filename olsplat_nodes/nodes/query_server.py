@@ -117,10 +117,6 @@ class QueryServerNode(Node):
         # their longer side (the view scaled down; box2d on that grid): 4x fewer pixels to render
         # and to send for a 1280x960 view at 640; 0 = the view's own size
         heatmap_max_side: int = 0
-        # > 0: a heatmap draws the view's far cubes of the map as one merged Gaussian each, when a
-        # cube's side spans at most this many pixels (raster/lod.py; an approximation for maps of
-        # millions of Gaussians seen from afar; relevance and 3D instances stay exact); 0 = exact
-        heatmap_lod_px: float = 0.0
         cluster_radius: float = 0.0  # 3D instances: chosen Gaussians closer than this (m) join one; 0 = from the map
         cluster_min_points: int = 20  # ... and an instance has at least this many
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
@@ -134,8 +130,6 @@ class QueryServerNode(Node):
 
         if not (params.cluster_radius >= 0 and params.cluster_min_points >= 1 and params.max_reply_mb > 0):
             raise ParameterError(f"{where}: need cluster_radius >= 0, cluster_min_points >= 1 and max_reply_mb > 0")
-        if not params.heatmap_lod_px >= 0:
-            raise ParameterError(f"{where}: heatmap_lod_px must be >= 0 (0: exact), got {params.heatmap_lod_px}")
         if params.heatmap_max_side < 0:
             raise ParameterError(
                 f"{where}: heatmap_max_side must be >= 0 (0: the view's size), got {params.heatmap_max_side}"
@@ -179,11 +173,6 @@ class QueryServerNode(Node):
         self.map_record: dict = {}  # latest.json's record of the loaded map (views, final)
         self.map_observed = 0  # Gaussians the loaded map observed
         self.feature_images = FeatureImages(p.heatmap_cache_mb * 2**20)
-        # the level of detail (heatmap_lod_px > 0): the cubes once, made by the first map version's
-        # job; each version's features in the background as it loads (a heatmap waits for them)
-        self.lod_lock = threading.Lock()
-        self.lod_cubes: tuple | None = None  # (LodTree, Gaussians with the cubes' merged ones)
-        self.lod_job: Background | None = None  # -> LodMap of self.version
         keys = curve.ServerKeys(p.server_secret, p.allow_dir) if p.server_secret else None
         self.server = self.own(
             QueryServer(
@@ -301,8 +290,6 @@ class QueryServerNode(Node):
         self.language_map, self.version = language_map, record["version"]
         self.map_record, self.map_observed = record, int(np.count_nonzero(language_map.observed))
         log.info("map version %d loaded (%d views)", self.version, record["views"])
-        if self.params.heatmap_lod_px > 0:
-            self.lod_job = Background(f"{self.name}-lod-v{self.version}", self._lod_map, self.features)
         if self.reservation is None and self.params.heatmap_cache_mb > 0:
             self._reserve_heatmap_cache(self.features.table.shape[1])
         if self.warm_query is None:
@@ -505,7 +492,6 @@ class QueryServerNode(Node):
                 min_points=self.params.cluster_min_points,
                 features=self.features,
                 voxel_index=self.voxel_index,
-                lod=self.lod_job.result() if self.lod_job is not None and camera is not None else None,
             )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))
@@ -519,22 +505,6 @@ class QueryServerNode(Node):
             margin = relevance_margin(self.features, self.language_map.observed, splats.ids, embeddings)
             reply.splat_margin = margin.astype(np.float16)
         return reply
-
-    def _lod_map(self, features):
-        """The level of detail of the prior map with ``features`` (a map version's), in the
-        background: the cubes are made once (~20 s for 5M Gaussians), the features per version."""
-        from ..raster.cull import cells_of
-        from ..raster.lod import LodConfig, LodMap, build_lod, with_nodes
-
-        with self.lod_lock:
-            if self.lod_cubes is None:
-                start = time.perf_counter()
-                tree = build_lod(self.gaussians, LodConfig(max_px=self.params.heatmap_lod_px))
-                self.lod_cubes = (tree, with_nodes(self.gaussians, tree))
-                cells_of(self.lod_cubes[1])  # its frustum cull's index, before the first heatmap
-                log.info("level of detail: %d cubes in %.1f s", len(tree), time.perf_counter() - start)
-            tree, gaussians = self.lod_cubes
-        return LodMap.of(tree, gaussians, features.table, features.rows)
 
     def _reply_size(self, camera, image: np.ndarray):
         """(camera, photo) of a view at the reply's size: scaled down to ``heatmap_max_side`` on

@@ -20,7 +20,6 @@ import numpy as np
 from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..native import library
-from ..raster.lod import LodMap
 from ..scene import Camera, Gaussians
 from .heatmap import CANONICAL_NEGATIVES, FeatureImages, relevancy_mask, render_heatmaps, threshold_mask
 from .localize import Instance3D, Region2D, VoxelIndex, default_cluster_radius, instances_in_3d, regions_in_view
@@ -180,7 +179,6 @@ def answer_query(
     min_points: int = 20,
     features: QueryFeatures | None = None,
     voxel_index: VoxelIndex | None = None,
-    lod: LodMap | None = None,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
@@ -189,9 +187,7 @@ def answer_query(
     DBSCAN of the chosen Gaussians' centres with radius ``cluster_radius`` (metres; None: from
     the map's density, ``localize.default_cluster_radius``) and ``min_points``. ``features``:
     the map's ``QueryFeatures``, made once by a caller that asks many queries; ``voxel_index``:
-    the map's ``localize.VoxelIndex`` for the cluster radius, likewise; ``lod``: the map's level
-    of detail for this version (``raster/lod.LodMap``): the heatmap then draws the view's far
-    cubes merged (an approximation; relevance and instances stay exact). Raises
+    the map's ``localize.VoxelIndex`` for the cluster radius, likewise. Raises
     OlsplatInputError on an empty text or a map that does not match the Gaussians."""
     text = text.strip()
     if not text:
@@ -224,13 +220,11 @@ def answer_query(
     )
     answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:
-        drawn_from, table, rows, active = gaussians, features.table, features.rows, None
-        if lod is not None:
-            drawn_from, table, rows, active = lod.gaussians, lod.table, lod.rows, lod.drawn(camera)
+        table, rows = features.table, features.rows
         if images is not None:
-            maps, alpha = images.heatmaps(image_key, drawn_from, table, embeddings, camera, rows=rows, active=active)
+            maps, alpha = images.heatmaps(image_key, gaussians, table, embeddings, camera, rows=rows)
         else:
-            maps, alpha = render_heatmaps(drawn_from, table, embeddings, camera, rows=rows, active=active)
+            maps, alpha = render_heatmaps(gaussians, table, embeddings, camera, rows=rows)
         answer.heatmap, answer.negative_heatmaps, answer.alpha = maps[0], maps[1:], alpha
         if threshold is None:
             answer.mask = relevancy_mask(maps[0], maps[1:], alpha)

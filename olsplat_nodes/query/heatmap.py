@@ -38,15 +38,13 @@ def render_heatmaps(
     config=None,
     unit_out=None,
     rows: np.ndarray | None = None,
-    active: np.ndarray | None = None,
 ):
     """([Q, H, W] cosine heatmaps H_q(v) of the unit text embeddings texts [Q, D], [H, W] alpha):
     ``heatmaps(render_feature_map(...))`` computed per pixel inside the rasterizer, without the
     [H, W, D] feature image (157 MB at 640x480 and D = 128). With ``unit_out`` (float32
     [H * W, D]) the same pass also writes each pixel's unit feature F / |F| there. With
     ``rows`` ([N] int, -1: none) ``features`` is a table, e.g. a codebook's centres, and
-    Gaussian g's feature is its row ``rows[g]``. With ``active`` ([N] bool) only those
-    Gaussians are drawn (a level of detail's choice, ``raster/lod.py``)."""
+    Gaussian g's feature is its row ``rows[g]``."""
     result = rasterize(
         gaussians,
         camera,
@@ -56,7 +54,6 @@ def render_heatmaps(
         feature_queries=np.asarray(texts, np.float32),
         unit_features_out=unit_out,
         feature_rows=rows,
-        active=active,
     )
     assert result.features is not None
     return np.moveaxis(result.features, -1, 0), result.alpha
@@ -121,7 +118,6 @@ class FeatureImages:
         camera: Camera,
         config=None,
         rows: np.ndarray | None = None,
-        active: np.ndarray | None = None,
     ):
         """([Q, H, W] cosine heatmaps of the unit texts [Q, D], [H, W] alpha), as ``render_heatmaps``."""
         with self.lock:
@@ -145,7 +141,7 @@ class FeatureImages:
                             unit = old
                     if unit is None:
                         unit = np.empty((pixels, dim), np.float32)
-            maps, alpha = render_heatmaps(gaussians, features, texts, camera, config, unit, rows, active)
+            maps, alpha = render_heatmaps(gaussians, features, texts, camera, config, unit, rows)
             if unit is not None:
                 with self.lock:
                     self.entries[key] = (unit, alpha)

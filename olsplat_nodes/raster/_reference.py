@@ -165,33 +165,3 @@ def rasterize_reference(
     if features is None:
         del out["features"]
     return out
-
-
-def lod_cube_reference(gaussians: Gaussians, members: np.ndarray, features: np.ndarray | None = None) -> dict:
-    """The merged Gaussian of one cube of ``lod.py``, from its members' indices, cube by cube in
-    float64 (the oracle of ``lod.build_lod`` and ``lod.node_features``): mean, covariance,
-    opacity, DC colour and, with ``features`` [N, D], the feature."""
-    opacity = 1.0 / (1.0 + np.exp(-gaussians.opacity_logits[members].astype(np.float64)))
-    scales = np.sort(np.exp(gaussians.log_scales[members].astype(np.float64)), axis=1)
-    area = np.pi * scales[:, 1] * scales[:, 2]
-    w = opacity * area
-    means = gaussians.means[members].astype(np.float64)
-    mean = (w[:, None] * means).sum(0) / w.sum()
-    cov = np.zeros((3, 3))
-    for k, g in enumerate(members):
-        r = quat_to_rotmat(gaussians.quats[g])
-        own = r @ np.diag(np.exp(2.0 * gaussians.log_scales[g].astype(np.float64))) @ r.T
-        d = means[k] - mean
-        cov += w[k] * (own + np.outer(d, d))
-    cov /= w.sum()
-    variances = np.maximum(np.linalg.eigvalsh(cov), 1e-12)
-    merged_area = np.pi * np.sqrt(variances[1] * variances[2])
-    out = {
-        "mean": mean,
-        "cov": cov,
-        "opacity": float(np.clip((opacity * area).sum() / merged_area, 1e-6, 0.99)),
-        "dc": (w[:, None] * gaussians.sh[members, 0, :].astype(np.float64)).sum(0) / w.sum(),
-    }
-    if features is not None:
-        out["feature"] = (w[:, None] * features[members].astype(np.float64)).sum(0) / w.sum()
-    return out

@@ -188,7 +188,7 @@ _LOCK = threading.Lock()
 
 def cells_of(gaussians: Gaussians) -> CellIndex | None:
     """The map's ``CellIndex``, made at the first call and kept while the map object lives (a
-    process renders one or two maps: the prior map, a level of detail's); None for a map under
+    process renders one or two maps: the prior map, a test's subset); None for a map under
     ``CULL_MIN`` Gaussians."""
     if len(gaussians) < CULL_MIN:
         return None

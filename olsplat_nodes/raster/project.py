@@ -97,7 +97,7 @@ def _project_kernel(
     for j in prange(n):
         radii[j] = 0
         i = np.int64(ids[j]) if compact else np.int64(j)
-        if active.shape[0] > 0 and not active[i]:  # not drawn in this render (e.g. a level of detail's)
+        if active.shape[0] > 0 and not active[i]:  # not drawn in this render
             continue
         finite = True
         for k in range(3):

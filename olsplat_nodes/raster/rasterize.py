@@ -77,7 +77,7 @@ def rasterize(
     kernel's). That kernel reads float16 features as they are (a language map's stored form: half
     the bytes); every other path widens them to float32 first (the same values, exactly).
     With ``active`` only the Gaussians where it is True are drawn, as if the others were not in
-    the map (a level of detail's choice: ``lod.py``).
+    the map.
     Renders without features (the accumulator's Top-K) go to the C Top-K kernel when it is built
     (``topk_native.py``: weights within a few ulp of the numba kernel's, the same ranking rule).
     """

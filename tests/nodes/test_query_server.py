@@ -271,51 +271,6 @@ def test_a_capped_reply_is_the_view_rendered_at_that_size(ctx, sockdir, tiny, ti
             assert 0 <= x0 < x1 <= 160 and 0 <= y0 < y1 <= 120
 
 
-def test_a_level_of_detail_heatmap_is_the_merged_render_and_relevance_stays_exact(
-    ctx, sockdir, tiny, tiny_run, tmp_path
-):
-    """With heatmap_lod_px the reply's heatmap is the render of the map with its far cubes
-    merged (raster/lod.py) for the map's features; the 3D instances are those of the exact map."""
-    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
-    from olsplat_nodes.query.answer import QueryFeatures, encoder_for_map
-    from olsplat_nodes.query.heatmap import render_heatmaps
-    from olsplat_nodes.raster.lod import LodConfig, LodMap, build_lod, with_nodes
-    from olsplat_nodes.scene import read_ply
-
-    scene, _ = tiny
-    shutil.copytree(tiny_run / "views", tmp_path / "views")
-    shutil.copytree(tiny_run / "map", tmp_path / "map")
-    negatives = ["road", "trees", "lawn"]
-    request = QueryRequest(request_id="l", text="parking lot", view=ENCODE_VIEW, negatives=negatives)
-    exact_node = query_server(scene, sockdir, tmp_path / "map", tmp_path / "views")
-    with NodeThread(exact_node), QueryClient(ctx, f"ipc://{sockdir}/query.sock", timeout_s=60.0) as client:
-        exact = client.request(request)
-    # its own socket folder: the first node's socket file is unlinked by zmq's I/O thread after
-    # its close returns, and could take a second node's file of the same path with it
-    lod_dir = sockdir / "lod"
-    lod_dir.mkdir()
-    node = query_server(scene, lod_dir, tmp_path / "map", tmp_path / "views", heatmap_lod_px=40.0)
-    with NodeThread(node) as running, QueryClient(ctx, f"ipc://{lod_dir}/query.sock", timeout_s=120.0) as client:
-        merged = client.request(request)
-        running.assert_running()
-    assert exact.status == merged.status == "ok", merged.message
-
-    language_map = LanguageMap.load(latest_map(tmp_path / "map")["path"], decode=False)
-    features = QueryFeatures.of(language_map)
-    gaussians = read_ply(scene / "map" / "point_cloud.ply")
-    tree = build_lod(gaussians, LodConfig(max_px=40.0))
-    lod = LodMap.of(tree, with_nodes(gaussians, tree), features.table, features.rows)
-    camera = next(v for v in load_views(tmp_path / "views") if v.camera.name == ENCODE_VIEW).camera
-    drawn = lod.drawn(camera)
-    assert drawn[len(gaussians) :].any(), "cubes of 40 px must merge in this view"
-    texts = encoder_for_map(language_map).encode_text(["parking lot", *negatives])
-    maps, _ = render_heatmaps(lod.gaussians, lod.table, texts, camera, rows=lod.rows, active=drawn)
-    np.testing.assert_allclose(merged.heatmap, maps[0], atol=2e-5)
-    assert np.abs(merged.heatmap - exact.heatmap).max() > 1e-3  # it is another render
-    exact_3d = [i for i in exact.instances if i["kind"] == "3d"]
-    assert [i for i in merged.instances if i["kind"] == "3d"] == exact_3d
-
-
 def test_a_query_without_negatives_beats_the_aerial_vocabulary_and_says_so(ctx, sockdir, tiny, tiny_run, tmp_path):
     """The live default: the query must beat the land-cover classes of an aerial scene (not
     "object", "things"), the reply's message names them, and the roof query no longer marks

@@ -44,7 +44,7 @@ DEFAULT_MINUTES = 30.0  # a multirotor's battery, rounded up
 
 def numba_settings(plan: LaunchPlan | None) -> frozenset[str]:
     """The tags of ``_numba_cache.CONDITIONAL`` that are on: "no-native" without the C kernels,
-    "codebook" for a refiner writing a codebook map, "lod" for heatmaps with a level of detail."""
+    "codebook" for a refiner writing a codebook map."""
     from ...native import library
 
     tags = set() if library() is not None else {"no-native"}
@@ -53,8 +53,6 @@ def numba_settings(plan: LaunchPlan | None) -> frozenset[str]:
             exec_name = plan.config.node(name).exec
             if exec_name == "refiner" and int(params.get("codebook") or 0) > 0:
                 tags.add("codebook")
-            if exec_name == "query_server" and float(params.get("heatmap_lod_px") or 0) > 0:
-                tags.add("lod")
     return frozenset(tags)
 
 

@@ -37,8 +37,6 @@ _OFFLINE = ("tools", "bench", "evaluate", "cluster", "pipeline")
 CONDITIONAL = {
     "winners._winning_rows_float32": ("no-native", "queries without the C kernels"),
     "winners.gather_verdicts": ("codebook", "queries on a codebook map (refiner codebook > 0)"),
-    "lod._leaf_moments": ("lod", "heatmaps with query_server heatmap_lod_px > 0"),
-    "lod._passing": ("lod", "heatmaps with query_server heatmap_lod_px > 0"),
 }
 
 
@@ -93,7 +91,7 @@ def kernel_caches(modules: list[str] | None = None) -> list[KernelCache]:
 def numba_cache(modules: list[str] | None = None, settings: frozenset[str] = frozenset()) -> Row:
     """The row: every node kernel has machine code for this CPU in numba's cache, or a blocker
     (a cold cache cost half a flight's frames: the first minute is spent compiling). ``settings``:
-    the ``CONDITIONAL`` tags that are on ("no-native", "codebook", "lod")."""
+    the ``CONDITIONAL`` tags that are on ("no-native", "codebook")."""
     name = "numba cache"
     fix = "olsplat warm-up (once after an install, ~75 s; with the NUMBA_CACHE_DIR the flight will have)"
     try:
