@@ -94,27 +94,29 @@ CHUNK = 64
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def composite_tiles(
-    offsets, slots, order, tile_order, records,
-    features, width, height, tile_size, alpha_min, alpha_max, t_min, want_topk,
-    topk_min, topk_max, topk_coverage, feature_eps, background, queries,
-    out_rgb, out_alpha, out_depth, out_features, out_topk_ids, out_topk_weights, out_evals, out_unit,
-    feature_rows,
-):  # fmt: skip
-    """Composite every tile; features [N, D] are the map's, indexed like records, or with
-    feature_rows [N] (when it has entries) Gaussian g's feature is features[feature_rows[g]]
-    (a codebook's centres), zero where the row is -1. With queries
-    [Q, D] (Q > 0) out_features [H, W, Q] receives the
-    cosine of each pixel's rendered feature with each query row instead of the feature itself
-    (a heatmap without the [H, W, D] feature image); else out_features is [H, W, D]. With
-    queries, out_unit [H * W, D] (when it has rows) also receives the unit rendered feature
-    F / |F| of each pixel (a row of 0 where nothing was rendered)."""
+def composite_tiles(splats, lists, canvas, topk, out):
+    """Composite every tile: ``splats``, ``lists``, ``canvas``, ``topk`` and ``out`` are the
+    records of ``arguments.py`` (Splats, TileLists, Canvas, TopK, Outputs). Gaussian g's
+    feature is splats.features[g], or with feature_rows (when it has entries)
+    features[feature_rows[g]] (a codebook's centres), zero where the row is -1. With queries
+    [Q, D] (Q > 0) out.features [H, W, Q] receives the cosine of each pixel's rendered feature
+    with each query row instead of the feature itself (a heatmap without the [H, W, D] feature
+    image); else out.features is [H, W, D]. With queries, out.unit [H * W, D] (when it has
+    rows) also receives the unit rendered feature F / |F| of each pixel (a row of 0 where
+    nothing was rendered). Top-K with topk.k_cap > 0 (its largest K), none with 0."""
+    # the fields as local names, read once here: the loops below see plain arrays and scalars
+    records, features, feature_rows = splats.records, splats.features, splats.feature_rows
+    offsets, slots, order, tile_order = lists.offsets, lists.slots, lists.order, lists.tile_order
+    width, height, tile_size = canvas.width, canvas.height, canvas.tile_size
+    feature_eps, background, queries = canvas.feature_eps, canvas.background, canvas.queries
+    k_cap, topk_min, topk_coverage = topk.k_cap, topk.topk_min, topk.coverage
+    out_rgb, out_alpha, out_depth, out_features = out.rgb, out.alpha, out.depth, out.features
+    out_topk_ids, out_topk_weights, out_evals, out_unit = out.topk_ids, out.topk_weights, out.evals, out.unit
     tiles_x = (width + tile_size - 1) // tile_size
     n_feat = features.shape[1]
     n_pix = tile_size * tile_size
-    k_cap = topk_max if want_topk else 0
     # float32 throughout the hot loop: mixing in float64 constants would promote it
-    alpha_min, alpha_max, t_min = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
+    alpha_min, alpha_max, t_min = np.float32(canvas.alpha_min), np.float32(canvas.alpha_max), np.float32(canvas.t_min)
     one, half = np.float32(1.0), np.float32(0.5)
     for work in prange(tile_order.shape[0]):
         tile = tile_order[work]

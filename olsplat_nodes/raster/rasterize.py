@@ -11,6 +11,7 @@ from numba import njit, prange
 
 from ..scene import Camera, Gaussians
 from . import heatmap_native, topk_native
+from .arguments import Canvas, Outputs, Splats, TileLists, TopK
 from .binning import bin_tiles
 from .composite import composite_tiles
 from .config import RasterConfig
@@ -129,24 +130,27 @@ def rasterize(
     evals = np.zeros((tiles_x * tiles_y, 2), np.int64)
     # Heavy tiles cluster (buildings, horizon); a fixed shuffle spreads them over the threads.
     tile_order = np.random.default_rng(0).permutation(tiles_x * tiles_y).astype(np.int64)
+    splats = Splats(projected.records, feats, rows)
+    lists = TileLists(order, offsets, slots, tile_order)
+    canvas = Canvas(
+        width,
+        height,
+        tile,
+        config.alpha_min,
+        config.alpha_max,
+        config.transmittance_min,
+        config.feature_eps,
+        np.asarray(background, np.float32),
+        queries,
+    )
+    topk = TopK(k, config.topk_min, config.topk_coverage)
+    out = Outputs(rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit)
     if len(queries) and not want_topk and heatmap_native.available(tile):  # heatmaps: the C kernel, same outputs
-        heatmap_native.composite_heatmaps(
-            offsets, slots, order, tile_order, projected.records, feats, rows, width, height, tile, config,
-            background, queries, rgb, alpha, depth, out_features, unit, evals,
-        )  # fmt: skip
+        heatmap_native.composite_heatmaps(splats, lists, canvas, out)
     elif features is None and topk_native.available(tile, k):  # the accumulator's render: the C kernel, same Top-K
-        topk_native.composite_topk(
-            offsets, slots, order, tile_order, projected.records, width, height, tile, config, k,
-            background, rgb, alpha, depth, topk_ids, topk_weights, evals,
-        )  # fmt: skip
+        topk_native.composite_topk(splats, lists, canvas, topk, out)
     else:
-        composite_tiles(
-            offsets, slots, order, tile_order, projected.records, feats,
-            width, height, tile, config.alpha_min, config.alpha_max, config.transmittance_min,
-            want_topk, config.topk_min, config.topk_max, config.topk_coverage, config.feature_eps,
-            np.asarray(background, np.float32), queries,
-            rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit, rows,
-        )  # fmt: skip
+        composite_tiles(splats, lists, canvas, topk, out)
     if want_topk and projected.ids is not None:
         _to_map_ids(topk_ids, projected.ids)
     clock.append(time.perf_counter())

@@ -3,7 +3,8 @@
 ``available(tile, k)`` says whether ``rasterize`` can hand a render without features to it
 here (the extension is built and loads: ``olsplat_nodes.native.library``, and k <= ``MAX_K``);
 ``rasterize`` otherwise uses the numba kernel, which keeps the same Top-K. ``composite_topk``
-passes ``rasterize``'s arrays to it.
+passes ``rasterize``'s records (``arguments.py``) to it, spread into the C function's flat
+parameter list.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numba
 import numpy as np
 
 from ..native import library
-from .config import RasterConfig
+from .arguments import Canvas, Outputs, Splats, TileLists, TopK
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -22,11 +23,17 @@ _I32 = ctypes.c_int32
 _F = ctypes.c_float
 MAX_TILE = 64  # the C kernel's largest tile side (pixels)
 MAX_K = 32  # its largest Top-K (topk_max): the ranking network's size
-# composite_topk's parameters, in order (see the C file)
+# composite_topk's parameters, in order (see the C file): the records of ``arguments.py``
+# spread out, the C signature staying flat
 ARGUMENTS: list = [
-    _P, _P, _P, _P, _I64, _P, _I64, _I64, _I64, _F, _F, _F, _I32, _I32, ctypes.c_double, _P,
-    _P, _P, _P, _P, _P, _P, ctypes.c_int,
-]  # fmt: skip
+    *[_P, _P, _P, _P, _I64],  # TileLists: offsets, slots, order, tile_order, their length
+    _P,  # Splats: records
+    *[_I64, _I64, _I64, _F, _F, _F],  # Canvas: width, height, tile_size, alpha_min, alpha_max, t_min
+    *[_I32, _I32, ctypes.c_double],  # TopK: k_cap, topk_min, coverage
+    _P,  # Canvas: background
+    *[_P, _P, _P, _P, _P, _P],  # Outputs: rgb, alpha, depth, topk_ids, topk_weights, evals
+    ctypes.c_int,  # threads
+]
 
 
 def kernel():
@@ -43,28 +50,31 @@ def available(tile_size: int, k_cap: int) -> bool:
     return tile_size <= MAX_TILE and k_cap <= MAX_K and kernel() is not None
 
 
-def composite_topk(
-    offsets, slots, order, tile_order, records, width, height, tile_size, config: RasterConfig, k_cap: int,
-    background, out_rgb, out_alpha, out_depth, out_topk_ids, out_topk_weights, out_evals,
-) -> None:  # fmt: skip
-    """The C kernel on ``rasterize``'s arrays (C-contiguous; int32 slots/order/ids, int64
-    offsets/tile_order/evals, float32 otherwise; the Top-K outputs [H, W, k_cap], k_cap 0 for a
-    plain render), on the caller's numba thread count. Raises MemoryError when a tile's
+def composite_topk(splats: Splats, lists: TileLists, canvas: Canvas, topk: TopK, out: Outputs) -> None:
+    """The C kernel on ``rasterize``'s records (``arguments.py``; their arrays C-contiguous,
+    int32 slots/order/topk_ids, int64 offsets/tile_order/evals, float32 otherwise; the Top-K
+    outputs [H, W, topk.k_cap], k_cap 0 for a plain render; the features are not read: a render
+    without them), on the caller's numba thread count. Raises MemoryError when a tile's
     buffers cannot be had."""
     loaded = kernel()
     assert loaded is not None, "composite_topk needs available() first"
-    colour = np.ascontiguousarray(background, np.float32)  # a name: alive through the call
+    colour = np.ascontiguousarray(canvas.background, np.float32)  # a name: alive through the call
 
     def address(array):
         assert array.flags.c_contiguous, "the C kernel needs C-contiguous arrays"
         return array.ctypes.data if array.size else None
 
     status = loaded.composite_topk(
-        address(offsets), address(slots), address(order), address(tile_order), len(tile_order),
-        address(records), width, height, tile_size, config.alpha_min, config.alpha_max, config.transmittance_min,
-        k_cap, config.topk_min, config.topk_coverage, address(colour), address(out_rgb), address(out_alpha),
-        address(out_depth), address(out_topk_ids), address(out_topk_weights), address(out_evals),
+        # in ARGUMENTS's order, record by record
+        *(address(lists.offsets), address(lists.slots), address(lists.order), address(lists.tile_order)),
+        len(lists.tile_order),
+        address(splats.records),
+        *(canvas.width, canvas.height, canvas.tile_size, canvas.alpha_min, canvas.alpha_max, canvas.t_min),
+        *(topk.k_cap, topk.topk_min, topk.coverage),
+        address(colour),
+        *(address(out.rgb), address(out.alpha), address(out.depth), address(out.topk_ids)),
+        *(address(out.topk_weights), address(out.evals)),
         numba.get_num_threads(),
-    )  # fmt: skip
+    )
     if status != 0:
         raise MemoryError("the Top-K kernel could not allocate its tile buffers")
