@@ -68,7 +68,9 @@ EXAMPLES = {
     "olsplat bench live --scene small1 --methods outlangsplat,vala --every 10 --json live.json",
     "bench frame": "olsplat bench frame --scene small0 --json frame.json",
     "bench query": "olsplat bench query --scene small0 --map maps/small0/language_map.npz",
-    "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json",
+    "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json\n"
+    "olsplat bench graph --scene medium0 --lossless --work run --json scale-medium.json\n"
+    "olsplat bench graph --scene medium0 --work run --queries-only --heatmap-spread",
     "bench compression": "olsplat aggregate --scene small0 --out maps/small0\n"
     "olsplat bench compression --scene small0 --aggregated maps/small0",
     "bench robustness": "olsplat bench robustness --scene small31 --confusion 0,0.15,0.3,0.45 --md robust.md\n"

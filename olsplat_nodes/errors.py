@@ -23,6 +23,12 @@ class SceneFormatError(OlsplatInputError):
         super().__init__(f"{self.path}: {problem}")
 
 
+class ParameterError(OlsplatInputError):
+    """A parameter that cannot be used; the message starts with where it came from and its name
+    (``params.py`` checks parameters; the class lives here so that ``classify_failure`` needs no
+    import from above)."""
+
+
 class RunFailed(RuntimeError):
     """A run of the node graph ended without what it was started for (e.g. a benchmark's flight
     aggregated no view, or the query server refused its queries): an outcome to report, not a
@@ -49,8 +55,6 @@ def classify_failure(exc: BaseException) -> tuple[int, str] | None:
     parameter error or a socket that cannot be bound (``zmq.ZMQError`` "Address already in use",
     recognised by its errno and the transport's "while binding ENDPOINT" note) -> ``EXIT_CONFIG``.
     None for anything else (a crash: restarted)."""
-    from .params import ParameterError  # params imports this module
-
     if isinstance(exc, ParameterError):
         return EXIT_CONFIG, _one_line(str(exc))
     if isinstance(exc, (OlsplatInputError, FileNotFoundError)):

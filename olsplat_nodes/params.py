@@ -18,13 +18,9 @@ import typing
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal, TypeVar, Union
 
-from .errors import OlsplatInputError
+from .errors import ParameterError
 
 T = TypeVar("T")
-
-
-class ParameterError(OlsplatInputError):
-    """A parameter that cannot be used; the message starts with where it came from and its name."""
 
 
 def field_types(cls: type) -> dict[str, Any]:

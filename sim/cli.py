@@ -125,7 +125,7 @@ def add_parser(subparsers) -> None:
 
 def run_make(args: argparse.Namespace) -> int:
     from olsplat_nodes.errors import OlsplatInputError
-    from olsplat_nodes.tools.outputs import empty_output_folder
+    from olsplat_nodes.outputs import empty_output_folder
 
     from .make import MakeOptions, make_dataset
     from .reconstruct import ReconstructionSpec

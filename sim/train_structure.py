@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from olsplat_nodes.structure.ground_frame import ground_frame
 from olsplat_nodes.structure.points import structural_points
 from olsplat_nodes.structure.segcontrast import (
     PretrainConfig,
     TrainingMap,
-    ground_frame,
     pretrain,
     save_checkpoint,
     segments,

@@ -34,13 +34,13 @@ def _size_mb(folder: Path) -> float:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from ..aggregate import ObservationStore
-    from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
     from ..method import add_view, named_method
     from ..pipeline import Scene, view_features
     from ..raster import rasterize
     from ..scene import read_ply
+    from ..storage import ObservationStore
+    from ..storage.snapshot import LanguageMap
 
     scene = Scene.open(args.scene)
     chosen = named_method(args.method)

@@ -53,9 +53,9 @@ def run(args: argparse.Namespace) -> int:
     from ..cluster.ray_aggregate import aggregate_on_ray, connect, leave
     from ..encoders.spec import DEFAULT_SPEC, encoder_from_spec
     from ..errors import OlsplatInputError
+    from ..memory import reset_peak_rss
     from ..method import named_method
     from ..pipeline import Scene, view_features
-    from ..pipeline.peak_memory import reset_peak_rss
 
     tiles, workers = _numbers(args.tile_m, float, "--tile-m"), _numbers(args.workers, int, "--workers")
     if 0 in workers:

@@ -27,15 +27,15 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..aggregate import ObservationStore
     from ..aggregate.codebook import compress, decompress, fit_codebook
-    from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
     from ..method import named_method
     from ..pipeline import Scene
     from ..scene import read_ply
+    from ..storage import ObservationStore
+    from ..storage.snapshot import LanguageMap
 
     scene = Scene.open(args.scene)
     encoder = encoder_from_spec()

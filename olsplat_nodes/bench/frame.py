@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     import cv2
     import numba
 
-    from ..aggregate import ObservationStore, observe_view, save_view, stack_levels
+    from ..aggregate import observe_view, stack_levels
     from ..encoders import encode_regions
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
@@ -50,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from ..raster import rasterize
     from ..regions import RegionConfig, propose_regions
     from ..scene import read_ply
+    from ..storage import ObservationStore, save_view
 
     if args.views < 1 or args.threads < 1:
         raise OlsplatInputError(f"--views and --threads must be positive, got {args.views}, {args.threads}")

@@ -40,8 +40,8 @@ def _cosine(a: np.ndarray, b: np.ndarray, rows: np.ndarray) -> float:
 
 def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 1.0) -> dict:
     """Both live maps over the store's segments, ``every`` at a time; the figures and maps."""
-    from ..aggregate import ObservationStore
-    from ..aggregate.live import LiveMap
+    from ..method.live import LiveMap
+    from ..storage import ObservationStore
 
     n = _map_size(store_folder)
     segments = ObservationStore(store_folder, n).segments()
@@ -64,18 +64,18 @@ def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 
 
 def _map_size(store_folder: Path) -> int:
     """The Gaussians of the map the store was made for: from the language map beside it."""
-    from ..aggregate.snapshot import LanguageMap
+    from ..storage.snapshot import LanguageMap
 
     return len(LanguageMap.load(store_folder.parent / "language_map.npz"))
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import evaluate_map
     from ..method import named_method
     from ..pipeline import Scene
+    from ..storage.snapshot import LanguageMap
 
     if args.every < 1 or not args.refresh >= 0:
         raise OlsplatInputError(f"need --every >= 1 and --refresh >= 0, got {args.every}, {args.refresh}")

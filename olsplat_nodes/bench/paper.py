@@ -497,7 +497,7 @@ def _make_scene(folder: Path, preset: str, seed: int, world: str, views: int | N
     from olsplat_sim.make import MakeOptions, make_dataset
     from olsplat_sim.world import WORLDS
 
-    from ..tools.outputs import empty_output_folder
+    from ..outputs import empty_output_folder
 
     started = time.perf_counter()
     print(f"[{world}] making {folder} (olsplat sim make --preset {preset} --seed {seed} --world {world})", flush=True)

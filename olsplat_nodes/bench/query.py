@@ -32,13 +32,13 @@ def _line(name: str, seconds: list[float]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
     from ..evaluate.scene_eval import load_queries
     from ..pipeline import Scene
     from ..query import heatmaps, render_feature_map
     from ..query.answer import answer_query
     from ..scene import read_ply
+    from ..storage.snapshot import LanguageMap
 
     scene = Scene.open(args.scene)
     language_map = LanguageMap.load(args.map)

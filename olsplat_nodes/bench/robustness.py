@@ -214,13 +214,13 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
     from ..evaluate.scene_eval import load_queries
     from ..method import named_method
     from ..pipeline import Scene, aggregate_scene
+    from ..storage.snapshot import LanguageMap
     from ..structure.branch import StructureConfig
 
     scenes = [Scene.open(folder) for folder in args.scene]

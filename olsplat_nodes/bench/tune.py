@@ -132,13 +132,13 @@ def tune_methods(
     {name: {"rows", "chosen"}}}``. Every scene, name and setting is checked before any work."""
     import numpy as np
 
-    from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
     from ..method import MethodParams
     from ..params import parse_params
     from ..pipeline import Scene, aggregate_scene
+    from ..storage.snapshot import LanguageMap
 
     unknown = [n for n in names if n not in GRIDS]
     if unknown:

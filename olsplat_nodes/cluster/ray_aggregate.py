@@ -1,5 +1,5 @@
 """``olsplat aggregate --cluster``: the offline aggregation of several flights on a Ray cluster,
-the map sharded by ground tile (``aggregate/tiles.py``).
+the map sharded by ground tile (``storage/tiles.py``).
 
 - One Ray task per view: its regions and features (the scene's encoding cache, else computed),
   its Top-K render and observations, split by tile, each part sent to its tile.
@@ -28,14 +28,14 @@ from typing import Any
 
 import numpy as np
 
-from ..aggregate import LanguageMap
-from ..aggregate.tiles import TileGrid, TileShard, Tiling, check_manifest, shard_folder, split_view, union_of
 from ..errors import OlsplatInputError
+from ..memory import peak_rss_mb
 from ..method import Method, view_observations
 from ..pipeline.offline import flight_view_name, same_prior_map
-from ..pipeline.peak_memory import peak_rss_mb
 from ..pipeline.scene_folder import Scene, view_features
 from ..scene import Camera, Gaussians, read_ply
+from ..storage import LanguageMap
+from ..storage.tiles import TileGrid, TileShard, Tiling, check_manifest, shard_folder, split_view, union_of
 
 # each view task takes one core; its kernels must not spread over the others' cores
 _ONE_THREAD = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..query import argmax_masks
 from ..query.answer import QueryFeatures
 from ..query.heatmap import render_heatmaps
 from ..scene import read_ply
+from ..storage.snapshot import LanguageMap
 from .annotations import read_annotation
 from .metrics import QueryScore, summarize
 

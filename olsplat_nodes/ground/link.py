@@ -111,7 +111,7 @@ class LinkSource:
         return self._fetch_views() or changed
 
     def _fetch_views(self) -> bool:
-        from ..nodes.convert import camera_of_pose
+        from ..transport.convert import camera_of_pose
 
         before = len(self._cameras)
         while True:

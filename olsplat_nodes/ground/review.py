@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..query.answer import QueryFeatures
 from ..query.localize import Instance3D, VoxelIndex, default_cluster_radius
 from ..query.negatives import AERIAL_VOCABULARY
 from ..scene import Camera
+from ..storage.snapshot import LanguageMap
 from .splats import BrowserSplats, browser_splats, relevance_margin
 
 MAX_TEXT_CHARS = 200  # as the query server's max_text_chars
@@ -125,7 +125,7 @@ class RunReview:
 
     def refresh(self) -> bool:
         """Read a newer map and new views if the run wrote any; True when something changed."""
-        from ..aggregate import latest_map, load_views
+        from ..storage import latest_map, load_views
 
         changed = False
         views_dir = self.run_dir / "views"

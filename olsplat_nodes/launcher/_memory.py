@@ -6,8 +6,9 @@ module): the prior map's Gaussians (count and row size from the PLY header, neve
 the per-view buffers of the largest image the run's cameras will give (when the launch does not
 say, 1280 x 960), and the language map's features (float32 rows in the query server up to the
 refiner's ``codebook_above``, float16 rows in the refiner). The coefficients were fitted on
-``olsplat bench scale`` runs of the small, medium and large presets (docs/benchmarks.md, "Scale") and err
-on the high side: each node's estimate is above its measured peak there.
+``olsplat bench graph --lossless`` runs (then named ``bench scale``) of the small, medium and
+large presets (docs/benchmarks.md, "Scale") and err on the high side: each node's estimate is
+above its measured peak there.
 """
 
 from __future__ import annotations

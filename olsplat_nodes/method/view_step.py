@@ -10,10 +10,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..aggregate import ObservationStore, ViewObservations, observe_view, stack_levels
+from ..aggregate import ViewObservations, observe_view, stack_levels
 from ..aggregate.vala import observe_view_centres
 from ..raster import rasterize
 from ..scene import Camera, Gaussians
+from ..storage import ObservationStore
 from .coverage import CoverageGate, MapCoverage, map_coverage
 from .table import Method
 

@@ -1,7 +1,8 @@
 """The nodes: the drone's five (ingest, region_encoder, accumulator, refiner, query_server) and
 the ground station's monitor, each a thin wrapper over the core: decode a message, call a pure
 function, encode the answer. ``base.py`` holds what they share (typed ``Params``, the loop,
-sockets, stats), ``convert.py`` every message <-> core conversion; no node imports another.
+sockets, stats), ``transport/convert.py`` every message <-> core conversion (the ground
+station's link uses it too); no node imports another.
 ``NODES`` maps an executable name (as launch files write it) to its class;
 ``python -m olsplat_nodes.nodes EXEC`` runs one node in its own process."""
 

@@ -7,8 +7,8 @@ reads, so the two never disagree. A store made with other settings is refused at
 
 Per view: check the message against itself (label maps vs image size, regions vs feature rows,
 one encoder for the whole run), run the method's per-view step (``method.view_observations``),
-save the photo and camera (``aggregate.views``) and record the view in the store, which is the
-map's one tile (``aggregate.tiles.TileShard``: the shard a tiled or Ray run records into, the
+save the photo and camera (``storage.views``) and record the view in the store, which is the
+map's one tile (``storage.tiles.TileShard``: the shard a tiled or Ray run records into, the
 same code); only then acknowledge. With ``features: 2d3d`` each view's region bank is first
 fused with the 3D branch (the paper's dual branch, ``structure.StructuralBranch``): its point
 features are made at the first view (from that view's camera centre), h_theta trains online as
@@ -25,7 +25,7 @@ acknowledged (``observations: 0``, so the ingest goes on) but not aggregated. Wh
 ``off_map_views`` views of a run are all refused, the node's status is ERROR ("views do not
 overlap the map: wrong map, wrong georeference or wrong camera model?" and their figures) until
 a view is taken. The prior map's path and SHA-256 go into ``STORE/prior_map.json`` once per
-store (``aggregate.prior.record_prior_map``, hashed in the background), so that a run's map is
+store (``storage.prior.record_prior_map``, hashed in the background), so that a run's map is
 found from its folder alone (``olsplat ground web --run``).
 """
 
@@ -50,8 +50,8 @@ if TYPE_CHECKING:
 from ..method import MethodParams
 from ..params import ParameterError
 from ..transport import Diagnostics, Publisher, Subscriber
+from ..transport.convert import view_of
 from .base import Node
-from .convert import view_of
 
 log = logging.getLogger(__name__)
 DISK_RECHECK_S = 5.0  # free space is read again this often between views (a statvfs: microseconds)
@@ -138,18 +138,18 @@ class AccumulatorNode(Node):
         return None if structure is None else structure_record(structure)
 
     def setup(self) -> None:
-        from ..aggregate.tiles import TileShard  # heavy imports here: the launcher imports node classes
         from ..durable import DiskRunway
         from ..method import claim_store, method_params_of, warm_up
         from ..method.coverage import CoverageGate
         from ..scene import read_ply
+        from ..storage.tiles import TileShard  # heavy imports here: the launcher imports node classes
 
         p = self.params
         self.limit_threads(p.threads)
         self.method = method_params_of(p).resolve()
         self.gaussians = read_ply(p.map)
         self.manifest = claim_store(p.store, self.method, self._structure_record(p))
-        # the store of the map's one tile: the shard a tiled or Ray run records into (aggregate/tiles.py)
+        # the store of the map's one tile: the shard a tiled or Ray run records into (storage/tiles.py)
         self.shard = TileShard(p.store, len(self.gaussians), writer=True)
         self.structure = self._structure(p)
         self.branch = None  # made at the first view, or restored from the store
@@ -268,7 +268,7 @@ class AccumulatorNode(Node):
                 self.diag.beat_now(DiagnosticStatus.ERROR, self.off_map, self.stats.with_sockets(self.sub.stats))
 
     def _record_prior_map(self) -> None:
-        from ..aggregate.prior import record_prior_map
+        from ..storage.prior import record_prior_map
 
         try:
             record = record_prior_map(self.params.store, self.params.map)
@@ -333,10 +333,10 @@ class AccumulatorNode(Node):
         write_atomic(self.branch_file, buffer.getvalue())
 
     def _add(self, message: RegionFeatures) -> None:
-        from ..aggregate import save_view
-        from ..aggregate.store import segment_bytes
         from ..method import view_observations, write_manifest
         from ..method.view_step import ViewOffMap
+        from ..storage import save_view
+        from ..storage.store import segment_bytes
 
         start = time.perf_counter()
         duplicate = message.name in self.shard.names

@@ -37,8 +37,8 @@ from ..durable import append_line
 from ..extras import require
 from ..sources import SourceParams, open_source
 from ..transport import CONTROL_MAX_BYTES, Diagnostics, Publisher, Subscriber
+from ..transport.convert import frame_message
 from .base import Node
-from .convert import frame_message
 
 log = logging.getLogger(__name__)
 

@@ -38,14 +38,14 @@ from olsplat_msgs import (
 
 from ..errors import OlsplatInputError
 from ..transport import CONTROL_MAX_BYTES, REQUEST_MAX_BYTES, DiagnosticsCollector, QueryServer, Subscriber, curve
+from ..transport.convert import reply_for, view_pose
 from .base import Node
-from .convert import reply_for, view_pose
 
 if TYPE_CHECKING:  # imported at run time inside methods: the launcher imports node classes
-    from ..aggregate import LanguageMap
     from ..ground.splats import BrowserSplats
     from ..query.answer import QueryFeatures
     from ..query.localize import VoxelIndex
+    from ..storage import LanguageMap
 
 log = logging.getLogger(__name__)
 VIEWS_PER_REPLY = 500  # ViewPose records per ViewsReply (~150 kB): a long flight comes in pages
@@ -263,8 +263,8 @@ class QueryServerNode(Node):
         )
 
     def _load_latest(self) -> None:
-        from ..aggregate import LanguageMap, latest_map
         from ..query.answer import QueryFeatures
+        from ..storage import LanguageMap, latest_map
 
         record = latest_map(self.params.map_dir)
         if record is None or record["version"] <= self.version:
@@ -341,7 +341,7 @@ class QueryServerNode(Node):
         """Touch the heatmap cache's memory in the background, sized by the newest view: the
         first heatmap of a view then writes into memory already paged in (first-touched memory
         costs as much as the rendering on a small VM)."""
-        from ..aggregate import load_views
+        from ..storage import load_views
 
         views = load_views(self.params.views)
         if not views:
@@ -411,7 +411,7 @@ class QueryServerNode(Node):
         )
 
     def _current_views(self) -> list:
-        from ..aggregate import load_views
+        from ..storage import load_views
 
         if len(self.views) != sum(1 for _ in Path(self.params.views).glob("*.json")):
             self.views = load_views(self.params.views)  # views are only ever added

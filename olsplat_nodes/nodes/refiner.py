@@ -76,11 +76,11 @@ class RefinerNode(Node):
             )
 
     def setup(self) -> None:
-        from ..aggregate import ObservationStore, latest_map  # heavy imports here: the launcher imports node classes
         from ..aggregate.codebook import LiveCodebook
-        from ..aggregate.live import LiveMap
+        from ..method.live import LiveMap
         from ..scene import read_ply
         from ..scene.ply import ply_vertex_count
+        from ..storage import ObservationStore, latest_map  # heavy imports here: the launcher imports node classes
 
         p = self.params
         self.limit_threads(p.threads)
@@ -125,7 +125,7 @@ class RefinerNode(Node):
         if end_now or (due and (self._final_unwritten() or (len(self.store) > self.live.views and not self.final))):
             start = time.perf_counter()
             self._refine(self.final)
-            from ..pipeline.peak_memory import release_free_memory  # here: the launcher imports node classes
+            from ..memory import release_free_memory  # here: the launcher imports node classes
 
             release_free_memory()  # a pass's temporaries, freed by its threads: not kept resident
             spent = time.perf_counter() - start
@@ -177,8 +177,8 @@ class RefinerNode(Node):
 
     def _refine(self, final: bool) -> None:
         """One pass over the views that arrived since the last one; writes a new snapshot."""
-        from ..aggregate import LanguageMap, write_snapshot
         from ..method import read_manifest
+        from ..storage import LanguageMap, write_snapshot
 
         views = len(self.store)
         if views == self.live.views and self.record is not None and not final:

@@ -21,8 +21,8 @@ from olsplat_msgs import EndOfStream, ImageFrame, RegionFeatures
 
 from ..encoders.spec import DEFAULT_SPEC
 from ..transport import Diagnostics, Publisher, Subscriber
+from ..transport.convert import camera_of, regions_message
 from .base import Node
-from .convert import camera_of, regions_message
 
 log = logging.getLogger(__name__)
 

@@ -15,18 +15,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..aggregate import LanguageMap
-from ..aggregate.store import segment_bytes
-from ..aggregate.tiles import TiledStore, TileGrid, Tiling
 from ..durable import DiskRunway
 from ..errors import OlsplatInputError
+from ..memory import peak_rss_mb
 from ..method import Method
 from ..method.coverage import CoverageGate, MapCoverage, off_map_error
 from ..method.view_step import ViewOffMap, view_observations
 from ..scene import Camera, Gaussians, read_ply
+from ..storage import LanguageMap
+from ..storage.store import segment_bytes
+from ..storage.tiles import TiledStore, TileGrid, Tiling
 from ..structure.branch import StructuralBranch, StructureConfig
 from ..structure.points import StructuralPoints
-from .peak_memory import peak_rss_mb
 from .scene_folder import Scene, view_features
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,7 @@ def aggregate_scene(
     form with ``codebook`` centres when given); returns timing figures. ``features_of(camera)``
     gives a view's (label maps, bank per level); default: ``view_features`` with ``encoder``.
     With ``structure``, region banks are fused with the 3D branch before aggregation. With
-    ``tile_m`` > 0 the store is kept per ground tile of that size (``aggregate/tiles.py``):
+    ``tile_m`` > 0 the store is kept per ground tile of that size (``storage/tiles.py``):
     the same map."""
     return aggregate_flights([scene], method, encoder, out, progress, codebook, features_of, structure, tile_m)
 

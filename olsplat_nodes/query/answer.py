@@ -17,10 +17,10 @@ from functools import partial
 
 import numpy as np
 
-from ..aggregate.snapshot import LanguageMap
 from ..errors import OlsplatInputError
 from ..native import library
 from ..scene import Camera, Gaussians
+from ..storage.snapshot import LanguageMap
 from .heatmap import CANONICAL_NEGATIVES, FeatureImages, relevancy_mask, render_heatmaps, threshold_mask
 from .localize import Instance3D, Region2D, VoxelIndex, default_cluster_radius, instances_in_3d, regions_in_view
 from .winners import gather_verdicts, winning_rows

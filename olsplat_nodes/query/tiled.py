@@ -1,4 +1,4 @@
-"""Queries on a tiled map (``aggregate/tiles.py``): scattered to the tiles, their instances gathered.
+"""Queries on a tiled map (``storage/tiles.py``): scattered to the tiles, their instances gathered.
 
 A city-scale map need not fit one computer: each tile's own map (``<shard>/language_map.npz``,
 tile rows) is loaded in turn with the tile's Gaussians only, asked the query like a whole map
@@ -17,10 +17,10 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..aggregate.snapshot import LanguageMap
-from ..aggregate.tiles import TILE_MAP, TileGrid, Tiling, check_manifest, shard_folder
 from ..errors import OlsplatInputError
 from ..scene import Gaussians
+from ..storage.snapshot import LanguageMap
+from ..storage.tiles import TILE_MAP, TileGrid, Tiling, check_manifest, shard_folder
 from .answer import answer_query
 from .localize import Instance3D, default_cluster_radius
 

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from ..errors import SceneFormatError
+from .ground_frame import ground_frame, voxelise
 from .points import StructuralPoints
 from .sparse_conv import SparseTensor, conv, conv_transpose
 
@@ -181,8 +182,6 @@ INPUT_RECIPES = {"xyz-opacity": 4, "height-opacity": 3}  # recipe -> input chann
 def minkunet_point_features(model: MinkUNet, points: StructuralPoints, camera_centres: np.ndarray) -> np.ndarray:
     """[P, out_channels] float32 features of the point set, through the model's input recipe.
     Points sharing a voxel share its input (their mean) and its output."""
-    from .segcontrast import ground_frame, voxelise
-
     if model.inputs == "height-opacity":
         frame = ground_frame(points, camera_centres)
         voxels, inputs = frame.voxels, frame.inputs

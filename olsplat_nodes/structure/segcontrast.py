@@ -36,9 +36,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .descriptors import estimate_up, ground_axes, height_above_ground
+from .ground_frame import GroundFrame, voxelise
 from .minkunet import MinkUNet
-from .points import StructuralPoints
 from .sparse_conv import SparseTensor
 
 INPUTS = "height-opacity"  # the input recipe of checkpoints made here (see minkunet.INPUT_RECIPES)
@@ -62,31 +61,6 @@ class PretrainConfig:
     seed: int = 0
 
 
-@dataclass
-class GroundFrame:
-    """A point set in its ground frame: what both pre-training and inference feed the network."""
-
-    voxels: np.ndarray  # [P, 3] float64 positions in voxel units, axes (a, b, up)
-    inputs: np.ndarray  # [P, 3] float32 network inputs (module docstring)
-    height: np.ndarray  # [P] float64 height above the ground, voxel units
-
-
-def ground_frame(points: StructuralPoints, camera_centres: np.ndarray) -> GroundFrame:
-    """The point set rotated so that "up" is the third axis, in voxel units, with its inputs."""
-    positions, voxel = points.positions, points.voxel
-    up = estimate_up(positions, np.asarray(camera_centres, np.float64), voxel)
-    rotation = np.stack([*ground_axes(up), up])  # rows: the frame's axes in world
-    height = height_above_ground(positions, up, 4.0 * voxel, 25)
-    # the filter's ground is each cell's lowest point, and a reconstruction has Gaussians below
-    # the surface: the ground itself sits a few voxels higher. Most of a town is ground, so its
-    # true level is the most common height (histogram of quarter voxels)
-    counts, edges = np.histogram(height, bins=np.arange(height.min(), height.max() + 0.5 * voxel, 0.25 * voxel))
-    height = height - edges[np.argmax(counts)]
-    altitude = max(float(np.median(camera_centres @ up) - np.median(positions @ up)), 1e-12)
-    inputs = np.c_[height / altitude, points.opacity, np.ones(len(positions))].astype(np.float32)
-    return GroundFrame(positions @ rotation.T / voxel, inputs, height / voxel)
-
-
 def segments(frame: GroundFrame, config: PretrainConfig = PretrainConfig()) -> np.ndarray:
     """[P] int64 segment id per point, -1 for ground and DBSCAN noise."""
     import open3d as o3d
@@ -104,18 +78,6 @@ def segments(frame: GroundFrame, config: PretrainConfig = PretrainConfig()) -> n
     rank[big] = np.arange(len(big))
     labels[above] = rank[found]
     return labels
-
-
-def voxelise(voxels: np.ndarray, inputs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
-    """(coords [N, 3] int64, voxel inputs [N, C] float32 = mean of their points', inverse [P]:
-    each point's voxel row) of points at float voxel positions."""
-    coords = np.floor(voxels).astype(np.int64)
-    unique, inverse = np.unique(coords, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((len(unique), inputs.shape[1]))
-    np.add.at(sums, inverse, inputs)
-    mean = sums / np.bincount(inverse, minlength=len(unique))[:, None]
-    return torch.from_numpy(unique), torch.from_numpy(mean.astype(np.float32)), inverse
 
 
 def augmented_view(

@@ -65,14 +65,14 @@ def add_parser(subparsers) -> None:
 def run_aggregate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from ..aggregate.tiles import TileGrid
     from ..encoders.spec import encoder_from_spec
     from ..errors import OlsplatInputError
     from ..method import MethodParams
+    from ..outputs import output_folder
     from ..params import parse_assignments, parse_params
     from ..pipeline import Scene
     from ..pipeline.offline import aggregate_flights
-    from .outputs import output_folder
+    from ..storage.tiles import TileGrid
 
     output_folder(args.out)  # before the work: a bad --out is one line at the start
     settings = parse_assignments(args.set, "--set")

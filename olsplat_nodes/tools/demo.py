@@ -123,10 +123,10 @@ class Ground:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..aggregate.snapshot import latest_map
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import label_texts, load_queries
     from ..launcher import Supervisor, find_launch_file, load_launch
+    from ..storage.snapshot import latest_map
     from ..viz import write_query_pictures
     from .ground import print_status
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 
+from .launch_options import add_launch_options
+
 EPILOG = """examples:
   olsplat doctor
   olsplat doctor --launch field_drone --run-dir /var/lib/olsplat/run --minutes 25
@@ -32,26 +34,6 @@ def add_parser(subparsers) -> None:
     add_launch_options(parser, launch_flag=True)
     parser.add_argument("--json", metavar="FILE", help="also write the rows (name, status, figure, fix) to FILE")
     parser.set_defaults(run=run)
-
-
-def add_launch_options(parser: argparse.ArgumentParser, launch_flag: bool) -> None:
-    """The launch options doctor and ``launch --check`` share (``--launch`` for doctor only:
-    ``launch`` takes the file as its argument)."""
-    if launch_flag:
-        from .launch import add_override_options
-
-        parser.add_argument("--launch", metavar="NAME|FILE", help="also check this launch (a shipped name or a file)")
-        add_override_options(parser)
-    parser.add_argument(
-        "--minutes", type=float, default=30.0, help="flight time the disk must hold, in minutes (with a launch)"
-    )
-    parser.add_argument(
-        "--rate",
-        type=float,
-        default=None,
-        metavar="HZ",
-        help="views stored per second for the disk row (default: the launch's frame rate, else 1)",
-    )
 
 
 def run(args: argparse.Namespace) -> int:

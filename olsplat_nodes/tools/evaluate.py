@@ -94,17 +94,17 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from ..aggregate.snapshot import LanguageMap
     from ..encoders.spec import encoder_fingerprint, encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
     from ..evaluate.figures import qualitative_figures
     from ..evaluate.runs import plan_runs
     from ..evaluate.tables import overall, paper_tables, spread
+    from ..memory import peak_rss_mb, reset_peak_rss
     from ..method import MethodParams
     from ..params import parse_assignments, parse_params
     from ..pipeline import Scene, aggregate_scene
-    from ..pipeline.peak_memory import peak_rss_mb, reset_peak_rss
+    from ..storage.snapshot import LanguageMap
     from ..structure.branch import StructureConfig, minkunet_path
 
     scenes = [Scene.open(folder) for folder in args.scene]  # every folder is checked before any work

@@ -120,7 +120,7 @@ def _recorded_prior_map(run_dir: Path) -> Path:
     """The map the run's accumulator recorded (RUN/store/prior_map.json: path and SHA-256, checked
     here); a run without that record (made before it was written): RUN/../flight/map/point_cloud.ply,
     the demo's layout."""
-    from ..aggregate.prior import recorded_prior_map
+    from ..storage.prior import recorded_prior_map
 
     return recorded_prior_map(run_dir / "store") or run_dir / ".." / "flight" / "map" / "point_cloud.ply"
 

@@ -27,8 +27,8 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
+    from ..outputs import output_folder
     from ..transport import curve
-    from .outputs import output_folder
 
     output_folder(args.out)
     try:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+from .launch_options import add_launch_options, add_override_options
+
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -24,19 +26,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--check", action="store_true",
                         help="check the launch (file, params, inputs, keys, disk, ports, camera) and start nothing; "
                              "exit 1 on a blocker")  # fmt: skip
-    from .doctor import add_launch_options
-
     add_launch_options(parser, launch_flag=False)  # --minutes, --rate: the disk row of --check
     parser.set_defaults(run=run, parser=parser)
-
-
-def add_override_options(parser: argparse.ArgumentParser) -> None:
-    """``--set`` and ``--run-dir`` as ``olsplat launch`` takes them: the same words wherever a
-    command names a launch (``launch``, ``doctor --launch``, ``service --launch``)."""
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="NODE.PARAM=VALUE",
-                        help="override a node parameter (value parsed as YAML: 2, true, [a, b]); "
-                             "launch.KEY=VALUE sets a top-level key, e.g. launch.compose=true; repeatable")  # fmt: skip
-    parser.add_argument("--run-dir", help="where the run writes (logs, sockets, outputs); overrides the file's run_dir")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -43,16 +43,16 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..aggregate.snapshot import LanguageMap
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import label_texts, load_queries
+    from ..outputs import output_folder
     from ..pipeline import Scene
     from ..query.answer import answer_query, encoder_for_map
     from ..query.negatives import vocabulary_negatives
     from ..query.tiled import answer_tiled, is_tiled, tile_maps
     from ..scene import read_ply, select_view
+    from ..storage.snapshot import LanguageMap
     from ..viz import write_query_pictures
-    from .outputs import output_folder
 
     text = args.text.strip()
     if not text:

@@ -53,9 +53,9 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from ..errors import OlsplatInputError
+    from ..outputs import output_file
     from ..sources import open_source
     from ..sources.record import record
-    from .outputs import output_file
 
     if args.source_kind in ("replay", "exif_folder") and not args.source:
         raise OlsplatInputError(f"--source-kind {args.source_kind} needs --source (a replay log or a folder)")

@@ -31,10 +31,10 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..durable import write_atomic
     from ..errors import OlsplatInputError
+    from ..outputs import output_file
     from ..raster import rasterize
     from ..scene import read_cameras, read_ply, select_view
     from ..viz import rgb_to_bgr8, write_png
-    from .outputs import output_file
 
     out = output_file(args.out, ".npz")  # the name numpy would write, and the one printed
     png = output_file(args.png, ".png", "--png") if args.png else None

@@ -54,7 +54,7 @@ RESTART_SEC = 5
 
 
 def add_parser(subparsers) -> None:
-    from .launch import add_override_options
+    from .launch_options import add_override_options
 
     parser = subparsers.add_parser(
         "service",

@@ -44,10 +44,9 @@ def warm_up_all(work: Path) -> dict[str, float]:
     from olsplat_sim.make import make_dataset
     from olsplat_sim.presets import PRESETS
 
-    from ..aggregate import LanguageMap, ObservationStore
-    from ..aggregate.live import LiveMap
     from ..encoders.spec import encoder_from_spec
     from ..method import add_view, named_method, warm_up
+    from ..method.live import LiveMap
     from ..nodes.region_encoder import warm_up as warm_up_regions
     from ..pipeline import Scene
     from ..pipeline.scene_folder import view_features
@@ -57,6 +56,7 @@ def warm_up_all(work: Path) -> dict[str, float]:
     from ..query.winners import gather_verdicts
     from ..regions import RegionConfig
     from ..scene import read_ply
+    from ..storage import LanguageMap, ObservationStore
 
     stages: dict[str, float] = {}
     clock = time.perf_counter()

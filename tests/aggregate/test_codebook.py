@@ -110,7 +110,7 @@ def test_saving_a_codebook_map_copies_no_float32_map(tmp_path):
     traced allocation stays below the size of that copy (the large map: 1.3 GB more)."""
     import tracemalloc
 
-    from olsplat_nodes.aggregate import LanguageMap
+    from olsplat_nodes.storage import LanguageMap
 
     n, d = 400_000, 64
     rng = np.random.default_rng(4)

@@ -8,9 +8,10 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import AggregationConfig, ObservationStore
+from olsplat_nodes.aggregate import AggregationConfig
 from olsplat_nodes.aggregate._reference import fold_dense, refine_dense
 from olsplat_nodes.aggregate.refine import MixedObservations, refine_mixed
+from olsplat_nodes.storage import ObservationStore
 
 from .test_refine_store import _views
 
@@ -136,7 +137,7 @@ def test_a_live_map_folds_refreshes_and_ends_exact(tmp_path):
     """LiveMap's passes over a growing store: the first is exact; a fold changes the rows of the
     Gaussians its views touched plus its refresh slice; a refresh budget as large as the map
     makes a fold recompute everything exactly; the final exact pass equals an offline pass."""
-    from olsplat_nodes.aggregate.live import LiveMap
+    from olsplat_nodes.method.live import LiveMap
 
     n, config = 150, AggregationConfig()
     views = list(_views(6, n))
@@ -167,7 +168,7 @@ def test_a_live_map_folds_refreshes_and_ends_exact(tmp_path):
 def test_refresh_slices_go_round_the_map(tmp_path):
     """Each fold's refresh slice starts where the last one ended (at 0 after the map's end) and
     holds just enough Gaussians for ``refresh`` times the new view's observations."""
-    from olsplat_nodes.aggregate.live import LiveMap
+    from olsplat_nodes.method.live import LiveMap
 
     n, config = 150, AggregationConfig()
     views = list(_views(8, n))

@@ -7,9 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import AggregationConfig, ObservationStore, observe_view, refine_observations, stack_levels
+from olsplat_nodes.aggregate import AggregationConfig, observe_view, refine_observations, stack_levels
 from olsplat_nodes.aggregate._reference import refine_dense
 from olsplat_nodes.raster import rasterize
+from olsplat_nodes.storage import ObservationStore
 
 from ..conftest import camera_for, random_gaussians
 
@@ -217,7 +218,7 @@ def test_a_damaged_segment_is_quarantined_not_fatal(tmp_path):
     [np.arange(7, dtype=np.int32), np.zeros((0, 6), np.float16), np.ones((5, 3), np.float32), np.zeros(0, np.int64)],
 )
 def test_a_segment_array_maps_as_np_load_reads_it(tmp_path, array):
-    from olsplat_nodes.aggregate.store import _map_npy, _npy_header
+    from olsplat_nodes.storage.store import _map_npy, _npy_header
 
     path = tmp_path / "a.npy"
     np.save(path, array)

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import LanguageMap, ObservationStore
 from olsplat_nodes.encoders.spec import DEFAULT_SPEC, encoder_from_spec
 from olsplat_nodes.errors import OlsplatInputError
 from olsplat_nodes.method import named_method
 from olsplat_nodes.pipeline import Scene
 from olsplat_nodes.pipeline.offline import aggregate_flights
+from olsplat_nodes.storage import LanguageMap, ObservationStore
 
 # before Ray is imported: its servers listen on the loopback address only (see ``connect``)
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")

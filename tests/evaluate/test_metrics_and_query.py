@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate.snapshot import LanguageMap
 from olsplat_nodes.errors import SceneFormatError
 from olsplat_nodes.evaluate import QueryScore, summarize
 from olsplat_nodes.query import argmax_masks, heatmaps, relevancy_mask
+from olsplat_nodes.storage.snapshot import LanguageMap
 
 
 def test_iou_accuracy_and_localisation():
@@ -90,7 +90,7 @@ def test_language_map_codebook_form(tmp_path):
 
 
 def test_rows_normalised_in_place_are_unit_rows_of_the_definition():
-    from olsplat_nodes.aggregate.snapshot import normalise_rows, unit_rows
+    from olsplat_nodes.storage.snapshot import normalise_rows, unit_rows
 
     rng = np.random.default_rng(4)
     rows = rng.normal(0, 3, (500, 37)).astype(np.float32)

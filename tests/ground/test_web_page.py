@@ -152,7 +152,7 @@ def test_the_page_follows_a_live_graph_over_the_curve_link_without_a_reload(tiny
     when the drone goes away it says so again."""
     from playwright.sync_api import sync_playwright
 
-    from olsplat_nodes.aggregate import latest_map
+    from olsplat_nodes.storage import latest_map
     from olsplat_nodes.transport import curve
 
     scene, _ = tiny
@@ -241,7 +241,7 @@ def test_the_page_follows_a_run_folder_being_written_without_a_reload(tiny, tmp_
     yet") shows each new map version the graph writes, up to the final one."""
     from playwright.sync_api import sync_playwright
 
-    from olsplat_nodes.aggregate import latest_map
+    from olsplat_nodes.storage import latest_map
 
     scene, _ = tiny
     run_dir = tmp_path / "run"

@@ -10,11 +10,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import ObservationStore
 from olsplat_nodes.aggregate._reference import observe_view_dense
 from olsplat_nodes.method import MethodParams, add_view
 from olsplat_nodes.params import parse_params
 from olsplat_nodes.raster._reference import rasterize_reference
+from olsplat_nodes.storage import ObservationStore
 
 from ..conftest import camera_for, random_gaussians
 

@@ -98,10 +98,10 @@ def tiny_run(tiny, region_features, tmp_path_factory):
     """A run directory as the graph leaves it after one view: ``store/`` (the view's observations
     and the manifest), ``views/`` (its photo and camera) and ``map/`` (snapshot version 1 and
     latest.json), made with the same functions the accumulator and refiner nodes call."""
-    from olsplat_nodes.aggregate import LanguageMap, ObservationStore, save_view, write_snapshot
     from olsplat_nodes.method import StoreManifest, add_view, named_method, write_manifest
-    from olsplat_nodes.nodes.convert import camera_of, split_bank
     from olsplat_nodes.scene import read_ply
+    from olsplat_nodes.storage import LanguageMap, ObservationStore, save_view, write_snapshot
+    from olsplat_nodes.transport.convert import camera_of, split_bank
 
     scene, _ = tiny
     run = tmp_path_factory.mktemp("tiny_run")
@@ -407,7 +407,7 @@ def pid_of(supervisor, node: str) -> int | None:
 @pytest.fixture(scope="session")
 def offline_map(tiny_map):
     """The tiny flight aggregated offline (``olsplat aggregate``): what an uninterrupted run gives."""
-    from olsplat_nodes.aggregate import LanguageMap
+    from olsplat_nodes.storage import LanguageMap
 
     return LanguageMap.load(tiny_map)
 

@@ -73,8 +73,8 @@ def send_all_bad(pub: zmq.Socket, good: list[bytes], *more_bad) -> int:
 def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(
     ctx, sockdir, tmp_path, tiny, tiny_camera, region_features
 ):
-    from olsplat_nodes.aggregate import ObservationStore
     from olsplat_nodes.nodes.accumulator import AccumulatorNode
+    from olsplat_nodes.storage import ObservationStore
 
     scene, _ = tiny
     regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
@@ -223,7 +223,7 @@ def test_region_encoder_counts_bad_frames_and_still_encodes_the_valid_one(ctx, s
 def test_refiner_counts_bad_observations_and_still_writes_the_final_map(ctx, sockdir, tmp_path, tiny, tiny_run):
     import shutil
 
-    from olsplat_nodes.aggregate import latest_map
+    from olsplat_nodes.storage import latest_map
 
     scene, _ = tiny
     shutil.copytree(tiny_run / "store", tmp_path / "store")  # one view, as the accumulator left it

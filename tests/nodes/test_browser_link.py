@@ -32,11 +32,11 @@ def served(ctx, sockdir, tiny, tiny_run, tmp_path):
 
 
 def test_splats_views_and_splat_relevance_over_the_link(served, monkeypatch):
-    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
     from olsplat_nodes.ground.splats import browser_splats, pack_splats, relevance_margin
     from olsplat_nodes.nodes import query_server as server_module
     from olsplat_nodes.query.answer import QueryFeatures, encoder_for_map
     from olsplat_nodes.scene import read_ply
+    from olsplat_nodes.storage import LanguageMap, latest_map, load_views
 
     scene, run, client = served
     gaussians = read_ply(scene / "map" / "point_cloud.ply")
@@ -89,8 +89,8 @@ def test_splats_views_and_splat_relevance_over_the_link(served, monkeypatch):
 
 
 def test_the_pages_link_source_shows_the_drones_map_views_and_answers(served):
-    from olsplat_nodes.aggregate import latest_map, load_views
     from olsplat_nodes.ground.link import LinkSource
+    from olsplat_nodes.storage import latest_map, load_views
 
     _, run, client = served
     source = LinkSource(client, 4000)

@@ -93,8 +93,8 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
     import cv2
     import numpy as np
 
-    from olsplat_nodes.aggregate import ObservationStore
     from olsplat_nodes.scene import read_ply
+    from olsplat_nodes.storage import ObservationStore
 
     scene, _ = tiny
     room = 1024

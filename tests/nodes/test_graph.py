@@ -13,9 +13,9 @@ import pytest
 import zmq
 
 from olsplat_msgs import QueryRequest, StatusRequest
-from olsplat_nodes.aggregate import ObservationStore, latest_map
 from olsplat_nodes.launcher import Supervisor
 from olsplat_nodes.method import read_manifest
+from olsplat_nodes.storage import ObservationStore, latest_map
 from olsplat_nodes.transport import NoReply, QueryClient
 from tests.helpers import free_port, wait_for
 
@@ -137,10 +137,10 @@ def test_the_streamed_map_equals_the_offline_map(tiny, tmp_path):
 
     import numpy as np
 
-    from olsplat_nodes.aggregate import LanguageMap
     from olsplat_nodes.encoders.spec import encoder_from_spec
     from olsplat_nodes.method import named_method
     from olsplat_nodes.pipeline import Scene, aggregate_scene
+    from olsplat_nodes.storage import LanguageMap
 
     scene, _ = tiny
     run_dir = tmp_path / "run"
@@ -167,7 +167,7 @@ def test_any_node_killed_mid_flight_loses_nothing(victim, kills, tiny, tmp_path,
     order, which changes the order of each Gaussian's sums)."""
     import numpy as np
 
-    from olsplat_nodes.aggregate import LanguageMap
+    from olsplat_nodes.storage import LanguageMap
 
     scene, summary = tiny
     run_dir = tmp_path / "run"

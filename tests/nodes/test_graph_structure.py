@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import LanguageMap, ObservationStore, latest_map
 from olsplat_nodes.method import read_manifest
+from olsplat_nodes.storage import LanguageMap, ObservationStore, latest_map
 from olsplat_nodes.structure.branch import StructureConfig, structure_record
 
 from .conftest import fly_and_kill

@@ -26,11 +26,11 @@ from olsplat_msgs import (
     decode,
     encode,
 )
-from olsplat_nodes.aggregate import LanguageMap, ObservationStore, latest_map
 from olsplat_nodes.launcher import Supervisor
-from olsplat_nodes.nodes.convert import camera_of, view_of
 from olsplat_nodes.scene import Camera, intrinsics, look_at
+from olsplat_nodes.storage import LanguageMap, ObservationStore, latest_map
 from olsplat_nodes.transport import CONTROL_MAX_BYTES, REQUEST_MAX_BYTES, QueryClient
+from olsplat_nodes.transport.convert import camera_of, view_of
 from tests.helpers import free_port, wait_for
 
 from .conftest import Background, launch_tiny, pid_of

@@ -12,9 +12,9 @@ import pytest
 import zmq
 
 from olsplat_msgs import DiagnosticStatus, StatusRequest
-from olsplat_nodes.aggregate import ObservationStore
-from olsplat_nodes.aggregate.prior import read_prior_record, recorded_prior_map
 from olsplat_nodes.launcher import Supervisor
+from olsplat_nodes.storage import ObservationStore
+from olsplat_nodes.storage.prior import read_prior_record, recorded_prior_map
 from olsplat_nodes.transport import NoReply, QueryClient
 from tests.helpers import free_port, wait_for
 

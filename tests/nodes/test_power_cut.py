@@ -5,7 +5,7 @@ is copied and the nodes go on (SIGCONT): each copy is the folder exactly as it w
 instant, what a crash of the whole graph at that instant leaves on a disk that had written
 everything the nodes had written. (What a disk had not yet written is the other half of a
 power cut: every writer fsyncs a file before renaming it into place and the folder after,
-in the order checked by ``tests/aggregate/test_durable.py``, so a file is whole or absent.)
+in the order checked by ``tests/storage/test_durable.py``, so a file is whole or absent.)
 
 Each copy must read as a consistent run: no half view in the store, no view without its
 photo, ``latest.json`` naming a snapshot that exists and loads, and every frame the ingest
@@ -24,9 +24,9 @@ import time
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import LanguageMap, ObservationStore, latest_map, load_views
 from olsplat_nodes.launcher import Supervisor
 from olsplat_nodes.scene import read_ply
+from olsplat_nodes.storage import LanguageMap, ObservationStore, latest_map, load_views
 from tests.helpers import free_port, wait_for
 
 from .conftest import Background, launch_tiny, pid_of

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from olsplat_nodes.aggregate.prior import PRIOR_FILE, record_prior_map, recorded_prior_map
 from olsplat_nodes.cli import main
 from olsplat_nodes.errors import OlsplatInputError
+from olsplat_nodes.storage.prior import PRIOR_FILE, record_prior_map, recorded_prior_map
 from tests.helpers import free_port
 
 pytestmark = pytest.mark.timeout(120)

@@ -163,10 +163,10 @@ def test_reply_instances_on_the_wire_are_the_documented_records(ctx, sockdir, ti
 def test_reply_arrays_mean_what_the_schema_says(ctx, sockdir, tiny, tiny_run, tmp_path):
     """heatmap: the cosine of the view's rendered features with the query, in [-1, 1]; mask:
     where that beats every negative's heatmap on covered pixels; image: the view's photo."""
-    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
     from olsplat_nodes.query.answer import encoder_for_map
     from olsplat_nodes.query.heatmap import FeatureImages, render_heatmaps
     from olsplat_nodes.scene import read_ply
+    from olsplat_nodes.storage import LanguageMap, latest_map, load_views
 
     scene, _ = tiny
     shutil.copytree(tiny_run / "views", tmp_path / "views")
@@ -237,10 +237,10 @@ def test_a_capped_reply_is_the_view_rendered_at_that_size(ctx, sockdir, tiny, ti
     resampled full-size one), the photo the view's, area-averaged."""
     import cv2
 
-    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
     from olsplat_nodes.query.answer import encoder_for_map
     from olsplat_nodes.query.heatmap import FeatureImages
     from olsplat_nodes.scene import read_ply
+    from olsplat_nodes.storage import LanguageMap, latest_map, load_views
 
     scene, _ = tiny
     shutil.copytree(tiny_run / "views", tmp_path / "views")
@@ -275,12 +275,12 @@ def test_a_query_without_negatives_beats_the_aerial_vocabulary_and_says_so(ctx, 
     """The live default: the query must beat the land-cover classes of an aerial scene (not
     "object", "things"), the reply's message names them, and the roof query no longer marks
     road and bare ground: its mask is the one the offline query with the flight's labels makes."""
-    from olsplat_nodes.aggregate import LanguageMap, latest_map, load_views
     from olsplat_nodes.evaluate.scene_eval import label_texts, load_queries
     from olsplat_nodes.query import CANONICAL_NEGATIVES
     from olsplat_nodes.query.answer import answer_query, encoder_for_map
     from olsplat_nodes.query.negatives import AERIAL_VOCABULARY
     from olsplat_nodes.scene import read_ply
+    from olsplat_nodes.storage import LanguageMap, latest_map, load_views
 
     scene, _ = tiny
     shutil.copytree(tiny_run / "views", tmp_path / "views")

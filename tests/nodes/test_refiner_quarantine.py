@@ -9,7 +9,7 @@ import pytest
 import zmq
 
 from olsplat_msgs import DiagnosticStatus, EndOfStream, MapUpdated
-from olsplat_nodes.aggregate import LanguageMap, latest_map
+from olsplat_nodes.storage import LanguageMap, latest_map
 from tests.helpers import every, wait_for
 
 from .conftest import Heartbeats, NodeThread, Tap, raw_socket, refiner, send_msg

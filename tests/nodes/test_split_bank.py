@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from olsplat_msgs import RegionFeatures
-from olsplat_nodes.nodes.convert import split_bank
+from olsplat_nodes.transport.convert import split_bank
 
 
 def message(**change):

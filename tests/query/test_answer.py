@@ -34,9 +34,9 @@ def test_cached_embeddings_equal_the_encoders_and_stay_bounded():
 def test_a_codebook_map_answers_through_its_centres_as_its_decoded_rows(tmp_path):
     """The query server keeps a codebook map as codes and centres (``decode=False``): the chosen
     Gaussians and the heatmap equal those of the same map decoded to [N, D] rows."""
-    from olsplat_nodes.aggregate import LanguageMap
     from olsplat_nodes.aggregate.codebook import compress, fit_codebook
     from olsplat_nodes.query.answer import answer_query
+    from olsplat_nodes.storage import LanguageMap
 
     from ..conftest import camera_for, random_gaussians
 
@@ -81,11 +81,11 @@ def test_a_codebook_answer_counts_its_chosen_gaussians_without_the_mask(tmp_path
     """With its voxel index, a codebook map's answer counts the chosen Gaussians from the K
     centres (what the query server replies) and makes the [N] mask only when asked: the count
     equals the mask's, and the mask the dense map's."""
-    from olsplat_nodes.aggregate import LanguageMap
     from olsplat_nodes.aggregate.codebook import compress, fit_codebook
     from olsplat_nodes.encoders.spec import encoder_from_spec
     from olsplat_nodes.query.answer import QueryFeatures, answer_query
     from olsplat_nodes.query.localize import VoxelIndex, instances_in_3d
+    from olsplat_nodes.storage import LanguageMap
 
     from ..conftest import random_gaussians
 

@@ -107,7 +107,7 @@ def test_float16_rows_follow_the_rule_in_c(dim, negatives):
 @needs_c
 def test_query_features_keep_a_maps_float16_rows():
     """QueryFeatures.of keeps a map's float16 rows (no float32 copy) where the C kernels are built."""
-    from olsplat_nodes.aggregate.snapshot import LanguageMap
+    from olsplat_nodes.storage.snapshot import LanguageMap
 
     rng = np.random.default_rng(2)
     observed = rng.random(500) < 0.7

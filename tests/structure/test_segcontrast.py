@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from olsplat_nodes.structure.ground_frame import ground_frame
 from olsplat_nodes.structure.minkunet import load_minkunet, minkunet_point_features
 from olsplat_nodes.structure.points import StructuralPoints
 from olsplat_nodes.structure.segcontrast import (
     PretrainConfig,
     TrainingMap,
     augmented_view,
-    ground_frame,
     info_nce,
     pretrain,
     save_checkpoint,

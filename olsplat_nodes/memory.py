@@ -1,5 +1,8 @@
-"""The process's peak resident set, resettable: ``olsplat eval`` reports each method's own peak
-(its aggregation and scoring), not the highest of every method run before it in the process.
+"""The process's memory, for the nodes and the offline runs alike (a small utility of the base
+layer: it imports nothing of the package). ``release_free_memory`` hands freed heap back to the
+operating system (the refiner after a pass). The peak resident set is resettable:
+``olsplat eval`` reports each method's own peak (its aggregation and scoring), not the highest
+of every method run before it in the process.
 
 Linux keeps the peak as ``VmHWM`` in /proc/self/status; writing "5" to /proc/self/clear_refs
 resets it to the current resident set. Elsewhere (or where /proc is not writable) the reset does

@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import AggregationConfig
-from .store import ObservationStore
+from ..aggregate.config import AggregationConfig
+from ..storage.store import ObservationStore
 
 
 @dataclass

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import LanguageMap, ObservationStore, save_view, write_snapshot
 from olsplat_nodes.durable import append_line
+from olsplat_nodes.storage import LanguageMap, ObservationStore, save_view, write_snapshot
+from tests.aggregate.test_refine_store import _views
 
 from ..conftest import camera_for
-from .test_refine_store import _views
 
 
 @pytest.fixture
@@ -91,7 +91,7 @@ def test_views_snapshots_and_acknowledgements_are_durable(tmp_path, events):
 _FULL_DISK = """
 import resource, signal, sys
 from pathlib import Path
-from olsplat_nodes.aggregate import ObservationStore
+from olsplat_nodes.storage import ObservationStore
 from tests.aggregate.test_refine_store import _views
 
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit then fails with EFBIG
@@ -137,7 +137,7 @@ def test_a_view_that_cannot_be_written_is_one_error_and_leaves_no_half_segment(t
 def test_a_views_segment_bytes_are_its_arrays(tmp_path):
     """``segment_bytes`` (what a run's disk estimate counts) is the bytes of the arrays the
     store writes for the view."""
-    from olsplat_nodes.aggregate.store import segment_bytes
+    from olsplat_nodes.storage.store import segment_bytes
 
     store = ObservationStore(tmp_path / "store", 150, writer=True)
     for name, obs, bank in _views(2, 150):

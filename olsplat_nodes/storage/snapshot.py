@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from ..aggregate.codebook import compress, decompress, fit_codebook
 from ..durable import write_atomic
 from ..errors import SceneFormatError
-from .codebook import compress, decompress, fit_codebook
 
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from ..errors import OlsplatInputError
+from .errors import OlsplatInputError
 
 
 def output_folder(folder: Path, option: str = "--out", given: Path | None = None) -> Path:

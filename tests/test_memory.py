@@ -9,7 +9,7 @@ import threading
 
 import numpy as np
 
-from olsplat_nodes.pipeline.peak_memory import release_free_memory
+from olsplat_nodes.memory import release_free_memory
 
 
 def _resident_mb() -> float:
@@ -21,7 +21,7 @@ def test_the_peak_follows_a_large_array_and_resets():
     """In a fresh process (the test run's own heap and peak are whatever the tests before left)."""
     script = """
 import numpy as np
-from olsplat_nodes.pipeline.peak_memory import peak_rss_mb, reset_peak_rss
+from olsplat_nodes.memory import peak_rss_mb, reset_peak_rss
 assert reset_peak_rss()
 before = peak_rss_mb()
 block = np.ones(64 * 2**20 // 8)  # 64 MB, touched

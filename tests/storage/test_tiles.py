@@ -8,10 +8,11 @@ import shutil
 import numpy as np
 import pytest
 
-from olsplat_nodes.aggregate import LanguageMap, ObservationStore, ViewObservations
-from olsplat_nodes.aggregate.tiles import TiledStore, TileGrid, Tiling, split_view
+from olsplat_nodes.aggregate import ViewObservations
 from olsplat_nodes.errors import OlsplatInputError
 from olsplat_nodes.pipeline.offline import aggregate_flights
+from olsplat_nodes.storage import LanguageMap, ObservationStore
+from olsplat_nodes.storage.tiles import TiledStore, TileGrid, Tiling, split_view
 
 
 def _random_view(rng, n_map: int, kept: int, regions: int, dim: int) -> tuple[ViewObservations, np.ndarray]:

@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..aggregate.config import AggregationConfig
+from ..aggregate.observe import ViewObservations
 from ..durable import write_atomic
 from ..errors import OlsplatInputError
-from .config import AggregationConfig
-from .observe import ViewObservations
 from .snapshot import LanguageMap
 from .store import ObservationStore
 

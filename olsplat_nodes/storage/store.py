@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from ..aggregate.config import AggregationConfig
+from ..aggregate.observe import ViewObservations
+from ..aggregate.refine import MixedObservations, refine_mixed
 from ..durable import free_mb, fsync_dir, write_atomic
-from .config import AggregationConfig
-from .observe import ViewObservations
-from .refine import MixedObservations, refine_mixed
 from .snapshot import normalise_rows
 
 log = logging.getLogger(__name__)
