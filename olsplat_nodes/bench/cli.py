@@ -16,7 +16,6 @@ from . import (
     raster,
     regions,
     robustness,
-    scale,
     structure,
     tune,
 )
@@ -32,7 +31,6 @@ def add_parser(subparsers) -> None:
     frame.add_parser(targets)
     query.add_parser(targets)
     graph.add_parser(targets)
-    scale.add_parser(targets)
     cluster.add_parser(targets)
     live.add_parser(targets)
     compression.add_parser(targets)

@@ -1,24 +1,62 @@
-"""``olsplat bench graph``: the node graph on a live-paced stream, and ground-station query latency.
+"""``olsplat bench graph``: a flight through the node graph, live-paced or lossless, with its
+per-node load, start-up, memory, refinement passes and the ground-station query latency.
 
-The replay graph (``launch/replay.yaml``, one process per node) is fed as a live camera would
-be: ``--rate`` frames per second, latest-wins (a slow node drops frames; nothing waits). While
-it streams, the node diagnostics are read through the query server every 2 s. Printed:
-frames sent / aggregated / dropped, the sustained aggregation rate, and per node its rate,
-mean latency (acquisition stamp to end of handling, queueing included) and mean busy time per
-message. Then, on the final map, ``--queries`` ground-station queries over the real ZeroMQ link:
-relevance only (every Gaussian scored, 3D instances) and with the heatmap of a view (over
-``--heatmap-views`` views: the first query on a view renders it, the following ones are
-answered from the server's cache of rendered features, and both are reported).
+The replay graph (``launch/replay.yaml``, one process per node) is fed one of two ways:
+- ``--rate R`` (default 1): as a live camera would, R frames per second, latest-wins (a slow
+  node drops frames; nothing waits);
+- ``--lossless``: every frame of the flight aggregated, the ingest waiting for each
+  acknowledgement (as ``make demo`` does); the rate is then the graph's own.
 
-``--json FILE`` writes ``frames_sent``, ``frames_aggregated``, ``frames_dropped``,
-``views_per_s`` (aggregated per second of stream: frames_aggregated / (frames_sent / rate)),
-``seconds`` (until the final map), ``query_relevance_p95_ms`` (and ``query_relevance_server_p95_ms``,
-the server's own time), ``query_heatmap_p95_ms`` (all
+While it flies, the node diagnostics are read through the query server every 2 s and every
+node's memory from ``/proc`` every ``--sample-s``. Measured:
+- frames sent / aggregated / dropped, the aggregation rate, and per node its rate, mean latency
+  (acquisition stamp to end of handling, queueing included) and mean busy time per message;
+- start-up: ``node_ready_s`` {node: seconds from its process's start (imports included) to the
+  end of its set-up (its map read, its models loaded)}, from the "ready" line every node logs;
+  ``startup_s`` is the slowest node's. ``all_reporting_s``: from launch until every node has
+  reported in a status reply; that also holds the first view a node takes on before its first
+  heartbeat, and a heartbeat or two lost while its publisher joins;
+- memory per node from ``/proc``: the peak resident set (``VmHWM``, the kernel's own peak, not
+  a sample; the queries after the flight included), and the resident set sampled every
+  ``--sample-s`` until the final map with the number of views stored at that moment, to see
+  whether a node grows with the flight (``--sample-s 0``: no samples during the flight, only
+  the peaks read at its end and after the queries);
+- the refiner's passes in flight order (``refine_s`` + ``write_s`` of each snapshot record);
+- the store's bytes per view and the final snapshot's size;
+- then, on the final map, ``--queries`` ground-station queries over the real ZeroMQ link
+  (``ground_link``): relevance only (every Gaussian scored, 3D instances) and with the heatmap
+  of a view (over ``--heatmap-views`` views, the flight's first ones or with
+  ``--heatmap-spread`` spread over it: the first query on a view renders it, the following ones
+  are answered from the server's cache of rendered features, and both are reported).
+
+The sum of the nodes' peaks is an upper bound of what the graph held at once (the peaks need
+not coincide). Resident sets count shared pages (the libraries, a file's page cache mapped by
+several nodes) once per node, so the sum over-counts; ``private`` memory (anonymous pages,
+``/proc/PID/smaps_rollup``) is reported beside it at the samples.
+
+``--json FILE`` writes ``lossless`` (true or false), ``rate`` (the frames per second sent; null
+when lossless), ``frames_sent`` (each frame once), ``frames_aggregated``, ``frames_dropped``,
+``frames_resent`` (lossless: sends again of a frame not acknowledged in time), ``views_per_s``
+(with ``--rate``, aggregated per second of stream: frames_aggregated / (frames_sent / rate);
+lossless, views / wall_s), ``seconds`` and ``wall_s`` (both the seconds from launch until the
+final map), ``gaussians``, ``views``, ``width``, ``height``, ``startup_s``,
+``node_ready_s`` {node: s}, ``all_reporting_s``,
+``peak_rss_mb`` {node: MB}, ``peak_rss_mb_sum``, ``rss_growth_mb`` {node: resident MB at the
+end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB},
+``store_bytes_per_view``, ``snapshot_bytes``, ``refine_pass_s`` (list), ``refine_pass_views``
+(views in the map after each pass), ``refine_pass_exact`` (false for a fold of the new views:
+the refiner's first pass and its final one are exact), ``refine_s_per_added_view`` (each pass
+over the views it added), ``query_relevance_p95_ms`` (round trip) and
+``query_relevance_server_p95_ms`` (the query server's own time), ``query_heatmap_p95_ms`` (all
 heatmap queries), ``query_heatmap_first_p95_ms`` and ``query_heatmap_repeat_p95_ms`` (first and
-later queries on a view), ``query_heatmap_first_server_p95_ms`` (the server's own time for
-the first ones), and
+later queries on a view), ``query_heatmap_first_server_p95_ms`` (the server's own time for the
+first ones), ``heatmap_views`` (the views the heatmap queries asked for), ``memory_series``
+{node: [[views stored, resident MB, private MB], ...]} and
 ``nodes.<name>.{busy_ms, latency_ms, drops, handled}`` (means over the flight's heartbeats; the
 accumulator's latency_ms is the frame-to-store latency).
+
+``--queries-only --work DIR``: only the queries again, on a run kept with ``--work DIR``
+(``requery.py``).
 """
 
 from __future__ import annotations
@@ -27,24 +65,51 @@ import argparse
 import json
 import shutil
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import OlsplatInputError
+
+STATUS_EVERY_S = 2.0  # the node diagnostics' sampling (the per-node means are over these samples)
+
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "graph", help="node graph on a live-paced stream; query latency over the ground link"
+        "graph",
+        help="a flight through the node graph, live-paced (--rate) or --lossless: per-node load, "
+        "start-up, memory, refinement passes, query latency over the ground link",
     )
     parser.add_argument("--scene", required=True, type=Path, help="a simulator flight folder (replay.mcap, map/)")
-    parser.add_argument("--rate", type=float, default=1.0, help="frames per second sent (default 1)")
+    feed = parser.add_mutually_exclusive_group()
+    feed.add_argument("--rate", type=float, default=1.0, help="frames per second sent, latest-wins (default 1)")
+    feed.add_argument(
+        "--lossless",
+        action="store_true",
+        help="send every frame, the ingest waiting for each acknowledgement: every frame aggregated",
+    )
     parser.add_argument("--queries", type=int, default=100, help="relevance queries after the flight")
     parser.add_argument("--heatmap-queries", type=int, default=20, help="heatmap queries, spread over --heatmap-views")
     parser.add_argument("--heatmap-views", type=int, default=4, help="views the heatmap queries ask for, in turn")
+    parser.add_argument(
+        "--heatmap-spread",
+        action="store_true",
+        help="ask for views spread evenly over the flight, not its first ones (far views cost more)",
+    )
+    parser.add_argument(
+        "--sample-s", type=float, default=1.0, help="seconds between memory samples (0: only the peaks at the end)"
+    )
     parser.add_argument("--launch", default="replay", help="the launch file to run (a shipped name or a path)")
     parser.add_argument("--port", type=int, default=5610, help="the query server's TCP port")
     parser.add_argument("--work", type=Path, help="run directory (default: a temporary one, removed after)")
+    parser.add_argument(
+        "--queries-only",
+        action="store_true",
+        help="no flight: launch only the query server on the final map of a run kept with --work DIR, "
+        "and time the queries again (bench/requery.py)",
+    )
     parser.add_argument("--json", type=Path, help="also write the figures here (keys: see the module docstring)")
     parser.add_argument(
         "--set",
@@ -58,26 +123,43 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(run=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    import threading
+def feed_overrides(lossless: bool, rate: float) -> list[str]:
+    """The ingest's and region encoder's parameters for a lossless or a live-paced stream."""
+    if lossless:
+        return ["ingest.lossless=true", "ingest.fast=true", "region_encoder.latest_wins=false"]
+    if not rate > 0:
+        raise OlsplatInputError(f"--rate {rate:g}: must be > 0 frames per second (or --lossless)")
+    return ["ingest.lossless=false", f"ingest.rate_hz={rate}", "ingest.fast=false", "region_encoder.latest_wins=true"]
 
+
+def run(args: argparse.Namespace) -> int:
+    if args.queries_only:
+        from .requery import run as queries_only
+
+        return queries_only(args)
     import zmq
 
     from ..launcher import Supervisor, load_launch
+    from ..scene import read_cameras
+    from ..scene.ply import ply_vertex_count
+    from ..storage.snapshot import latest_map
     from ..transport import QueryClient
     from .ground_link import final_map, report_queries, sample_status, time_queries
+    from .node_watch import NODES, MemoryWatch, node_ready_s
 
+    feed = feed_overrides(args.lossless, args.rate)
+    if args.sample_s < 0:
+        raise OlsplatInputError(f"--sample-s {args.sample_s:g}: must be >= 0")
     scene = args.scene.resolve()
+    ply = scene / "map" / "point_cloud.ply"
+    gaussians = ply_vertex_count(ply)
+    cameras = read_cameras(scene)
     run_dir = args.work or Path(tempfile.mkdtemp(prefix="olsplat_bench_graph_"))
     shutil.rmtree(run_dir, ignore_errors=True)
-    ply = scene / "map" / "point_cloud.ply"
     endpoint = f"tcp://127.0.0.1:{args.port}"
     overrides = [
         f"ingest.source={scene / 'replay.mcap'}",
-        "ingest.lossless=false",
-        f"ingest.rate_hz={args.rate}",
-        "ingest.fast=false",
-        "region_encoder.latest_wins=true",
+        *feed,
         f"query_server.map={ply}",
         f"accumulator.map={ply}",
         f"refiner.map={ply}",
@@ -88,22 +170,52 @@ def run(args: argparse.Namespace) -> int:
     ]
     overrides += args.extra  # the user's, last: they win
     supervisor = Supervisor(load_launch(args.launch, overrides=overrides, run_dir=str(run_dir)))
+    store_views = run_dir / "store" / "views"
+
+    def views_stored() -> int:
+        try:
+            return sum(1 for p in store_views.iterdir() if not p.name.endswith(".tmp"))
+        except OSError:
+            return 0
+
+    watch = MemoryWatch(lambda: supervisor.pids, views_stored, args.sample_s)
+    start = time.monotonic()
     supervisor.check()  # a bad launch file or --set is an error here, not in the thread
     thread = threading.Thread(target=supervisor.run, daemon=True)
     thread.start()
+    watch.start()
     client = QueryClient(zmq.Context.instance(), endpoint, timeout_s=60.0)
-    samples: dict[str, list[dict]] = {}
-    start = time.monotonic()
+    samples: dict[str, list[dict]] = {}  # every STATUS_EVERY_S: the per-node means
+    passes: dict[int, dict] = {}
+    startup_s = None
+    last_status = last_progress = 0.0
     succeeded = False
     try:
         record = None
         while record is None:
-            time.sleep(2.0)
-            sample_status(client, samples)
+            time.sleep(0.5)
+            due = time.monotonic() - last_status >= STATUS_EVERY_S
+            if startup_s is None or due:  # every 0.5 s until every node reports: the start-up
+                status = sample_status(client, samples if due else {})
+                if due:
+                    last_status = time.monotonic()
+                if startup_s is None and status is not None and set(NODES) <= {n["node"] for n in status.nodes}:
+                    startup_s = time.monotonic() - start
             record = final_map(supervisor, thread, run_dir)
-        seconds = time.monotonic() - start
+            newest = record or latest_map(run_dir / "map")
+            if newest is not None and "refine_s" in newest:
+                passes[newest["version"]] = newest
+            if time.monotonic() - last_progress > 30:
+                last_progress = time.monotonic()
+                done = views_stored()
+                elapsed = time.monotonic() - start
+                left = (len(cameras) - done) * elapsed / done if done else float("nan")
+                print(f"  {done}/{len(cameras)} views stored after {elapsed:.0f} s, ~{left:.0f} s left", flush=True)
+        wall_s = time.monotonic() - start
+        watch.sample()  # before the ingest exits
+        watch.flight_over = True  # the queries below still count in the peaks
         # the ingest's counts are final in the heartbeat it sends after it saw the final map
-        # (then it exits); the 2 s sampling above may have missed it
+        # (then it exits); the sampling above may have missed it
         final_at = (run_dir / "map" / "latest.json").stat().st_mtime
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
@@ -115,22 +227,69 @@ def run(args: argparse.Namespace) -> int:
                 break
             time.sleep(0.5)
         last = {name: values[-1] for name, values in samples.items()}
-        sent = int(last.get("ingest", {}).get("handled", 0))  # frames (published also counts EndOfStream)
-        aggregated = int(record["views"])
-        views_per_s = aggregated / (sent / args.rate) if sent else 0.0
+        ingest = last.get("ingest", {})
+        # frames (published also counts EndOfStream); a frame sent again (lossless: no
+        # acknowledgement in time, as while the graph starts) is one frame
+        resent = int(ingest.get("resent", 0))
+        sent = int(ingest.get("handled", 0)) - resent
+        views = int(record["views"])
+        if args.lossless:
+            views_per_s = views / wall_s
+        else:
+            views_per_s = views / (sent / args.rate) if sent else 0.0
+        store_bytes = sum(f.stat().st_size for f in store_views.rglob("*") if f.is_file())
+        ordered = [passes[v] for v in sorted(passes)]
+        refine_pass_s = [round(p["refine_s"] + p.get("write_s", 0.0), 3) for p in ordered]
+        width, height = cameras[0].width, cameras[0].height
+        ready = node_ready_s(run_dir / "logs")
         figures: dict = {
+            "lossless": bool(args.lossless),
+            "rate": None if args.lossless else args.rate,
             "frames_sent": sent,
-            "frames_aggregated": aggregated,
-            "frames_dropped": sent - aggregated,
+            "frames_aggregated": views,
+            "frames_dropped": sent - views,
+            "frames_resent": resent,
             "views_per_s": round(views_per_s, 3),
-            "seconds": round(seconds, 1),
+            "seconds": round(wall_s, 1),
+            "wall_s": round(wall_s, 1),
+            "gaussians": gaussians,
+            "views": views,
+            "width": width,
+            "height": height,
+            "startup_s": round(max(ready.values()), 1) if ready else None,
+            "node_ready_s": {name: round(s, 1) for name, s in sorted(ready.items())},
+            "all_reporting_s": round(startup_s, 1) if startup_s is not None else None,
+            "store_bytes_per_view": round(store_bytes / max(views, 1)),
+            "snapshot_bytes": int(record.get("bytes", 0)),
+            "refine_pass_s": refine_pass_s,
+            "refine_pass_views": [int(p["views"]) for p in ordered],
+            "refine_pass_exact": [bool(p.get("exact", True)) for p in ordered],  # False: a fold
             "nodes": {},
         }
-        print(
-            f"graph on {scene.name}: {sent} frames sent at {args.rate:g}/s, {aggregated} aggregated, "
-            f"{sent - aggregated} dropped, final map version {record['version']} after {seconds:.0f} s"
+        # a pass's cost over the views it added: flat when passes grow with the views since the
+        # last pass (which refiner.max_duty lets grow as passes lengthen), not with the flight
+        added = np.diff([0, *figures["refine_pass_views"]])
+        figures["refine_s_per_added_view"] = [
+            round(s / max(int(a), 1), 3) for s, a in zip(refine_pass_s, added, strict=True)
+        ]
+        how = (
+            f"lossless ({resent} sent again for want of an acknowledgement)" if args.lossless else f"at {args.rate:g}/s"
         )
-        print(f"  sustained aggregation rate {views_per_s:.2f} views/s (aggregated per second of stream)")
+        print(
+            f"graph on {scene.name}: {sent} frames sent {how}, {views} aggregated, "
+            f"{sent - views} dropped, final map version {record['version']} after {wall_s:.0f} s"
+        )
+        if not args.lossless:
+            print(f"  sustained aggregation rate {views_per_s:.2f} views/s (aggregated per second of stream)")
+        print(
+            f"  {gaussians:,} Gaussians, {views} views of {width}x{height} aggregated "
+            f"in {wall_s:.0f} s ({views / wall_s:.2f} views/s)"
+        )
+        print(
+            f"  start-up: slowest node ready {figures['startup_s']} s after its process started ("
+            + ", ".join(f"{name} {s:.1f}" for name, s in figures["node_ready_s"].items())
+            + f"); every node reporting {figures['all_reporting_s']} s after launch"
+        )
         for name in ("ingest", "region_encoder", "accumulator", "refiner", "query_server"):
             values = [v for v in samples.get(name, []) if v.get("handled", 0)]
             if not values:
@@ -150,7 +309,29 @@ def run(args: argparse.Namespace) -> int:
                 f"  {name:15s} handled {handled:4d}  peak rate {rate:5.2f} Hz  mean latency "
                 f"{latency:8.1f} ms  mean busy {busy:8.1f} ms  drops {drops}"
             )
-        times = time_queries(client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views)
+        times = time_queries(
+            client, scene, run_dir, args.queries, args.heatmap_queries, args.heatmap_views, args.heatmap_spread
+        )
+        watch.sample()  # the peaks with the queries, whatever --sample-s
+        memory_figures(watch, views, figures)
+        for name in NODES:
+            if name in watch.peak:
+                print(
+                    f"  {name:15s} peak RSS {watch.peak[name]:8.0f} MB  private max "
+                    f"{figures['private_mb_max'].get(name, float('nan')):7.0f} MB  growth from 1/4 of the views "
+                    f"{figures['rss_growth_mb'].get(name, 0):+6.0f} MB"
+                )
+        print(f"  sum of the nodes' peaks {figures['peak_rss_mb_sum']:,} MB")
+        print(
+            f"  store {store_bytes / 2**20:.0f} MB ({figures['store_bytes_per_view'] / 2**20:.2f} MB per view), "
+            f"final snapshot {figures['snapshot_bytes'] / 2**20:.0f} MB"
+        )
+        marked = zip(refine_pass_s, figures["refine_pass_views"], figures["refine_pass_exact"], strict=True)
+        print(
+            "  refinement passes (s, views in the map; * exact, the others folds): "
+            + ", ".join(f"{s:.1f} ({v}{'*' if exact else ''})" for s, v, exact in marked)
+        )
+        print("  per view added by the pass (s): " + ", ".join(f"{s:.2f}" for s in figures["refine_s_per_added_view"]))
         report_queries(times, figures)
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -158,9 +339,22 @@ def run(args: argparse.Namespace) -> int:
             print(f"  figures -> {args.json}")
         succeeded = True
     finally:
+        watch.stop.set()
         client.close()
         supervisor.request_stop(0)
         thread.join(30)
         if not args.work and succeeded:  # a failed run's logs stay, for its error message
             shutil.rmtree(run_dir, ignore_errors=True)
     return 0
+
+
+def memory_figures(watch, views: int, figures: dict) -> None:
+    """The memory keys of ``figures`` (``peak_rss_mb``, ``peak_rss_mb_sum``, ``rss_growth_mb``,
+    ``private_mb_max``, ``memory_series``) from a ``node_watch.MemoryWatch``."""
+    figures["peak_rss_mb"] = {name: round(mb) for name, mb in sorted(watch.peak.items())}
+    figures["peak_rss_mb_sum"] = round(sum(watch.peak.values()))
+    figures["rss_growth_mb"] = {name: round(watch.growth(name, views)) for name in sorted(watch.series)}
+    figures["private_mb_max"] = {name: round(max(s[2] for s in ser)) for name, ser in sorted(watch.series.items())}
+    figures["memory_series"] = {
+        name: [[v, round(r), round(p)] for v, r, p in ser] for name, ser in sorted(watch.series.items())
+    }

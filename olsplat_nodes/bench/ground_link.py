@@ -1,9 +1,10 @@
 """The benchmarks' ground-station side: status samples and query latency over the real link.
 
-Shared by ``bench graph`` and ``bench scale``: both launch the replay graph, read the nodes'
-diagnostics through the query server, and end with the same ground-station queries on the
-final map (relevance of every Gaussian with 3D instances; heatmaps of views, the first query
-on a view rendering it and the next ones answered from the server's cache).
+Shared by ``bench graph``'s flight (``graph.py``), which launches the replay graph and reads the
+nodes' diagnostics through the query server, and its ``--queries-only`` (``requery.py``): both
+end with the same ground-station queries on the final map (relevance of every Gaussian with 3D
+instances; heatmaps of views, the first query on a view rendering it and the next ones answered
+from the server's cache).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ def final_map(supervisor, thread, run_dir: Path) -> dict | None:
     the refiner announced the final map, which the refiner writes first; so a finished ingest
     and no final snapshot mean the stream ended with no view aggregated (every frame dropped,
     or none in the source)."""
-    from ..aggregate.snapshot import latest_map
+    from ..storage.snapshot import latest_map
 
     record = latest_map(run_dir / "map")
     if record is not None and record.get("final"):
@@ -97,9 +98,9 @@ def time_queries(
     ``latest.json``), and a query in between is answered ``no_map`` or from an older version."""
     from olsplat_msgs import QueryRequest
 
-    from ..aggregate.snapshot import latest_map
-    from ..aggregate.views import load_views
     from ..evaluate.scene_eval import label_texts, load_queries
+    from ..storage.snapshot import latest_map
+    from ..storage.views import load_views
 
     newest = latest_map(run_dir / "map")
     deadline = time.monotonic() + 60.0

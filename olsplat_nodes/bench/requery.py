@@ -1,8 +1,8 @@
-"""``olsplat bench scale --queries-only --work DIR``: the ground-station queries of a kept run
+"""``olsplat bench graph --queries-only --work DIR``: the ground-station queries of a kept run
 again, without flying it again.
 
 A large flight takes ~25 min through the graph; its queries a minute. To measure a change to
-the query path, keep one run (``bench scale --work DIR``), then launch only its query server
+the query path, keep one run (``bench graph --work DIR``), then launch only its query server
 on DIR's final map and views (the launch file's ``query_server`` node, its parameters as in
 the run, ``--set`` overrides last) and ask the same queries over the real link
 (``ground_link.time_queries``). The run folder is read, never changed (the query server's log
@@ -10,7 +10,7 @@ is appended to ``DIR/logs``).
 
 ``--json FILE`` writes ``gaussians``, ``views``, ``width``, ``height``, ``startup_s`` (the query
 server's own "ready" line), ``peak_rss_mb.query_server`` and the ``query_*_p95_ms`` keys of
-``bench scale``, with ``queries_only: true``.
+``bench graph``, with ``queries_only: true``.
 """
 
 from __future__ import annotations
@@ -27,21 +27,21 @@ from ..errors import OlsplatInputError, RunFailed
 def run(args: argparse.Namespace) -> int:
     import zmq
 
-    from ..aggregate.snapshot import latest_map
     from ..launcher import Supervisor, load_launch
     from ..scene import read_cameras
     from ..scene.ply import ply_vertex_count
+    from ..storage.snapshot import latest_map
     from ..transport import QueryClient
     from .ground_link import report_queries, sample_status, time_queries
-    from .scale import node_ready_s, process_memory
+    from .node_watch import node_ready_s, process_memory
 
     if args.work is None:
-        raise OlsplatInputError("--queries-only needs --work DIR: the folder of a run kept by bench scale --work DIR")
+        raise OlsplatInputError("--queries-only needs --work DIR: the folder of a run kept by bench graph --work DIR")
     run_dir = args.work.resolve()
     record = latest_map(run_dir / "map")
     if record is None or not record.get("final"):
         raise OlsplatInputError(
-            f"{run_dir}: no final map in map/latest.json; give the folder of a completed `bench scale --work DIR` run"
+            f"{run_dir}: no final map in map/latest.json; give the folder of a completed `bench graph --work DIR` run"
         )
     scene = args.scene.resolve()
     ply = scene / "map" / "point_cloud.ply"
