@@ -1,14 +1,17 @@
-"""The architecture docs/architecture.md ("Package layout") promises, checked on the source: every import, also the
-lazy ones inside functions, followed transitively.
+"""The layers docs/architecture.md ("Layers") promises, checked on the source: every import, also
+the lazy ones inside functions, resolved to the module it loads.
+
+One rule: ``LAYERS`` lists every package bottom-up, and a package imports only itself and the
+packages listed before it (lower layers, or earlier in its own layer). No import cycle between
+modules anywhere. Beside it, what the layers alone do not say:
 
 - No node imports another node: nodes share code through ``nodes/base.py`` (the loop) and
-  ``nodes/convert.py`` (messages <-> core values) only.
-- Nothing on the drone's runtime path imports the simulator: a drone install runs the core,
-  the nodes, the sources, the transport, the launcher and the telemetry without ``olsplat_sim``.
-  Only the command-line tools, the benchmarks and the offline evaluation may.
-- The core never touches a socket: no zmq below the nodes and the transport.
+  ``transport/convert.py`` (messages <-> core values) only.
+- The core never touches a socket: zmq only from the transport layer up.
+- Nothing on the drone's runtime path imports the simulator (it sits in the top layer).
 - Ray is an optional extra: only ``olsplat_nodes.cluster`` imports it, and only the command-line
   tools and the benchmarks import that package.
+- The nodes start without torch.
 """
 
 from __future__ import annotations
@@ -18,11 +21,22 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"olsplat_nodes": ROOT / "olsplat_nodes", "olsplat_msgs": ROOT / "msgs", "olsplat_sim": ROOT / "sim"}
+
+# Bottom-up. Names are olsplat_nodes' subpackages and top-level modules, and the two sibling
+# packages olsplat_msgs and olsplat_sim. Keep docs/architecture.md's table in step with this one.
+LAYERS: list[tuple[str, tuple[str, ...]]] = [
+    ("base", ("olsplat_nodes", "errors", "params", "durable", "outputs", "memory", "extras")),
+    ("wire", ("olsplat_msgs",)),
+    ("core numerics", ("scene", "native", "raster", "regions", "encoders", "structure", "aggregate", "viz")),
+    ("storage", ("storage",)),
+    ("method", ("method", "query", "pipeline")),
+    ("graph transport", ("transport",)),
+    ("drone runtime", ("telemetry", "sources", "nodes", "launcher")),
+    ("ground station", ("ground",)),
+    ("offline", ("cluster", "evaluate", "olsplat_sim", "tools", "bench", "cli")),
+]
+ORDER = [package for _, packages in LAYERS for package in packages]
 NODE_MODULES = {"ingest", "region_encoder", "accumulator", "refiner", "query_server", "ground_monitor"}
-# May import the simulator: user-facing tools and studies, not the drone's runtime.
-OFFLINE = ("olsplat_nodes.tools", "olsplat_nodes.bench", "olsplat_nodes.evaluate", "olsplat_nodes.pipeline")
-OFFLINE_MODULES = ("olsplat_nodes.cli",)
-SOCKET_LAYERS = ("olsplat_nodes.nodes", "olsplat_nodes.transport", "olsplat_nodes.launcher", "olsplat_nodes.tools")
 
 
 def _modules() -> dict[str, Path]:
@@ -41,7 +55,8 @@ MODULES = _modules()
 
 def _imports(name: str) -> set[str]:
     """Every module ``name`` imports (absolute names; relative imports resolved), at any depth
-    of its code."""
+    of its code. ``from . import sub`` names the submodule only: the package is already loaded
+    when one of its own modules runs."""
     path = MODULES[name]
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
@@ -54,9 +69,27 @@ def _imports(name: str) -> set[str]:
                 anchor = package.split(".")
                 anchor = anchor[: len(anchor) - node.level + 1]
                 base = ".".join([*anchor, base] if base else anchor)
-            found.add(base)
-            found |= {f"{base}.{alias.name}" for alias in node.names if f"{base}.{alias.name}" in MODULES}
+            submodules = {f"{base}.{alias.name}" for alias in node.names if f"{base}.{alias.name}" in MODULES}
+            own_package = node.level and not node.module and name.startswith(base + ".")
+            if not (own_package and len(submodules) == len(node.names)):
+                found.add(base)
+            found |= submodules
     return found
+
+
+def _module_of(imported: str) -> str:
+    """The module of ours an import loads ("olsplat_sim.x.y" where y is a name -> olsplat_sim.x),
+    or "" for another distribution's."""
+    target = imported
+    while target and target not in MODULES:
+        target = target.rpartition(".")[0]
+    return target
+
+
+def _package(module: str) -> str:
+    """The entry of ``ORDER`` a module belongs to."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "olsplat_nodes" and len(parts) > 1 else parts[0]
 
 
 def _closure(name: str) -> dict[str, str]:
@@ -65,13 +98,10 @@ def _closure(name: str) -> dict[str, str]:
     while todo:
         current = todo.pop()
         for imported in _imports(current):
-            target = imported
-            while target and target not in MODULES:  # "olsplat_sim.x.y" where y is a name
-                target = target.rpartition(".")[0]
-            if target.split(".")[0] not in PACKAGES:
+            target = _module_of(imported)
+            if not target:
                 seen.setdefault(imported, current)
-                continue
-            if target and target not in seen:
+            elif target not in seen:
                 seen[target] = current
                 todo.append(target)
     return seen
@@ -84,18 +114,83 @@ def _path(seen: dict[str, str], end: str) -> str:
     return " <- ".join(chain)
 
 
-def _runtime_modules() -> list[str]:
-    return [
-        m
-        for m in MODULES
-        if m.startswith(("olsplat_nodes", "olsplat_msgs")) and not m.startswith(OFFLINE) and m not in OFFLINE_MODULES
-    ]
+def _cycles() -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    graph = {m: sorted({_module_of(i) for i in _imports(m)} - {"", m}) for m in MODULES}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, 0)]
+        while work:
+            node, child = work.pop()
+            if child == 0:
+                index[node] = low[node] = len(index)
+                stack.append(node)
+                on_stack.add(node)
+            if child < len(graph[node]):
+                work.append((node, child + 1))
+                nxt = graph[node][child]
+                if nxt not in index:
+                    work.append((nxt, 0))
+                elif nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+                continue
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+            if work:
+                parent = work[-1][0]
+                low[parent] = min(low[parent], low[node])
+    return found
 
 
 def test_the_walk_sees_lazy_and_relative_imports():
     # the accumulator imports the store inside a function, relatively: the walk must see both
-    assert "olsplat_nodes.aggregate" in _imports("olsplat_nodes.nodes.accumulator")
+    assert "olsplat_nodes.storage" in _imports("olsplat_nodes.nodes.accumulator")
     assert "olsplat_sim" in {m.split(".")[0] for m in _closure("olsplat_nodes.cli")}
+
+
+def test_every_package_has_a_layer():
+    assert len(ORDER) == len(set(ORDER)), "a package is listed twice"
+    packages = {_package(m) for m in MODULES}
+    assert packages <= set(ORDER), f"not in LAYERS (give each a layer): {sorted(packages - set(ORDER))}"
+    assert set(ORDER) <= packages, f"in LAYERS but not in the source: {sorted(set(ORDER) - packages)}"
+
+
+def test_every_import_goes_down_the_layers():
+    wrong = []
+    for name in sorted(MODULES):
+        rank = ORDER.index(_package(name))
+        for imported in sorted(_imports(name)):
+            target = _module_of(imported)
+            if target and ORDER.index(_package(target)) > rank:
+                wrong.append(f"{name} imports {target} ({_package(name)} is below {_package(target)})")
+    assert not wrong, "imports that go up the layers:\n" + "\n".join(wrong)
+
+
+def test_no_import_cycle():
+    cycles = _cycles()
+    assert not cycles, "modules that import each other:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_the_cycle_finder_finds_a_cycle(monkeypatch):
+    """The cycle test can fail: two modules importing each other are reported."""
+    fake = {"olsplat_nodes.a": {"olsplat_nodes.b"}, "olsplat_nodes.b": {"olsplat_nodes.a"}}
+    monkeypatch.setattr(f"{__name__}.MODULES", dict.fromkeys(fake, Path("x")))
+    monkeypatch.setattr(f"{__name__}._imports", lambda name: fake[name])
+    assert _cycles() == [["olsplat_nodes.a", "olsplat_nodes.b"]]
 
 
 def test_no_node_imports_another_node():
@@ -108,7 +203,7 @@ def test_no_node_imports_another_node():
 
 
 def test_the_runtime_path_does_not_import_the_simulator():
-    runtime = _runtime_modules()
+    runtime = [m for m in MODULES if ORDER.index(_package(m)) <= ORDER.index("ground")]
     assert "olsplat_nodes.sources.replay" in runtime and "olsplat_nodes.method" in runtime
     for name in runtime:
         seen = _closure(name)
@@ -117,9 +212,8 @@ def test_the_runtime_path_does_not_import_the_simulator():
 
 
 def test_the_core_never_touches_a_socket():
-    for name in _runtime_modules():
-        if name.startswith(SOCKET_LAYERS) or name.startswith("olsplat_msgs"):
-            continue
+    below_transport = [m for m in MODULES if ORDER.index(_package(m)) < ORDER.index("transport")]
+    for name in below_transport:
         seen = _closure(name)
         bad = sorted(m for m in seen if m.split(".")[0] == "zmq")
         assert not bad, f"{name} reaches zmq: {_path(seen, bad[0])}"
@@ -132,8 +226,9 @@ def test_the_nodes_start_without_torch():
     import sys
 
     modules = [f"olsplat_nodes.nodes.{n}" for n in sorted(NODE_MODULES)]
-    modules += ["olsplat_nodes.method", "olsplat_nodes.aggregate", "olsplat_nodes.raster", "olsplat_nodes.regions"]
-    modules += ["olsplat_nodes.encoders.spec", "olsplat_nodes.query.answer", "olsplat_nodes.sources"]
+    modules += ["olsplat_nodes.method", "olsplat_nodes.aggregate", "olsplat_nodes.storage", "olsplat_nodes.raster"]
+    modules += ["olsplat_nodes.regions", "olsplat_nodes.encoders.spec", "olsplat_nodes.query.answer"]
+    modules += ["olsplat_nodes.sources", "olsplat_nodes.method.live"]
     code = f"import importlib, sys\nfor m in {modules!r}: importlib.import_module(m)\nprint('torch' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False", result.stdout + result.stderr
