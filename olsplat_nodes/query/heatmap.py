@@ -71,8 +71,9 @@ class FeatureImages:
     The first query on a view is answered by the compositing kernel, which writes the view's
     unit features into the cache in the same pass; the next ones by a matrix product (equal to
     the kernel's cosine to ~2e-5). Buffers of evicted views are reused, and ``reserve`` touches
-    the budget's buffers ahead of the first query: first-touched memory costs ~0.15-0.3 s per
-    157 MB on a small VM, as much as the rendering itself."""
+    the budget's buffers ahead of the first query: each page of memory touched for the first
+    time is a page fault, and on a small VM a view's worth of them costs about as much as
+    rendering the view."""
 
     def __init__(self, budget_bytes: int):
         self.budget = int(budget_bytes)
@@ -147,8 +148,8 @@ class FeatureImages:
                     self.entries[key] = (unit, alpha)
             return maps, alpha
         unit, alpha = entry
-        # [Q, H * W] straight from the product: (unit @ texts.T).T needed a 54 MB transposing
-        # copy at 1280x960 and 11 texts (138 -> 90 ms)
+        # [Q, H * W] straight from the product: (unit @ texts.T).T needed a transposing copy
+        # of the whole result (54 MB at 1280x960 and 11 texts)
         maps = np.asarray(texts, np.float32) @ unit.T
         return maps.reshape(len(texts), *alpha.shape), alpha
 
@@ -173,8 +174,8 @@ def relevancy_mask(
     """[H, W] bool: where the query's heatmap beats every negative's (``query_map >
     negative_maps.max(0)``, NaN never beats) and ``alpha > min_alpha``. One pass per pixel over
     its negatives, whatever the maps' layout: a render's [Q, H, W] heatmaps are a view of its
-    [H, W, Q] output, whose negatives numpy's ``max(0)`` read 44 bytes apart (60 ms at
-    1280x960 and 10 negatives, 3-5 ms here)."""
+    [H, W, Q] output, whose negatives numpy's ``max(0)`` read 44 bytes apart, a strided pass
+    over the whole image per negative; here each pixel's values are read together, once."""
     if not len(negative_maps):
         return alpha > min_alpha
     out = np.empty(query_map.shape, np.bool_)

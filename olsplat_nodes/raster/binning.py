@@ -23,8 +23,8 @@ def radix_argsort(keys):
 
     Non-negative IEEE floats order like their bit patterns read as unsigned integers. Each pass
     moves (key, index) pairs, so it reads its input in order and only its writes scatter (a pass
-    that looked each key up through the order so far read 16 MB at random for 4M keys: 0.36-0.41
-    s of a far view's sort, now 0.14-0.22 s); a pass whose digit is the same for every key (depths
+    that looked each key up through the order so far read the keys at random, a cache miss per
+    key, which was most of a far view's sort); a pass whose digit is the same for every key (depths
     share their high bits) is skipped: it would not move anything. Each pass runs in parallel
     over ``RADIX_CHUNKS`` runs of its input, chunk c writing each digit's keys after those of
     chunks < c, which keeps the sort stable. Its reference: ``np.argsort(keys, kind="stable")``
@@ -119,8 +119,8 @@ def bin_tiles(
     return order, offsets, slots
 
 
-# Random gathers in parallel: numpy's fancy indexing runs them on one thread (0.04 s for the
-# tile rectangles of 870k Gaussians; 0.005 s here).
+# Random gathers in parallel: numpy's fancy indexing runs them on one thread, and a gather of
+# scattered rows is bound by its cache misses, which the threads wait for side by side.
 @njit(parallel=True, cache=True)
 def _take(values, index):
     """values[index] for 1-D arrays."""

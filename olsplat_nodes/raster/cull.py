@@ -19,10 +19,10 @@ The test is the kernel's, bounded over a cube, so it culls nothing the kernel wo
 A margin of 1 pixel covers rounding. ``tests/raster/test_cull.py`` holds renders with and without
 the cull to be identical, and checks that every Gaussian the kernel keeps is a candidate.
 
-The index is made at a map's first render (``cells_of``: 0.6 s for 5.2M Gaussians, then 4 bytes
-per Gaussian) and kept while the map object lives; a map's arrays must not be changed in place
-after that (olsplat never does: a map is read once and only read). Maps under ``CULL_MIN``
-Gaussians are projected whole (the cull would save little).
+The index is made at a map's first render (``cells_of``: one counting sort of the map, then 4
+bytes per Gaussian) and kept while the map object lives; a map's arrays must not be changed in
+place after that (olsplat never does: a map is read once and only read). Maps under
+``CULL_MIN`` Gaussians are projected whole (the cull would save little).
 """
 
 from __future__ import annotations
