@@ -32,36 +32,6 @@ def colorize(values: np.ndarray, valid: np.ndarray | None = None, lo=None, hi=No
     return image
 
 
-def id_colors(ids: np.ndarray) -> np.ndarray:
-    """[...] int Gaussian ids -> [..., 3] uint8 colours, a fixed pseudo-random colour per id; -1 black."""
-    hashed = (ids.astype(np.uint64) * np.uint64(2654435761)) & np.uint64(0xFFFFFF)
-    out = np.stack([(hashed >> np.uint64(s)) & np.uint64(0xFF) for s in (0, 8, 16)], -1).astype(np.uint8)
-    out[ids < 0] = 0
-    return out
-
-
-def topk_panel(topk_ids: np.ndarray, topk_weights: np.ndarray) -> np.ndarray:
-    """Side by side: top-1 Gaussian id, adaptive K per pixel, effective number E (inverse Simpson).
-
-    topk_ids, topk_weights: [H, W, K]. Returns [H, 3 W, 3] uint8 BGR.
-    """
-    cv2 = _cv2()
-    count = (topk_ids >= 0).sum(-1)
-    kmax = topk_ids.shape[-1]
-    pi = topk_weights / (topk_weights.sum(-1, keepdims=True) + 1e-12)
-    effective = 1.0 / ((pi**2).sum(-1) + 1e-12)
-    panels = [
-        id_colors(topk_ids[..., 0]),
-        colorize(count.astype(np.float32), count > 0, 0, kmax),
-        colorize(effective, count > 0, 1, kmax),
-    ]
-    for panel, text in zip(
-        panels, ("top-1 Gaussian", f"adaptive K (0..{kmax})", f"E inverse Simpson (1..{kmax})"), strict=True
-    ):
-        cv2.putText(panel, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
-    return np.concatenate(panels, axis=1)
-
-
 def write_png(path, image: np.ndarray) -> None:
     """Write an 8-bit image, whole or not at all (a temporary file renamed into place); the
     format follows the extension (.png, .jpg). OSError naming the path when it cannot."""

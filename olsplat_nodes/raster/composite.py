@@ -2,8 +2,9 @@
 
 One tile is one unit of parallel work. Inside a tile the loop runs Gaussian by Gaussian
 (front to back) and, for each, only over the pixels of the box where its alpha can reach
-alpha_min (``extents``): pixels outside that box would be skipped by the alpha test anyway,
-so the result is the same as testing every pixel of the tile, at a fraction of the work.
+alpha_min (its record's ``EX``, ``EY``): pixels outside that box would be skipped by the alpha
+test anyway, so the result is the same as testing every pixel of the tile, at a fraction of the
+work.
 
 Per pixel, a contribution of Gaussian g is w = alpha_g * T with T the transmittance before g.
 The pixel keeps an unsorted list of its best ``topk_max`` contributions: while the list is

@@ -32,9 +32,9 @@ RECORD = 16
 @dataclass
 class Projected:
     """Screen-space Gaussians: row j is Gaussian j of the input map, or with ``ids`` Gaussian
-    ids[j] (a culled projection: only the cull's candidates have rows). The float fields are
-    column views of ``records`` [M, RECORD] float32 (columns named above), what the compositing
-    kernel reads; M = N without ``ids``."""
+    ids[j] (a culled projection: only the cull's candidates have rows). ``records`` [M, RECORD]
+    float32 (columns named above) is what the compositing kernels read; ``means2d`` and
+    ``depths`` are column views of it. M = N without ``ids``."""
 
     records: np.ndarray  # [M, RECORD] float32; all zero for a culled Gaussian
     radii: np.ndarray  # [M] int32 screen radius in pixels; 0 = culled
@@ -55,28 +55,8 @@ class Projected:
         return self.records[:, MX : MY + 1]
 
     @property
-    def conics(self) -> np.ndarray:  # [N, 3] inverse 2D covariance (a, b, c): sigma = a dx^2/2 + b dx dy + c dy^2/2
-        return self.records[:, CA : CC + 1]
-
-    @property
     def depths(self) -> np.ndarray:  # [N] camera z
         return self.records[:, DEPTH]
-
-    @property
-    def opacities(self) -> np.ndarray:  # [N]
-        return self.records[:, OPACITY]
-
-    @property
-    def colors(self) -> np.ndarray:  # [N, 3] RGB
-        return self.records[:, RED : BLUE + 1]
-
-    @property
-    def extents(self) -> np.ndarray:  # [N, 2] half-size of the box where alpha >= alpha_min is possible
-        return self.records[:, EX : EY + 1]
-
-    @property
-    def sigma_cuts(self) -> np.ndarray:  # [N] log(opacity / alpha_min): sigma beyond it gives alpha < alpha_min
-        return self.records[:, CUT]
 
 
 @njit(parallel=True, cache=True)
