@@ -1,7 +1,7 @@
 """The ground station's page on viser: the map as splats, the flight, queries, pictures, status.
 
 Thin: every figure comes from a source (``review.RunReview`` for a run folder, ``link.LinkSource``
-for a running graph over the ground link) and every colour from ``splats``.
+for a running graph over the ground link) and every colour from ``colours``.
 One background thread polls the source once a second; a new map version re-colours the splats
 with the last query, so the page never needs a reload. viser serves its own web client from the
 Python wheel, so the page works without internet.
@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from .colours import colour_bar_html, relevance_colours
 from .review import DEFAULT_NEGATIVES, WebAnswer, split_negatives
-from .splats import colour_bar_html, relevance_colours
 
 log = logging.getLogger(__name__)
 LEVEL_COLOURS = {"OK": "#2b8a3e", "WARN": "#e67700", "ERROR": "#c92a2a", "STALE": "#868e96"}

@@ -19,9 +19,9 @@ from ..errors import OlsplatInputError
 from ..query.answer import QueryFeatures
 from ..query.localize import Instance3D, VoxelIndex, default_cluster_radius
 from ..query.negatives import AERIAL_VOCABULARY
+from ..query.splats import BrowserSplats, browser_splats, relevance_margin
 from ..scene import Camera
 from ..storage.snapshot import LanguageMap
-from .splats import BrowserSplats, browser_splats, relevance_margin
 
 MAX_TEXT_CHARS = 200  # as the query server's max_text_chars
 MAX_NEGATIVES = 32  # as the query server's max_negatives

@@ -42,9 +42,9 @@ from ..transport.convert import reply_for, view_pose
 from .base import Node
 
 if TYPE_CHECKING:  # imported at run time inside methods: the launcher imports node classes
-    from ..ground.splats import BrowserSplats
     from ..query.answer import QueryFeatures
     from ..query.localize import VoxelIndex
+    from ..query.splats import BrowserSplats
     from ..storage import LanguageMap
 
 log = logging.getLogger(__name__)
@@ -382,7 +382,7 @@ class QueryServerNode(Node):
     def _decimation(self, max_splats: int) -> BrowserSplats:
         """The prior map decimated to ``max_splats`` (the last one kept: a ground station asks
         for one size, then queries for it)."""
-        from ..ground.splats import browser_splats
+        from ..query.splats import browser_splats
 
         if self.browser_splats is None or self.browser_splats_max != max_splats:
             self.browser_splats = browser_splats(self.gaussians, max_splats)
@@ -390,7 +390,7 @@ class QueryServerNode(Node):
         return self.browser_splats
 
     def _splats(self, request: SplatsRequest) -> SplatsReply:
-        from ..ground.splats import MAX_SPLATS, pack_splats
+        from ..query.splats import MAX_SPLATS, pack_splats
 
         if not 1 <= request.max_splats <= MAX_SPLATS:
             return SplatsReply(
@@ -430,9 +430,9 @@ class QueryServerNode(Node):
         )
 
     def _query(self, request: QueryRequest) -> QueryReply:
-        from ..ground.splats import MAX_SPLATS, relevance_margin
         from ..query.answer import answer_query
         from ..query.negatives import vocabulary_negatives
+        from ..query.splats import MAX_SPLATS, relevance_margin
         from ..scene import select_view
 
         def refuse(status: str, text: str) -> QueryReply:

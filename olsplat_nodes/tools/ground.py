@@ -83,7 +83,7 @@ def run_web(args: argparse.Namespace) -> int:
 
     require("viser", "the browser page (olsplat ground web)")
     from ..ground.page import GroundPage, serve
-    from ..ground.splats import MAX_SPLATS
+    from ..query.splats import MAX_SPLATS
 
     if not 1 <= args.max_splats <= MAX_SPLATS:
         raise OlsplatInputError(

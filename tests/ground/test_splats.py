@@ -4,18 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from olsplat_nodes.ground.colours import RAMP, UNOBSERVED, relevance_colours
 from olsplat_nodes.ground.review import query_text_problem, split_negatives
-from olsplat_nodes.ground.splats import (
-    RAMP,
-    UNOBSERVED,
-    browser_splats,
-    decimate,
-    pack_splats,
-    relevance_colours,
-    relevance_margin,
-    unpack_splats,
-)
 from olsplat_nodes.query.answer import QueryFeatures
+from olsplat_nodes.query.splats import browser_splats, decimate, pack_splats, relevance_margin, unpack_splats
 from olsplat_nodes.scene import Gaussians
 from olsplat_nodes.scene.rotations import quat_to_rotmat
 

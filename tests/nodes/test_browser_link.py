@@ -32,9 +32,9 @@ def served(ctx, sockdir, tiny, tiny_run, tmp_path):
 
 
 def test_splats_views_and_splat_relevance_over_the_link(served, monkeypatch):
-    from olsplat_nodes.ground.splats import browser_splats, pack_splats, relevance_margin
     from olsplat_nodes.nodes import query_server as server_module
     from olsplat_nodes.query.answer import QueryFeatures, encoder_for_map
+    from olsplat_nodes.query.splats import browser_splats, pack_splats, relevance_margin
     from olsplat_nodes.scene import read_ply
     from olsplat_nodes.storage import LanguageMap, latest_map, load_views
 
