@@ -209,8 +209,8 @@ def run(args: argparse.Namespace) -> int:
                 last_progress = time.monotonic()
                 done = views_stored()
                 elapsed = time.monotonic() - start
-                left = (len(cameras) - done) * elapsed / done if done else float("nan")
-                print(f"  {done}/{len(cameras)} views stored after {elapsed:.0f} s, ~{left:.0f} s left", flush=True)
+                left = f", ~{(len(cameras) - done) * elapsed / done:.0f} s left" if done else ""
+                print(f"  {done}/{len(cameras)} views stored after {elapsed:.0f} s{left}", flush=True)
         wall_s = time.monotonic() - start
         watch.sample()  # before the ingest exits
         watch.flight_over = True  # the queries below still count in the peaks

@@ -103,16 +103,19 @@ def check_report(out: str) -> None:
 def test_live_paced_flight_writes_the_documented_figures(tiny, tmp_path, capsys):
     scene, _ = tiny
     out = tmp_path / "graph.json"
-    args = ["bench", "graph", "--scene", str(scene), "--rate", "4", "--queries", "3", "--heatmap-queries", "2"]
+    # 1 frame/s: the 12 s stream outlasts the nodes' start-up gap (the ingest is ready seconds
+    # before the region encoder and the accumulator on a loaded machine, and frames sent before
+    # they are listening are lost: at 4/s every frame was, under load)
+    args = ["bench", "graph", "--scene", str(scene), "--rate", "1", "--queries", "3", "--heatmap-queries", "2"]
     args += ["--heatmap-views", "1", "--sample-s", "0.5"]  # one view: a first query and a repeat
     args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port()), "--json", str(out)]
     assert main(args) == 0
     figures = json.loads(out.read_text())
     check_common(figures)
-    assert figures["lossless"] is False and figures["rate"] == 4
-    assert figures["views_per_s"] == pytest.approx(4 * figures["frames_aggregated"] / 12, abs=1e-3)
+    assert figures["lossless"] is False and figures["rate"] == 1 and figures["frames_resent"] == 0
+    assert figures["views_per_s"] == pytest.approx(figures["frames_aggregated"] / 12, abs=1e-3)
     printed = capsys.readouterr().out
-    assert f"{figures['frames_sent']} frames sent at 4/s" in printed
+    assert f"{figures['frames_sent']} frames sent at 1/s" in printed
     assert "sustained aggregation rate" in printed
     check_report(printed)
 
