@@ -66,7 +66,8 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
             wait_for(
                 lambda: client.request(StatusRequest()).nodes[0]["values"]["query_warm"] == 1, 60, "the warm query"
             )
-            assert list(node.encoders) == [node.language_map.encoder] and node.warm_query.result() > 0
+            service = node.service  # the map and its caches (query/service.py)
+            assert list(service.encoders) == [service.language_map.encoder] and service.warm_query.result() > 0
             client.timeout_s = 30.0
             reply = client.request(
                 QueryRequest(request_id="q", text="red roof buildings", view=ENCODE_VIEW, heatmap=True)
