@@ -27,9 +27,10 @@ from olsplat_msgs import (
 )
 
 from ..query.localize import Instance3D
+from ..query.service import MapState
 from ..query.splats import BrowserSplats, unpack_splats
 from ..scene import Camera
-from .review import MapState, WebAnswer, map_row, prepared_query, view_pictures
+from .review import WebAnswer, map_row, prepared_query, view_pictures
 
 LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
