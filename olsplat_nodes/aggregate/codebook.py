@@ -91,8 +91,8 @@ class LiveCodebook:
     new ground that the centres may no longer cover its features. Between fits only the rows a
     pass recomputed are assigned, against the same centres."""
 
-    # 20,000 sampled rows fit 1,024 centres in ~3-6 s on this VM's two cores (100,000: ~90 s);
-    # assigning costs ~10 us per Gaussian and is done for the observed ones only
+    # the fit's cost grows with the sample (20,000 rows: seconds; 100,000: minutes on two cores);
+    # assigning is per Gaussian and done for the observed ones only
     def __init__(self, k: int, sample: int = 20_000, seed: int = 0):
         self.k, self.sample, self.seed = k, sample, seed
         self.centres: np.ndarray | None = None  # [K, D] float32 unit rows

@@ -29,8 +29,8 @@ class RegionConfig:
     edge_weight: float = 3.0  # weight of the boundary gradient against the colour difference
     # Work on the image resized by this factor (superpixel size and smoothing radius scaled with
     # it, region counts not) and upsample the label maps (nearest): ~1/work_scale^2 cheaper,
-    # region edges on a 1/work_scale pixel grid. 0.5: 0.11 s instead of 0.38 s per 640x480
-    # frame, and on held-out seeds 1 and 2 mIoU 77.4 / Loc@50 71.7 against 76.8 / 71.1 at 1.0.
+    # region edges on a 1/work_scale pixel grid. 0.5 cuts the region step to about a third with
+    # no loss of accuracy on held-out seeds (docs/decisions.md, `olsplat bench regions`).
     work_scale: float = 0.5
 
     def __post_init__(self) -> None:

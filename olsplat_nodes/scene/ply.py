@@ -63,8 +63,8 @@ def read_ply(path: str | Path, on_nonfinite: NonFinitePolicy = "error") -> Gauss
 
     # INRIA files hold float32 fields only: the body is then one [N, fields] float32 matrix (the
     # memory-mapped file), and a column block is taken in one parallel row-major pass
-    # (``_columns``; stacking the strided field views one by one took ~7 s for 5M Gaussians,
-    # numpy's fancy indexing of the mapped matrix ~4 s, this pass well under 1 s)
+    # (``_columns``: one pass over the file's pages, where stacking the strided field views one by
+    # one, or numpy's fancy indexing of the mapped matrix, reads every page many times)
     matrix = None
     if all(vertex.dtype[name] == np.dtype("<f4") for name in fields) and vertex.dtype.itemsize == 4 * len(fields):
         matrix = np.asarray(vertex).view("<f4").reshape(len(vertex), len(fields))

@@ -392,7 +392,7 @@ class ObservationStore:
                 selected = self.touched.copy()
             else:
                 # every Gaussian, but one that no view observed is 0 without being computed: at the
-                # first pass of a large flight that is most of the map (10 s of a 15 s pass at 5M)
+                # first pass of a large flight that is most of the map, and most of the pass's time
                 selected = counts > 0
                 if F is not None:
                     F[~selected] = 0
