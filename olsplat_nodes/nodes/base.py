@@ -95,7 +95,7 @@ class Node:
         try:
             began = time.monotonic()
             self.setup()
-            # what start-up costs, in every node's log (``olsplat bench scale`` reports it):
+            # what start-up costs, in every node's log (``olsplat bench graph`` reports it):
             # from the process's start (imports included) and of the node's own setup
             log.info(
                 "%s ready: %.1f s after its process started, setup %.1f s",
