@@ -106,14 +106,35 @@ def composite_tiles(splats, lists, canvas, topk, out):
     image); else out.features is [H, W, D]. With queries, out.unit [H * W, D] (when it has
     rows) also receives the unit rendered feature F / |F| of each pixel (a row of 0 where
     nothing was rendered). Top-K with topk.k_cap > 0 (its largest K), none with 0."""
-    # the fields as local names, read once here: the loops below see plain arrays and scalars
-    records, features, feature_rows = splats.records, splats.features, splats.feature_rows
-    offsets, slots, order, tile_order = lists.offsets, lists.slots, lists.order, lists.tile_order
-    width, height, tile_size = canvas.width, canvas.height, canvas.tile_size
-    feature_eps, background, queries = canvas.feature_eps, canvas.background, canvas.queries
-    k_cap, topk_min, topk_coverage = topk.k_cap, topk.topk_min, topk.coverage
-    out_rgb, out_alpha, out_depth, out_features = out.rgb, out.alpha, out.depth, out.features
-    out_topk_ids, out_topk_weights, out_evals, out_unit = out.topk_ids, out.topk_weights, out.evals, out.unit
+    # The fields as local names, read once here, one per statement: the parallel loop below sees
+    # plain arrays and scalars under their own names, and numba sorts the loop's arguments by
+    # name, so the loop compiles to the instructions it had when these were the kernel's
+    # parameters (unpacked several to a statement they get temporary names, another argument
+    # order, another register allocation).
+    records = splats.records
+    features = splats.features
+    feature_rows = splats.feature_rows
+    offsets = lists.offsets
+    slots = lists.slots
+    order = lists.order
+    tile_order = lists.tile_order
+    width = canvas.width
+    height = canvas.height
+    tile_size = canvas.tile_size
+    feature_eps = canvas.feature_eps
+    background = canvas.background
+    queries = canvas.queries
+    k_cap = topk.k_cap
+    topk_min = topk.topk_min
+    topk_coverage = topk.coverage
+    out_rgb = out.rgb
+    out_alpha = out.alpha
+    out_depth = out.depth
+    out_features = out.features
+    out_topk_ids = out.topk_ids
+    out_topk_weights = out.topk_weights
+    out_evals = out.evals
+    out_unit = out.unit
     tiles_x = (width + tile_size - 1) // tile_size
     n_feat = features.shape[1]
     n_pix = tile_size * tile_size
