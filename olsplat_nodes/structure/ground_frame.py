@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from .descriptors import estimate_up, ground_axes, height_above_ground
 from .points import StructuralPoints
@@ -43,13 +42,14 @@ def ground_frame(points: StructuralPoints, camera_centres: np.ndarray) -> Ground
     return GroundFrame(positions @ rotation.T / voxel, inputs, height / voxel)
 
 
-def voxelise(voxels: np.ndarray, inputs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+def voxelise(voxels: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(coords [N, 3] int64, voxel inputs [N, C] float32 = mean of their points', inverse [P]:
-    each point's voxel row) of points at float voxel positions."""
+    each point's voxel row) of points at float voxel positions. numpy arrays: the network's
+    callers wrap them as tensors (this module needs no torch, which is an extra)."""
     coords = np.floor(voxels).astype(np.int64)
     unique, inverse = np.unique(coords, axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
     sums = np.zeros((len(unique), inputs.shape[1]))
     np.add.at(sums, inverse, inputs)
     mean = sums / np.bincount(inverse, minlength=len(unique))[:, None]
-    return torch.from_numpy(unique), torch.from_numpy(mean.astype(np.float32)), inverse
+    return unique, mean.astype(np.float32), inverse

@@ -191,6 +191,6 @@ def minkunet_point_features(model: MinkUNet, points: StructuralPoints, camera_ce
         inputs = np.c_[centred / max(np.abs(centred).max(), 1e-12), points.opacity].astype(np.float32)
     coords, voxel_inputs, inverse = voxelise(voxels, inputs)
     with torch.no_grad():
-        out = model(SparseTensor(coords, voxel_inputs, 1))
+        out = model(SparseTensor(torch.from_numpy(coords), torch.from_numpy(voxel_inputs), 1))
     # the network returns to the input coordinates at stride 1, in the same row order
     return out.feats.numpy().astype(np.float32)[inverse]

@@ -136,7 +136,7 @@ def _view_segment_features(model, head, tmap: TrainingMap, keep, moved, common):
     """[len(common), head_dim] projected, normalised features of the segments ``common`` in one
     augmented view (points ``keep`` of the map at positions ``moved``), row i = common[i]."""
     coords, inputs, inverse = voxelise(moved, tmap.frame.inputs[keep])
-    voxel_feats = model(SparseTensor(coords, inputs, 1)).feats
+    voxel_feats = model(SparseTensor(torch.from_numpy(coords), torch.from_numpy(inputs), 1)).feats
     seg = tmap.segment[keep]
     rank = np.full(tmap.segment.max() + 2, -1, np.int64)
     rank[common] = np.arange(len(common))
