@@ -1,8 +1,9 @@
 """olsplat: open-vocabulary 3D scene understanding for UAVs on a CPU.
 
 The numeric core (``scene``, ``raster``, ``regions``, ``encoders``, ``structure``,
-``aggregate``, ``method``, ``query``) is pure functions and dataclasses plus the run's on-disk
-storage, and never touches a socket. Around it: ``nodes`` (thin wrappers over the core),
+``aggregate``, ``method``, ``query``) is pure functions and dataclasses, and ``storage`` is the
+run's on-disk state; none of them touches a socket (docs/architecture.md, "Layers"). Around
+them: ``nodes`` (thin wrappers over the core),
 ``transport`` (ZeroMQ), ``launcher``, ``sources`` and ``telemetry`` (the drone's runtime path);
 ``pipeline``, ``evaluate``, ``bench`` and ``tools`` (offline runs, studies and the ``olsplat``
 command).

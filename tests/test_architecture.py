@@ -17,6 +17,7 @@ modules anywhere. Beside it, what the layers alone do not say:
 from __future__ import annotations
 
 import ast
+import graphlib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,45 +116,14 @@ def _path(seen: dict[str, str], end: str) -> str:
 
 
 def _cycles() -> list[list[str]]:
-    """The strongly connected components of more than one module (Tarjan, iterative)."""
-    graph = {m: sorted({_module_of(i) for i in _imports(m)} - {"", m}) for m in MODULES}
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on_stack: set[str] = set()
-    found = []
-    for root in graph:
-        if root in index:
-            continue
-        work = [(root, 0)]
-        while work:
-            node, child = work.pop()
-            if child == 0:
-                index[node] = low[node] = len(index)
-                stack.append(node)
-                on_stack.add(node)
-            if child < len(graph[node]):
-                work.append((node, child + 1))
-                nxt = graph[node][child]
-                if nxt not in index:
-                    work.append((nxt, 0))
-                elif nxt in on_stack:
-                    low[node] = min(low[node], index[nxt])
-                continue
-            if low[node] == index[node]:
-                component = []
-                while True:
-                    member = stack.pop()
-                    on_stack.discard(member)
-                    component.append(member)
-                    if member == node:
-                        break
-                if len(component) > 1:
-                    found.append(sorted(component))
-            if work:
-                parent = work[-1][0]
-                low[parent] = min(low[parent], low[node])
-    return found
+    """The modules of an import cycle, sorted ([] when there is none; one cycle at a time:
+    the standard library's topological sort stops at the first it meets)."""
+    graph = {m: {_module_of(i) for i in _imports(m)} - {"", m} for m in MODULES}
+    try:
+        graphlib.TopologicalSorter(graph).prepare()
+    except graphlib.CycleError as exc:
+        return [sorted(set(exc.args[1]))]
+    return []
 
 
 def test_the_walk_sees_lazy_and_relative_imports():
