@@ -23,6 +23,7 @@ EXTRA_OF_MODULE: dict[str, str] = {
     "ray": "cluster",
     "onnx": "export",
     "onnxscript": "export",
+    "pyproj": "geo",
 }
 
 
