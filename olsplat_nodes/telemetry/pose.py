@@ -3,7 +3,7 @@
 Frames (stated once, used everywhere in this package):
 - **NED**: the autopilot's local frame, metres, +x north, +y east, +z down. LOCAL_POSITION_NED
   is already in it (origin: the autopilot's EKF origin); GLOBAL_POSITION_INT is converted into
-  it around a reference point (``geodetic_to_ned``).
+  it around a reference point (``geodetic_to_ned``, from ``scene/geodesy.py``).
 - **Body FRD**: +x forward (nose), +y right, +z down. MAVLink ATTITUDE gives roll, pitch, yaw
   (radians) of the body w.r.t. NED as Z-Y-X Tait-Bryan angles:
   ``ned_from_body = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
@@ -26,13 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# WGS-84 ellipsoid.
-WGS84_A = 6378137.0  # semi-major axis, metres
-WGS84_F = 1.0 / 298.257223563
-WGS84_E2 = WGS84_F * (2.0 - WGS84_F)  # first eccentricity squared
+# the WGS-84 maths live in the core (scene/geodesy.py); their old names stay importable from here
+from ..scene.geodesy import ENU_FROM_NED, WGS84_A, WGS84_E2, WGS84_F, geodetic_to_ned  # noqa: F401
 
-# Columns: NED axes written in ENU (x_enu = y_ned, y_enu = x_ned, z_enu = -z_ned).
-ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 # Columns: OpenCV camera axes (right, down, optical axis) written in the camera-body frame
 # (x optical axis, y right, z down).
 CAMBODY_FROM_OPENCV = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -111,38 +107,6 @@ class CameraMount:
     ) -> CameraMount:
         """Mount from camera-body angles in degrees (default: nadir) and a lever arm."""
         return cls(mount_rotation(roll_deg, pitch_deg, yaw_deg), lever_arm_m)
-
-
-def geodetic_to_ned(lat_deg, lon_deg, alt_m, reference) -> np.ndarray:
-    """WGS-84 latitude/longitude (degrees) and altitude (metres) -> [..., 3] NED metres.
-
-    ``reference`` is (lat_deg, lon_deg, alt_m) of the NED origin. Exact through ECEF, no
-    flat-earth approximation. Altitudes may be above mean sea level (MAVLink ``alt``) as long
-    as the reference uses the same datum: the geoid offset is constant over a flight area.
-    """
-    lat0, lon0, alt0 = (float(v) for v in reference)
-    ecef = _ecef(lat_deg, lon_deg, alt_m)
-    ecef0 = _ecef(lat0, lon0, alt0)
-    phi, lam = np.radians(lat0), np.radians(lon0)
-    sp, cp, sl, cl = np.sin(phi), np.cos(phi), np.sin(lam), np.cos(lam)
-    ned_from_ecef = np.array([[-sp * cl, -sp * sl, cp], [-sl, cl, 0.0], [-cp * cl, -cp * sl, -sp]])
-    return (ecef - ecef0) @ ned_from_ecef.T
-
-
-def _ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
-    """[..., 3] Earth-centred Earth-fixed metres."""
-    phi = np.radians(np.asarray(lat_deg, np.float64))
-    lam = np.radians(np.asarray(lon_deg, np.float64))
-    h = np.asarray(alt_m, np.float64)
-    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(phi) ** 2)  # prime vertical radius
-    return np.stack(
-        [
-            (n + h) * np.cos(phi) * np.cos(lam),
-            (n + h) * np.cos(phi) * np.sin(lam),
-            (n * (1.0 - WGS84_E2) + h) * np.sin(phi),
-        ],
-        -1,
-    )
 
 
 def world_from_camera(position_ned, ned_from_body, mount: CameraMount | None = None) -> np.ndarray:
