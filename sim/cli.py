@@ -55,6 +55,15 @@ def add_parser(subparsers) -> None:
     )
     make.add_argument("--no-pose-noise", action="store_true", help="write the true poses to sparse/0 and the log")
     make.add_argument(
+        "--bag",
+        nargs="?",
+        const="mcap",
+        choices=("mcap", "sqlite3"),
+        metavar="STORAGE",
+        help="also write the flight as a ROS 2 bag, replay_bag/ (rosbag2 folder; storage mcap or sqlite3, "
+        "default mcap): replay.mcap's frames for ros2 bag and other ROS tools",
+    )
+    make.add_argument(
         "--world",
         choices=("v1", "v2", "v2g"),
         default="v1",
@@ -153,7 +162,7 @@ def run_make(args: argparse.Namespace) -> int:
         ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
     )
     options = MakeOptions(world, recon, rate_hz=args.rate, fov_deg=args.fov)
-    make_dataset(preset, args.seed, args.out, options, flight_seed=args.flight_seed)
+    make_dataset(preset, args.seed, args.out, options, flight_seed=args.flight_seed, bag=args.bag)
     return 0
 
 

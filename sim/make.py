@@ -3,11 +3,13 @@
 Output folder (documented in sim/README.md):
 
     map/point_cloud.ply        the reconstructed map (INRIA PLY), what the method runs on
+    map/georef.json            where the town lies on the Earth (``TOWN_GEOREF``)
     sparse/0/                  COLMAP text model: the SfM poses (with pose noise) of every image
     images/                    the frames as JPEG, + timestamps.csv (name, stamp_ns)
     annotations/<frame>.json   LabelMe polygons of the visible targets in each frame
     queries.json               evaluation queries: text, target labels, instance ids
     replay.mcap                the flight as a replay log (images, calibration, poses)
+    replay_bag/                with ``bag``: the same flight as a ROS 2 bag (rosbag2 folder)
     truth/                     labels of every map Gaussian, the true scene and true poses
     preview/                   contact_sheet.jpg and overview.jpg
     scene.json                 how the dataset was made (preset, seed, flight seed, counts, parameters)
@@ -25,14 +27,17 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
 
 from olsplat_nodes.raster import rasterize
 from olsplat_nodes.scene import Camera, Gaussians, write_colmap, write_ply
+from olsplat_nodes.scene.geodesy import Georeference, write_georef
 from olsplat_nodes.sources import SourceFrame
-from olsplat_nodes.sources.replay_log import encode_jpeg, write_mcap, write_timestamps
+from olsplat_nodes.sources.replay_log import encode_jpeg, read_replay, write_mcap, write_timestamps
+from olsplat_nodes.sources.rosbag_write import write_rosbag2
 
 from .annotate import annotate_view, label_maps
 from .appearance import sun_vector, with_view_dependence
@@ -51,6 +56,12 @@ BACKGROUND = (0.45, 0.43, 0.38)  # beyond the town: bare land, not a black void
 # reconstruction, pose); a flight seed M from the fifth child of SeedSequence(M), so that flight
 # M shares no stream with the town or the default flight of any seed.
 FLIGHT_SEED_CHILD = 4
+# Where the town lies on the Earth (map/georef.json; sim/README.md): its world frame is ENU metres
+# (layout.py), its centre at PX4's simulator home near Zurich, the ground on the WGS-84 ellipsoid's
+# 488 m, so that answers come out in latitude, longitude and an RFC 7946 height.
+TOWN_GEOREF = Georeference(
+    47.397742, 8.545594, 488.0, height_ref="ellipsoid", source="olsplat sim make: the town centre at PX4's SITL home"
+)
 
 
 @dataclass(frozen=True)
@@ -153,11 +164,14 @@ def make_dataset(
     options: MakeOptions = MakeOptions(),
     log=print,
     flight_seed: int | None = None,
+    bag: Literal["mcap", "sqlite3"] | None = None,
 ) -> dict:
     """Write the dataset of ``preset`` and ``seed`` to ``out``; returns the scene.json summary.
 
     ``flight_seed`` (>= 0): the same town and map, flown on another path (turned, other pose and
-    sensor noise, frames ``flight<M>_frame_NNNN.jpg``); None: the seed's own flight."""
+    sensor noise, frames ``flight<M>_frame_NNNN.jpg``); None: the seed's own flight. ``bag``: also
+    write replay.mcap's frames (its JPEG bytes, stamps, names, cameras) to the rosbag2 folder
+    replay_bag/ in that storage."""
     start = time.perf_counter()
     for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -172,6 +186,7 @@ def make_dataset(
     sfm_cameras = [perturb_pose(f.camera, options.reconstruction, pose_rng) for f in frames]
 
     write_ply(out / "map" / "point_cloud.ply", recon.gaussians)
+    write_georef(out / "map", TOWN_GEOREF)
     write_colmap(out / "sparse" / "0", sfm_cameras, binary=False)
     write_colmap(out / "truth" / "true_poses", [f.camera for f in frames], binary=False)
     write_ply(out / "truth" / "ground_truth.ply", truth.gaussians)
@@ -214,6 +229,8 @@ def make_dataset(
             yield SourceFrame(i, frame.stamp_ns, frame.camera.name, image, sfm_cameras[i], jpeg)
 
     write_mcap(out / "replay.mcap", rendered())
+    if bag is not None:
+        write_rosbag2(out / "replay_bag", read_replay(out / "replay.mcap"), bag)
     write_timestamps(out / "images" / "timestamps.csv", [f.camera.name for f in frames], [f.stamp_ns for f in frames])
 
     queries = []
