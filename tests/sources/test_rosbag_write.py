@@ -204,3 +204,14 @@ def test_record_a_replay_log_to_a_bag(tmp_path, capsys, storage):
     assert "a rosbag2 bag is a folder; give a name without .mcap" in capsys.readouterr().err
     assert main(["record", "--source", "s.mcap", "--storage", "sqlite3", "--out", str(tmp_path / "y")]) == 1
     assert "--storage sqlite3 is for --format rosbag2" in capsys.readouterr().err
+
+
+def test_record_nothing_leaves_no_bag(tmp_path):
+    from olsplat_nodes.sources import PacedSource
+    from olsplat_nodes.sources.record import record
+
+    assert record(PacedSource([], fast=True), tmp_path / "empty", out_format="rosbag2") == 0
+    assert list(tmp_path.iterdir()) == []
+    frames = make_frames(2)
+    assert record(PacedSource(frames, fast=True), tmp_path / "two", out_format="rosbag2", storage="sqlite3") == 2
+    assert (tmp_path / "two" / "two.db3").is_file()
