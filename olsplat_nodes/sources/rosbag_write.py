@@ -33,6 +33,7 @@ import numpy as np
 from ..errors import OlsplatInputError
 from ..scene import Camera
 from ..scene.rotations import rotmat_to_quat
+from ..telemetry.tf import LINK_FROM_OPTICAL
 from .base import SourceFrame
 from .replay_log import encode_jpeg
 
@@ -54,10 +55,8 @@ TOPICS = {
     "/tf": "tf2_msgs/msg/TFMessage",
     "/tf_static": "tf2_msgs/msg/TFMessage",
 }
-# camera_link (FLU) from camera_optical_frame (x right, y down, z forward): the optical z axis is
-# the link's x, optical x is -y, optical y is -z (REP-103's static rpy (-pi/2, 0, -pi/2)).
-LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-_OPTICAL_FROM_LINK = LINK_FROM_OPTICAL.T  # a rotation: its inverse is its transpose
+# camera_link (FLU) from camera_optical_frame (telemetry/tf.py, REP-103): a rotation, inverted by its transpose
+_OPTICAL_FROM_LINK = LINK_FROM_OPTICAL.T
 _MAX_STAMP_NS = 2**31 * 1_000_000_000  # builtin_interfaces/Time.sec is an int32
 
 
