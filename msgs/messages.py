@@ -38,6 +38,11 @@ class Instance3D(TypedDict):
     centroid: list[float]  # [x, y, z] world metres
     box_min: list[float]  # [x, y, z] world metres
     box_max: list[float]  # [x, y, z] world metres
+    latitude: float  # WGS-84 degrees of the centroid; NaN: the map has no georeference
+    longitude: float  # WGS-84 degrees
+    altitude: float  # metres above QueryReply.height_ref
+    footprint: list[float]  # 8: [lon, lat] x 4 lower box corners, counter-clockwise, degrees
+    box_altitude: list[float]  # [lowest, highest] metres above QueryReply.height_ref
 
 
 class Instance2D(TypedDict):
@@ -159,6 +164,7 @@ class QueryReply:
     text: str = ""
     view: str = ""
     map_version: int = 0
+    height_ref: str = ""  # "ellipsoid" | "msl" | "" (no georeference: the instances' geodetic fields are NaN)
     instances: list[Instance] = field(default_factory=list)
     heatmap: np.ndarray | None = None  # [H, W] float32 in [0, 1]
     mask: np.ndarray | None = None  # [H, W] uint8, 0 | 1

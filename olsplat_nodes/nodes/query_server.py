@@ -265,7 +265,7 @@ class QueryServerNode(Node):
                 view=request.view,
                 map_version=result.version,
             )
-        reply = reply_for(result.answer, request, result.version, result.photo, 0.0)
+        reply = reply_for(result.answer, request, result.version, result.photo, 0.0, self.service.georef)
         if result.margin is not None:  # the page's colours, per splat of its decimation
             reply.splat_margin = result.margin.astype(np.float16)
         return reply

@@ -13,7 +13,9 @@ first query: the warm-up (compiles the numba kernels, builds the voxel index), t
 cache's reservation (touches its memory) and the warm query (loads the text encoder, queries the
 first map once); ``close()`` joins them.
 
-Coordinates are the prior map's (world metres); cameras follow ``scene.Camera`` (OpenCV axes: x
+Coordinates are the prior map's (world metres); ``georef`` places them on the Earth when the map
+has a ``georef.json`` (beside the prior map's PLY, else in ``map_dir``: a run's, from its
+source). Cameras follow ``scene.Camera`` (OpenCV axes: x
 right, y down, z forward; pixels with the top-left pixel's centre at (0.5, 0.5)). No sockets
 here: requests and replies are the caller's.
 """
@@ -36,6 +38,7 @@ from ..errors import OlsplatInputError
 
 if TYPE_CHECKING:  # the heavy modules load at run time: a node class is imported by the launcher
     from ..scene import Camera
+    from ..scene.geodesy import Georeference
     from ..storage import LanguageMap, SavedView
     from .answer import CachedTexts, QueryAnswer, QueryFeatures
     from .localize import VoxelIndex
@@ -208,6 +211,10 @@ class MapService:
         self.max_text_chars, self.max_negatives = max_text_chars, max_negatives
         self.max_reply_mb, self.heatmap_max_side = max_reply_mb, heatmap_max_side
         self.gaussians = read_ply(prior_map)
+        self.prior_map = Path(prior_map)
+        self.georef: Georeference | None = None  # None: answers stay in map coordinates
+        self.georef_problem: str | None = None  # why a georef.json found could not be used
+        self._find_georef()
         # from the prior map's density once (~30 ms for 390k Gaussians): not again for every query
         self.cluster_radius = cluster_radius or default_cluster_radius(self.gaussians.means, cluster_min_points)
         # the map's centres sorted by voxel once (~1.5 s for 5M, in the warm-up thread, not delaying
@@ -254,6 +261,8 @@ class MapService:
         between ``latest.json`` and the file) is tried again at the next call; one whose Gaussian
         count differs from the prior map's is refused (``refusal`` says why, logged once)."""
         changed = self._load_newer_map()
+        if self.georef is None:  # a run's source may write one after the service started
+            self._find_georef()
         if views:
             before = len(self._views)
             changed = len(self.views()) != before or changed
@@ -296,6 +305,25 @@ class MapService:
         if self.warm_query is None:
             self.warm_query = Background(f"{self.name}-warm-query", self._warm_query, self.loaded)
         return True
+
+    def _find_georef(self) -> None:
+        """Read the map's georeference: ``georef.json`` beside the prior map's PLY, else in
+        ``map_dir``. A file that cannot be used is logged once and its one-line reason kept in
+        ``georef_problem``; answers then stay in map coordinates."""
+        from ..scene.geodesy import find_georef, read_georef
+
+        path = find_georef(self.prior_map.parent, self.map_dir)
+        if path is None:
+            return
+        try:
+            self.georef = read_georef(path)
+        except OlsplatInputError as exc:
+            if self.georef_problem != str(exc):
+                log.error("no georeference: %s", exc)
+            self.georef_problem = str(exc)
+            return
+        self.georef_problem = None
+        log.info("georeference %s: %s", path, self.georef)
 
     def views(self) -> list[SavedView]:
         """The run's saved views in index order, re-read when the folder has more view records

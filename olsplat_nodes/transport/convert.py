@@ -133,9 +133,19 @@ def split_bank(message: RegionFeatures) -> tuple[np.ndarray, list[np.ndarray]]:
     return labels, [np.asarray(features[offsets[i] : offsets[i + 1]], np.float32) for i in range(len(sizes))]
 
 
-def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray | None, seconds: float) -> QueryReply:
+def reply_for(
+    answer,
+    request: QueryRequest,
+    map_version: int,
+    image: np.ndarray | None,
+    seconds: float,
+    georef=None,
+) -> QueryReply:
     """The wire answer of a core ``query.QueryAnswer``: 3D instances, then the 2D regions in the view, as
-    ``Instance`` records (``msgs/schema.yaml``; ``encode`` checks them)."""
+    ``Instance`` records (``msgs/schema.yaml``; ``encode`` checks them). With ``georef`` (the map's
+    ``scene.geodesy.Georeference``) the 3D instances carry latitude, longitude and altitudes, else NaN."""
+    from ..query.geojson import locate
+
     instances: list[Instance] = [
         Instance3D(
             id=i,
@@ -144,8 +154,13 @@ def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray
             centroid=[float(x) for x in inst.centre],  # world metres
             box_min=[float(x) for x in inst.box_min],
             box_max=[float(x) for x in inst.box_max],
+            latitude=inst.latitude,
+            longitude=inst.longitude,
+            altitude=inst.altitude,
+            footprint=[float(v) for corner in inst.footprint for v in corner],  # [lon, lat] x 4
+            box_altitude=[float(v) for v in inst.box_altitude],
         )
-        for i, inst in enumerate(answer.instances)
+        for i, inst in enumerate(locate(answer.instances, georef))
     ]
     instances += [
         Instance2D(
@@ -168,6 +183,7 @@ def reply_for(answer, request: QueryRequest, map_version: int, image: np.ndarray
         text=answer.text,
         view=request.view,
         map_version=map_version,
+        height_ref="" if georef is None else georef.height_ref,
         instances=instances,
         heatmap=None if answer.heatmap is None else answer.heatmap.astype(np.float32),
         mask=None if answer.mask is None else answer.mask.astype(np.uint8),

@@ -111,6 +111,7 @@ def sample_messages() -> list[tuple[str, object]]:
                 text="road",
                 view="v000",
                 map_version=5,
+                height_ref="ellipsoid",
                 instances=[
                     Instance3D(
                         id=0,
@@ -119,9 +120,24 @@ def sample_messages() -> list[tuple[str, object]]:
                         centroid=[1.0, 2.0, 3.0],
                         box_min=[0.5, -1e300, 2.0],
                         box_max=[1.5, 2.5, math.inf],
+                        latitude=47.397742,
+                        longitude=8.545594,
+                        altitude=491.5,
+                        footprint=[8.5, 47.3, 8.6, 47.3, 8.6, 47.4, 8.5, 47.4],
+                        box_altitude=[490.0, 493.0],
                     ),
                     Instance3D(
-                        id=1, kind="3d", n_gaussians=2**62, centroid=[0.0] * 3, box_min=[0.0] * 3, box_max=[0.0] * 3
+                        id=1,
+                        kind="3d",
+                        n_gaussians=2**62,
+                        centroid=[0.0] * 3,
+                        box_min=[0.0] * 3,
+                        box_max=[0.0] * 3,
+                        latitude=-90.0,
+                        longitude=180.0,
+                        altitude=-1e300,
+                        footprint=[0.0] * 8,
+                        box_altitude=[-math.inf, 1e300],
                     ),
                     Instance2D(id=0, kind="2d", box2d=[0, 1, 2, 3], centre_px=[1.0, 2.0], area_px=4),
                 ],

@@ -55,7 +55,7 @@ def test_header_layout():
     msg = next(m for n, m in SAMPLES if n == "reply-none-arrays")
     header = msgpack.unpackb(encode(msg, "query")[1])
     assert list(header) == ["schema", "version", "stamp_ns", "seq", "frame_id", "fields", "arrays"]
-    assert header["schema"] == "olsplat_msgs/QueryReply" and header["version"] == 2
+    assert header["schema"] == "olsplat_msgs/QueryReply" and header["version"] == 3
     assert "heatmap" not in header["fields"] and header["fields"]["status"] == "no_map"
     assert header["arrays"][0] == {"name": "heatmap", "dtype": None, "shape": None}
 
@@ -187,6 +187,11 @@ def test_records_from_numpy_and_tuples_are_written_as_plain_lists():
                 centroid=centre,
                 box_min=(np.float64(0.5), 1, 2.0),
                 box_max=centre + 1,
+                latitude=np.float64(47.5),
+                longitude=8,
+                altitude=np.float32(400.5),
+                footprint=np.arange(8, dtype=np.float64),
+                box_altitude=(np.float64(400.0), 401),
             ),
             Instance2D(
                 id=0, kind="2d", box2d=tuple(np.arange(4)), centre_px=(0.5, np.float32(1.5)), area_px=np.int64(9)
@@ -203,6 +208,11 @@ def test_records_from_numpy_and_tuples_are_written_as_plain_lists():
             "centroid": [1.0, 2.0, 3.0],
             "box_min": [0.5, 1.0, 2.0],
             "box_max": [2.0, 3.0, 4.0],
+            "latitude": 47.5,
+            "longitude": 8.0,
+            "altitude": 400.5,
+            "footprint": [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0],
+            "box_altitude": [400.0, 401.0],
         },
         {"id": 0, "kind": "2d", "box2d": [0, 1, 2, 3], "centre_px": [0.5, 1.5], "area_px": 9},
     ]

@@ -43,7 +43,17 @@ def _region_frames() -> list[bytes]:
 
 INSTANCES = [
     Instance3D(
-        id=0, kind="3d", n_gaussians=30, centroid=[1.0, 2.0, 3.0], box_min=[0.0, 1.0, 2.0], box_max=[2.0, 3.0, 4.0]
+        id=0,
+        kind="3d",
+        n_gaussians=30,
+        centroid=[1.0, 2.0, 3.0],
+        box_min=[0.0, 1.0, 2.0],
+        box_max=[2.0, 3.0, 4.0],
+        latitude=47.0,
+        longitude=8.0,
+        altitude=403.0,
+        footprint=[8.0, 47.0, 8.1, 47.0, 8.1, 47.1, 8.0, 47.1],
+        box_altitude=[402.0, 404.0],
     ),
     Instance2D(id=0, kind="2d", box2d=[0, 1, 2, 3], centre_px=[1.5, 2.5], area_px=4),
 ]
@@ -123,7 +133,8 @@ CASES = [
         "olsplat_msgs/Teleport",
     ),
     ("foreign-schema", _with_header(STATUS, _set("schema", "sensor_msgs/Image")), UnknownSchema, "sensor_msgs/Image"),
-    ("version-3", _with_header(STATUS, _set("version", 3)), UnsupportedVersion, "version 3"),
+    ("version-4", _with_header(STATUS, _set("version", 4)), UnsupportedVersion, "version 4"),
+    ("version-2", _with_header(STATUS, _set("version", 2)), UnsupportedVersion, "version 2"),
     ("version-0", _with_header(STATUS, _set("version", 0)), UnsupportedVersion, "version 0"),
     ("version-str", _with_header(STATUS, _set("version", "1")), MalformedMessage, "'version' must be an int"),
     ("version-missing", _with_header(STATUS, _delete("version")), MalformedMessage, "'version' must be an int"),

@@ -50,7 +50,7 @@ def test_class_fields_match_schema_field_by_field(name):
 
 
 def test_schema_basics():
-    assert SCHEMA.version == 2 == olsplat_msgs.VERSION
+    assert SCHEMA.version == 3 == olsplat_msgs.VERSION
     assert set(SCHEMA.dtypes.values()) == {"|u1", "<u2", "<i4", "<i8", "<f2", "<f4", "<f8"}
     for name, text in SCHEMA.dtypes.items():
         assert np.dtype(name).newbyteorder("<").str == text
@@ -71,6 +71,11 @@ def test_instance_record_in_the_schema():
         ("centroid", "float[3]"),
         ("box_min", "float[3]"),
         ("box_max", "float[3]"),
+        ("latitude", "float"),
+        ("longitude", "float"),
+        ("altitude", "float"),
+        ("footprint", "float[8]"),
+        ("box_altitude", "float[2]"),
     ]
     assert [(f.name, f.type) for f in record.fields_of("2d")] == [
         ("id", "int"),
@@ -83,7 +88,8 @@ def test_instance_record_in_the_schema():
     assert instances.type == "list[Instance]" and instances.record is record
     for f in record.fields:
         assert f.description.strip() and not f.optional, f.name
-    assert "metres" in record.fields[3].description and "(0.5, 0.5)" in record.fields[7].description
+    assert "metres" in record.fields[3].description and "(0.5, 0.5)" in record.fields[12].description
+    assert "degrees" in record.fields[6].description and "counter-clockwise" in record.fields[9].description
 
 
 def test_record_typeddicts_match_schema_key_by_key():
@@ -95,6 +101,7 @@ def test_record_typeddicts_match_schema_key_by_key():
         "str": str,
         "float[2]": list[float],
         "float[3]": list[float],
+        "float[8]": list[float],
         "int[4]": list[int],
     }
     assert list(RECORDS) == list(SCHEMA.records)
@@ -106,7 +113,7 @@ def test_record_typeddicts_match_schema_key_by_key():
         assert hints == {f.name: typing.Literal[kind] if f.name == "kind" else python[f.type] for f in specs}
         assert cls.__required_keys__ == frozenset(hints)
     assert typing.get_args(olsplat_msgs.Instance) == (Instance3D, Instance2D)
-    assert dataclasses.fields(QueryReply)[9].type == "list[Instance]"
+    assert dataclasses.fields(QueryReply)[10].type == "list[Instance]"
 
 
 def test_check_against_schema_catches_a_record_drift(monkeypatch):
@@ -182,7 +189,7 @@ def test_readme_documents_every_record_field_with_its_kinds_and_type():
             kinds = ", ".join(f.kinds) or "all"
             assert f"| {i} | `{f.name}` | {kinds} | {f.type} | {f.description}" in block
     assert "In `QueryReply.instances`." in block
-    assert "| 9 | `instances` | list[Instance] | [] | header.fields |" in readme_block(
+    assert "| 10 | `instances` | list[Instance] | [] | header.fields |" in readme_block(
         README.read_text(encoding="utf-8"), "messages"
     )
     assert "score" not in block  # the old description's field that was never sent

@@ -2,7 +2,8 @@
 with and without a view; a StatusRequest works before any map; and once a snapshot appears
 (the refiner's latest.json), the same server answers from it without a restart, after querying
 it once in the background (status value ``query_warm``). With a map, the
-instances of its reply are, byte for byte, the ``Instance`` records msgs/README.md documents."""
+instances of its reply are, byte for byte, the ``Instance`` records msgs/README.md documents,
+their latitude, longitude and altitudes those of the map's georef.json."""
 
 from __future__ import annotations
 
@@ -11,10 +12,12 @@ import time
 
 import msgpack
 import numpy as np
+import pymap3d
 import pytest
 
 from olsplat_msgs import MapUpdated, QueryReply, QueryRequest, StatusReply, StatusRequest, decode, encode, load_schema
 from olsplat_nodes.transport import QueryClient
+from olsplat_sim.make import TOWN_GEOREF
 from tests.helpers import every, wait_for
 
 from .conftest import ENCODE_VIEW, NodeThread, query_server, raw_socket, send_msg
@@ -87,6 +90,11 @@ INSTANCE_3D = {
     "centroid": (float, 3),
     "box_min": (float, 3),
     "box_max": (float, 3),
+    "latitude": (float, None),
+    "longitude": (float, None),
+    "altitude": (float, None),
+    "footprint": (float, 8),
+    "box_altitude": (float, 2),
 }
 INSTANCE_2D = {
     "id": (int, None),
@@ -95,6 +103,11 @@ INSTANCE_2D = {
     "centre_px": (float, 2),
     "area_px": (int, None),
 }
+
+
+def corners_ccw(lo, hi):
+    """The box's lower corners counter-clockwise seen from above (x east, y north)."""
+    return [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
 
 
 def _check_types(instance: dict, spec: dict) -> None:
@@ -128,6 +141,7 @@ def test_reply_instances_on_the_wire_are_the_documented_records(ctx, sockdir, ti
     assert frames[0] == b"" and frames[1] == b"query"
     header = msgpack.unpackb(frames[2], raw=False)
     assert header["schema"] == "olsplat_msgs/QueryReply" and header["fields"]["status"] == "ok", header["fields"]
+    assert header["fields"]["height_ref"] == "ellipsoid"  # the town's georeference (sim make)
     instances = header["fields"]["instances"]
     found3d = [i for i in instances if i.get("kind") == "3d"]
     found2d = [i for i in instances if i.get("kind") == "2d"]
@@ -141,6 +155,14 @@ def test_reply_instances_on_the_wire_are_the_documented_records(ctx, sockdir, ti
         lo, c, hi = (np.array(instance[k]) for k in ("box_min", "centroid", "box_max"))
         assert np.isfinite([lo, c, hi]).all() and (lo <= c).all() and (c <= hi).all()
         assert instance["n_gaussians"] >= 20  # the clustering's min_points
+        # the place on the Earth: the simulated town's georef.json beside the prior map, checked
+        # here with pymap3d directly (not through the server's code)
+        lat, lon, alt = pymap3d.enu2geodetic(*c, *TOWN_GEOREF.origin)
+        assert (instance["latitude"], instance["longitude"]) == pytest.approx((lat, lon), abs=1e-9)
+        assert instance["altitude"] == pytest.approx(alt, abs=1e-6)
+        corners = [pymap3d.enu2geodetic(x, y, lo[2], *TOWN_GEOREF.origin)[1::-1] for x, y in corners_ccw(lo, hi)]
+        np.testing.assert_allclose(np.reshape(instance["footprint"], (4, 2)), corners, atol=1e-9)
+        assert instance["box_altitude"] == pytest.approx([lo[2] + 488.0, hi[2] + 488.0], abs=0.01)
     for instance in found2d:
         _check_types(instance, INSTANCE_2D)
         x0, y0, x1, y1 = instance["box2d"]
