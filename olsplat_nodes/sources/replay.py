@@ -1,8 +1,11 @@
-"""Replay sources: an MCAP replay log or a folder of images + COLMAP model (``replay_log.read_replay``)."""
+"""Replay sources: an MCAP replay log, a folder of images + COLMAP model, or a ROS 2 bag
+(``replay_log.read_replay``; ``bag``: the ``bag_*`` source params)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from .base import WARN, PacedSource
 from .replay_log import read_replay
@@ -14,10 +17,17 @@ class ReplaySource(PacedSource):
 
     kind = "replay"
 
-    def __init__(self, path: str | Path, rate_hz: float | None = None, fast: bool = False, folder_rate_hz: float = 1.0):
+    def __init__(
+        self,
+        path: str | Path,
+        rate_hz: float | None = None,
+        fast: bool = False,
+        folder_rate_hz: float = 1.0,
+        bag: Mapping[str, Any] | None = None,
+    ):
         self.path = Path(path)
-        self.cut = ""  # what the reader said of a cut log ("" when whole)
-        super().__init__(read_replay(path, folder_rate_hz, self._on_cut), rate_hz, fast)
+        self.cut = ""  # what the reader said of a cut log or of a bag's pose-less frames ("" when none)
+        super().__init__(read_replay(path, folder_rate_hz, self._on_cut, bag), rate_hz, fast)
 
     def _on_cut(self, message: str) -> None:
         self.cut = message

@@ -31,8 +31,9 @@ import csv
 import json
 import logging
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -302,9 +303,16 @@ def _read_folder(folder: Path, rate_hz: float) -> Iterator[SourceFrame]:
 
 
 def read_replay(
-    path: str | Path, folder_rate_hz: float = 1.0, on_cut: Callable[[str], None] | None = None
+    path: str | Path,
+    folder_rate_hz: float = 1.0,
+    on_cut: Callable[[str], None] | None = None,
+    bag: Mapping[str, Any] | None = None,
 ) -> Iterator[SourceFrame]:
-    """Frames of an MCAP replay log, or of a folder of images + COLMAP model, in order.
+    """Frames of an MCAP replay log, a folder of images + COLMAP model, or a ROS 2 bag, in order.
+
+    A ROS 2 bag (a rosbag2 folder, its ``.db3``, or a ``.mcap`` with profile ``ros2``) is read
+    by ``rosbag.read_bag`` with ``bag`` (the flat ``bag_*`` source params); its
+    WARN line on frames dropped for want of a pose goes to ``on_cut`` like a cut log's.
 
     Frames carry the stored JPEG bytes (``jpeg``), so recording a replay copies its images
     exactly. A folder's stamps come from ``images/timestamps.csv`` (columns name, stamp_ns)
@@ -314,6 +322,10 @@ def read_replay(
     file and the frames replayed, the same line given to ``on_cut``.
     """
     path = Path(path)
+    from .rosbag import is_rosbag2, read_bag  # rosbags is imported only when a bag is read
+
+    if is_rosbag2(path) or path.name == "metadata.yaml":
+        return read_bag(path, bag, on_cut)
     if path.is_dir():
         return _read_folder(path, folder_rate_hz)
     if not path.is_file():
