@@ -10,6 +10,9 @@ Pose prior (world = ENU metres around the first photo, or ``reference``; camera 
   (the last photo: from the previous one; a photo taken while hovering: its neighbour's).
   Angles follow DJI: yaw clockwise from north, gimbal pitch -90 = nadir, which is exactly
   ``telemetry.pose.mount_rotation(roll, pitch, yaw)`` written in NED.
+- a PX4 flight log (``.ulg``) beside the photos (or ``ulog``) replaces both for each photo matched
+  to a camera trigger: the vehicle's interpolated position and attitude at the trigger, through
+  the camera mount ``mount_rpy_deg`` (rules in ``exif_ulog.py`` and ``telemetry/ulog.py``).
 - intrinsics: pinhole, principal point at the image centre, no distortion; focal length in pixels
   from ``focal_px`` when given, else ``FocalLengthIn35mmFilm`` (35 mm equivalent, by the
   diagonal as the EXIF standard defines it), else ``FocalLength`` × ``FocalPlaneXResolution``
@@ -37,8 +40,9 @@ import numpy as np
 
 from ..errors import OlsplatInputError
 from ..scene import Camera
-from ..telemetry.pose import ENU_FROM_NED, geodetic_to_ned, mount_rotation
+from ..telemetry.pose import ENU_FROM_NED, CameraMount, geodetic_to_ned, mount_rotation
 from .base import PacedSource, SourceFrame
+from .exif_ulog import find_ulog, ulog_priors
 
 log = logging.getLogger(__name__)
 
@@ -255,12 +259,20 @@ class ExifFolderSource(PacedSource):
         reference=None,
         focal_px: float = 0.0,
         sensor_width_mm: float = 0.0,
+        ulog: str = "",
+        mount_rpy_deg=(0.0, -90.0, 0.0),
+        ulog_tolerance_s: float = 0.5,
     ):
         folder = Path(folder)
         if not folder.is_dir():
             raise OlsplatInputError(f"exif_folder source: {folder} is not a folder")
         files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         photos = [read_exif(p) for p in files]
+        # a PX4 log beside the photos: poses at the camera triggers (exif_ulog.py)
+        ulog_path = find_ulog(folder, ulog)
+        self.ulog = ulog_priors(photos, ulog_path, ulog_tolerance_s) if ulog_path else None
+        if self.ulog:
+            photos = self.ulog.with_log_positions(photos)
         without_gps = [p.path.name for p in photos if not p.has_gps]
         photos = [p for p in photos if p.has_gps]
         if without_gps:
@@ -274,6 +286,9 @@ class ExifFolderSource(PacedSource):
             photos.sort(key=lambda p: (p.stamp_ns, p.path.name))
         self.photos = photos
         self.poses, self.reference, self.heading_sources = pose_priors(photos, reference)
+        if self.ulog:
+            mount = CameraMount.from_angles(*(float(a) for a in mount_rpy_deg))
+            self.ulog.apply(photos, self.poses, self.heading_sources, self.reference, mount)
         self.cameras = []
         self.focal_rules = []
         for photo, pose in zip(photos, self.poses, strict=True):
@@ -288,6 +303,8 @@ class ExifFolderSource(PacedSource):
             self.focal_rules.append(rule)
         super().__init__(self._frames_of(), rate_hz, fast)
         self.counts.update(photos=len(photos), photos_without_gps=len(without_gps), unreadable_images=0)
+        if self.ulog:
+            self.counts.update(ulog_matched=len(self.ulog.pose_of_photo), ulog_triggers=self.ulog.triggers)
         log.info(
             "exif_folder %s: %d photos, world origin (ENU) lat %.7f lon %.7f alt %.2f m; headings from %s; focal from "
             "%s",

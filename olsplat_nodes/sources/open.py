@@ -28,6 +28,9 @@ class SourceParams:
     exif_reference: tuple[float, ...] = ()  # exif_folder: (lat_deg, lon_deg, alt_m) of the ENU origin; () = first photo
     exif_focal_px: float = 0.0  # exif_folder: focal length in pixels; 0 = from EXIF
     exif_sensor_width_mm: float = 0.0  # exif_folder: sensor width when EXIF has only FocalLength
+    exif_ulog: str = ""  # exif_folder: PX4 log (.ulg); "" = the folder's only *.ulg, if one; "none" = no log
+    exif_mount_rpy_deg: tuple[float, float, float] = (0.0, -90.0, 0.0)  # exif_folder + log: camera mount, body FRD
+    exif_ulog_tolerance_s: float = 0.5  # exif_folder + log: log samples this close to a trigger
     depthai_device: str = ""  # depthai: device id or name; "" = the first found
     depthai_socket: str = "CAM_A"  # depthai: dai.CameraBoardSocket name
     depthai_width: int = 1280  # depthai: output size in pixels (CROP resize of the sensor)
@@ -102,6 +105,9 @@ def open_source(spec: dict | SourceParams) -> Source:
             reference=p["exif_reference"] or None,
             focal_px=float(p["exif_focal_px"]),
             sensor_width_mm=float(p["exif_sensor_width_mm"]),
+            ulog=p["exif_ulog"],
+            mount_rpy_deg=p["exif_mount_rpy_deg"],
+            ulog_tolerance_s=float(p["exif_ulog_tolerance_s"]),
         )
     if kind == "depthai":
         from ..telemetry import FlightControllerPoses
