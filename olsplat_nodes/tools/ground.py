@@ -27,6 +27,13 @@ def add_parser(subparsers) -> None:
         help="mask = heatmap above this cosine (default: beat every negative)",
     )
     query.add_argument("--json", action="store_true", help="print the answer as JSON")
+    query.add_argument(
+        "--geojson",
+        type=Path,
+        metavar="FILE",
+        help="write the 3D instances as GeoJSON in WGS-84 (the drone's map needs a georef.json)",
+    )
+    query.add_argument("--kml", type=Path, metavar="FILE", help="write the 3D instances as KML (as --geojson)")
     status = commands.add_parser("status", help="print every node's latest diagnostics")
     status.add_argument("--json", action="store_true", help="print the statuses as JSON")
     for sub in (query, status):
@@ -208,7 +215,10 @@ def run(args: argparse.Namespace) -> int:
                 negatives=negatives,
             )
         )
-        return print_answer(reply, args.json, args.out, args.threshold)
+        code = print_answer(reply, args.json, args.out, args.threshold)
+        if reply.status == "ok" and (args.geojson or args.kml):
+            write_reply_geo_files(reply, args.geojson, args.kml, as_json=args.json)
+        return code
     except NoReply as exc:
         hint = (
             "is the drone's graph running? (olsplat launch drone, or olsplat demo); "
@@ -218,6 +228,23 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_FAILED
     finally:
         client.close()
+
+
+def write_reply_geo_files(reply, geojson_path: Path | None, kml_path: Path | None, as_json: bool = False) -> None:
+    """A reply's 3D instances as GeoJSON / KML (their latitude, longitude and footprint come from
+    the drone: its map's georef.json); refused in one line when the drone's map has none."""
+    from ..errors import OlsplatInputError
+    from ..query.geojson import from_records
+    from .query import write_geo_files
+
+    if not reply.height_ref:
+        raise OlsplatInputError(
+            "--geojson and --kml need the drone's map to have a georeference (georef.json beside its PLY or in the "
+            "run's map folder: olsplat map georef); the answer is in map coordinates only"
+        )
+    located = from_records(reply.instances)
+    log = (lambda line: print(line, file=sys.stderr)) if as_json else print  # stdout holds the JSON
+    write_geo_files(geojson_path, kml_path, located, reply.text, reply.map_version, reply.height_ref, log)
 
 
 def print_status(reply, as_json: bool) -> int:
@@ -247,7 +274,9 @@ def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math
                     "text": reply.text,
                     "view": reply.view,
                     "map_version": reply.map_version,
-                    "instances": reply.instances,
+                    "height_ref": reply.height_ref,
+                    # JSON has no NaN: a map without a georeference gives null latitudes
+                    "instances": [{k: _finite_or_none(v) for k, v in i.items()} for i in reply.instances],
                     "seconds": reply.seconds,
                 },
                 indent=1,
@@ -266,8 +295,9 @@ def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math
         )
         for inst in found3d[:20]:
             c, lo, hi = inst["centroid"], inst["box_min"], inst["box_max"]
+            where = f", lat {inst['latitude']:.7f} lon {inst['longitude']:.7f}" if reply.height_ref else ""
             print(
-                f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x "
+                f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m{where}, box {hi[0] - lo[0]:.1f} x "
                 f"{hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst['n_gaussians']} Gaussians"
             )
         if reply.view:
@@ -294,6 +324,15 @@ def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math
         if not as_json:
             print(f"pictures -> {', '.join(str(p) for p in paths)}")
     return 0
+
+
+def _finite_or_none(value):
+    """A record's value for JSON: NaN (no georeference) as None, in lists too."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, list):
+        return [_finite_or_none(v) for v in value]
+    return value
 
 
 def _level_names() -> dict:

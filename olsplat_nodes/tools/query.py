@@ -1,4 +1,5 @@
-"""``olsplat query``: one text against a language map: heatmap, mask and located instances."""
+"""``olsplat query``: one text against a language map: heatmap, mask and located instances (in
+WGS-84 too, and as GeoJSON or KML, when the map has a georeference)."""
 
 from __future__ import annotations
 
@@ -12,15 +13,17 @@ def add_parser(subparsers) -> None:
         help="ask a language map for a text: heatmap, mask, instances",
         epilog='examples:\n  olsplat query --map maps/ols/language_map.npz --scene scene "red roof buildings" '
         '--view 3 --out q/\n  olsplat query --map m.npz --scene scene road --negatives "trees,lawn,cars" '
-        "--cluster-radius 3",
+        '--cluster-radius 3\n  olsplat query --map run/map --scene flight "red roof buildings" --geojson roofs.geojson '
+        "--kml roofs.kml",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
         "--map",
         required=True,
         type=Path,
-        help="language_map.npz (olsplat aggregate), or the --out folder of olsplat aggregate --tile-m: then the "
-        "query goes to each tile's map in turn and their 3D instances are gathered (no view is rendered)",
+        help="language_map.npz (olsplat aggregate); a run's map folder (RUN/map: its latest snapshot); or the "
+        "--out folder of olsplat aggregate --tile-m: then the query goes to each tile's map in turn and their 3D "
+        "instances are gathered (no view is rendered)",
     )
     parser.add_argument("--scene", required=True, type=Path, help="the scene the map was made from")
     parser.add_argument("text", help='what to find, e.g. "red roof buildings"')
@@ -39,6 +42,14 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--min-points", type=int, default=20, help="3D instances: the fewest Gaussians that make one (default 20)"
     )
+    parser.add_argument(
+        "--geojson",
+        type=Path,
+        metavar="FILE",
+        help="write the 3D instances as GeoJSON: one Feature each, its centre Point and footprint Polygon in WGS-84 "
+        "(needs the map's georef.json: olsplat map georef)",
+    )
+    parser.add_argument("--kml", type=Path, metavar="FILE", help="write the 3D instances as KML (as --geojson)")
     parser.set_defaults(run=run)
 
 
@@ -48,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from ..outputs import output_folder
     from ..pipeline import Scene
     from ..query.answer import answer_query, encoder_for_map
+    from ..query.geojson import locate
     from ..query.negatives import vocabulary_negatives
     from ..query.tiled import answer_tiled, is_tiled, tile_maps
     from ..scene import read_ply, select_view
@@ -60,11 +72,13 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         output_folder(args.out)
     scene = Scene.open(args.scene)
-    gaussians = read_ply(scene.ply)
     tiled = args.map.is_dir() and is_tiled(args.map)
     if tiled and not tile_maps(args.map):
         raise OlsplatInputError(f"{args.map}: a tiled map whose tiles hold no map yet (was its aggregation stopped?)")
-    language_map = LanguageMap.load(tile_maps(args.map)[0] if tiled else args.map)  # a tile's: its encoder
+    map_file, version = (args.map, 0) if tiled else snapshot_of(args.map)
+    georef = map_georef(scene.ply, args.map, needed=bool(args.geojson or args.kml))
+    gaussians = read_ply(scene.ply)
+    language_map = LanguageMap.load(tile_maps(args.map)[0] if tiled else map_file)  # a tile's: its encoder
     if args.negatives:
         negatives = [t.strip() for t in args.negatives.split(",") if t.strip()]
     elif (scene.folder / "queries.json").exists():
@@ -78,17 +92,18 @@ def run(args: argparse.Namespace) -> int:
             f"--cluster-radius must be > 0 and --min-points >= 1, got {args.cluster_radius} and {args.min_points}"
         )
     if tiled:
-        return _print_tiled(
-            answer_tiled(
-                args.map,
-                gaussians,
-                encoder_for_map(language_map),
-                text,
-                negatives,
-                args.cluster_radius,
-                args.min_points,
-            )
+        tiled_answer = answer_tiled(
+            args.map,
+            gaussians,
+            encoder_for_map(language_map),
+            text,
+            negatives,
+            args.cluster_radius,
+            args.min_points,
         )
+        _print_tiled(tiled_answer, georef)
+        write_geo_files(args.geojson, args.kml, locate(tiled_answer.instances, georef), text, version, _ref(georef))
+        return 0
     answer = answer_query(
         language_map,
         gaussians,
@@ -104,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
         f'"{text}": {answer.chosen_count:,} Gaussians pick it over {len(answer.negatives)} negatives; '
         f"{len(answer.instances)} instances in 3D"
     )
-    _print_instances(answer.instances)
+    _print_instances(answer.instances, georef)
+    write_geo_files(args.geojson, args.kml, locate(answer.instances, georef), text, version, _ref(georef))
     if answer.unknown_words:
         words = ", ".join(f'"{w}"' for w in answer.unknown_words)
         print(
@@ -123,22 +139,84 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_instances(instances) -> None:
-    for i, inst in enumerate(instances[:20]):
+def snapshot_of(path: Path) -> tuple[Path, int]:
+    """(the language map file, its version) of ``--map``: a file as it is (version 0), a run's
+    map folder as its newest snapshot (``latest.json``)."""
+    from ..errors import OlsplatInputError
+    from ..storage import latest_map
+
+    if not path.is_dir():
+        return path, 0
+    record = latest_map(path)
+    if record is None or "path" not in record:
+        raise OlsplatInputError(
+            f"{path}: a folder without latest.json: give a language_map.npz, a run's map folder or a tiled map's folder"
+        )
+    return Path(record["path"]), int(record.get("version", 0))
+
+
+def map_georef(prior_map: Path, map_arg: Path, needed: bool):
+    """The map's georeference: georef.json beside the prior map's PLY, else in the language map's
+    folder (a run's, from its source); None when there is none and none is ``needed``."""
+    from ..errors import OlsplatInputError
+    from ..scene.geodesy import find_georef, read_georef
+
+    path = find_georef(Path(prior_map).parent, map_arg if map_arg.is_dir() else map_arg.parent)
+    if path is None:
+        if needed:
+            raise OlsplatInputError(
+                f"--geojson and --kml need the map's georeference, and neither {Path(prior_map).parent} nor "
+                f"{map_arg if map_arg.is_dir() else map_arg.parent} holds a georef.json: olsplat map georef "
+                f"{Path(prior_map).parent} --origin LAT LON ALT gives it one"
+            )
+        return None
+    return read_georef(path)
+
+
+def _ref(georef) -> str:
+    return "" if georef is None else georef.height_ref
+
+
+def write_geo_files(geojson_path, kml_path, located, text: str, version: int, height_ref: str, log=print) -> None:
+    """Write the located 3D instances (``query.geojson.GeoInstance``) as GeoJSON and/or KML (a
+    path None: not that one); ``height_ref`` "" means the map has no georeference: refused."""
+    from ..errors import OlsplatInputError
+    from ..outputs import output_folder
+    from ..query.geojson import dumps_geojson, feature_collection, kml_document
+
+    for path, option, make in (
+        (geojson_path, "--geojson", lambda: dumps_geojson(feature_collection(located, text, version, height_ref))),
+        (kml_path, "--kml", lambda: kml_document(located, text, version, height_ref)),
+    ):
+        if path is None:
+            continue
+        if not height_ref:
+            raise OlsplatInputError(f"{option} needs the map's georeference (georef.json): olsplat map georef")
+        if Path(path).is_dir():
+            raise OlsplatInputError(f"{option} {path}: is a folder; give a file name")
+        output_folder(Path(path).parent, option, given=Path(path))
+        Path(path).write_text(make(), encoding="utf-8")
+        log(f"{len(located)} instances -> {path}")
+
+
+def _print_instances(instances, georef=None) -> None:
+    from ..query.geojson import locate
+
+    for inst, place in zip(instances[:20], locate(instances[:20], georef), strict=True):
         c, lo, hi = inst.centre, inst.box_min, inst.box_max
+        where = f", lat {place.latitude:.7f} lon {place.longitude:.7f}" if place.located else ""
         print(
-            f"  3D #{i}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m, box {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} "
-            f"x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
+            f"  3D #{place.rank}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m{where}, box {hi[0] - lo[0]:.1f} x "
+            f"{hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
         )
 
 
-def _print_tiled(answer) -> int:
+def _print_tiled(answer, georef=None) -> None:
     """A tiled map's answer: the gathered instances, then each tile's share."""
     print(
         f'"{answer.text}": {answer.chosen:,} Gaussians pick it over {len(answer.negatives)} negatives; '
         f"{len(answer.instances)} instances in 3D, from {len(answer.tiles)} tiles"
     )
-    _print_instances(answer.instances)
+    _print_instances(answer.instances, georef)
     for name, (chosen, instances) in answer.tiles.items():
         print(f"  tile {name}: {chosen:,} Gaussians, {instances} instances")
-    return 0
