@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import json
 import logging
+import weakref
 from collections.abc import Callable, Iterator, Mapping
-from contextlib import closing
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -48,6 +48,7 @@ __all__ = [
     "Selection",
     "add_tf_message",
     "check_bag_path",
+    "close_bag",
     "frame_names",
     "is_rosbag2",
     "open_bag",
@@ -393,7 +394,7 @@ class _CameraPoses:
                 else f" (the camera mount for {s.pose}: set bag_mount)"
             )
             raise SceneFormatError(self.path, f"{s.image}: {exc}{hint}") from None
-        if p.camera_axes == "optical" and "optical" not in frame_id:
+        if p.camera_axes == "optical" and "optical" not in frame_id and self.mount is None:
             log.warning(
                 "%s: camera frame %r is taken as an optical frame (x right, y down, z forward); "
                 "set bag_camera_axes=link for a FLU camera_link",
@@ -461,19 +462,31 @@ def read_bag(
     params = params if isinstance(params, BagParams) else BagParams.from_params(params)
     if not params.tolerance_s > 0:
         raise SceneFormatError(path, f"bag_tolerance_s must be positive, got {params.tolerance_s}")
-    with closing(open_bag(path)) as reader:
+    reader = open_bag(path)  # kept open for the frames (rosbags parses every topic's QoS YAML on opening)
+    try:
         selection = select_topics(path, topic_roles(reader), params)
-    names = frame_names(path)
-    return _read_frames(path, params, selection, names, on_warning)
+        names = frame_names(path)
+    except BaseException:
+        close_bag(reader)
+        raise
+    frames = _read_frames(path, reader, params, selection, names, on_warning)
+    weakref.finalize(frames, close_bag, reader)  # closed also when the frames are dropped before the end
+    return frames
+
+
+def close_bag(reader) -> None:
+    """Close an ``open_bag`` reader (again: nothing)."""
+    if reader.stack is not None:
+        reader.close()
 
 
 def _read_frames(
-    path: Path, params: BagParams, selection: Selection, names: list[str], on_warning
+    path: Path, reader, params: BagParams, selection: Selection, names: list[str], on_warning
 ) -> Iterator[SourceFrame]:
     from .ros_image import decode_image_message
     from .undistort import undistort_image
 
-    with closing(open_bag(path)) as reader:
+    try:
         first = _Messages(path, reader, [*selection.tf, *selection.tf_static, selection.camera_info, selection.pose])
         tf, track, track_frames, infos = _read_poses(first, selection)
         images = _Messages(path, reader, [selection.image])
@@ -519,6 +532,8 @@ def _read_frames(
             camera = Camera(name, intrinsics.width, intrinsics.height, intrinsics.K, pose, dist, model)
             yielded += 1
             yield SourceFrame(index, stamp_ns, name, image, camera, jpeg)
+    finally:
+        close_bag(reader)
     total = yielded + sum(dropped.values())
     reasons = ", ".join(f"{count} {reason}" for reason, count in sorted(dropped.items(), key=lambda kv: -kv[1]))
     if not total:
