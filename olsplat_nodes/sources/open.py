@@ -22,7 +22,7 @@ class SourceParams:
     this file documents each)."""
 
     source_kind: Literal["replay", "exif_folder", "depthai"] = "replay"
-    source: str = ""  # replay: a replay log (.mcap) or a folder with images/ + COLMAP model; exif_folder: JPEGs
+    source: str = ""  # replay: a replay log (.mcap), a folder (images/ + COLMAP) or a ROS 2 bag; exif_folder: JPEGs
     rate_hz: float = 0.0  # replay, exif_folder: 0 = the recorded pace
     fast: bool = False  # replay, exif_folder: as fast as possible
     exif_reference: tuple[float, ...] = ()  # exif_folder: (lat_deg, lon_deg, alt_m) of the ENU origin; () = first photo
@@ -31,6 +31,17 @@ class SourceParams:
     exif_ulog: str = ""  # exif_folder: PX4 log (.ulg); "" = the folder's only *.ulg, if one; "none" = no log
     exif_mount_rpy_deg: tuple[float, float, float] = (0.0, -90.0, 0.0)  # exif_folder + log: camera mount, body FRD
     exif_ulog_tolerance_s: float = 0.5  # exif_folder + log: log samples this close to a trigger
+    # bag_*: a ROS 2 bag as the replay source (sources/rosbag.py BagParams)
+    bag_image_topic: str = ""  # replay, bag: Image or CompressedImage topic; "" = the only one
+    bag_camera_info_topic: str = ""  # replay, bag: CameraInfo topic; "" = the only one (or the image's sibling)
+    bag_pose_topic: str = ""  # replay, bag: Odometry/PoseStamped topic; "" = tf (the only one without /tf)
+    bag_world_frame: str = "map"  # replay, bag: the tf world frame (ENU, REP-105)
+    bag_camera_frame: str = ""  # replay, bag: the camera's tf frame; "" = the image's header.frame_id
+    bag_body_frame: str = ""  # replay, bag + pose topic: the frame the poses are of; "" = Odometry child_frame_id
+    bag_mount: tuple[float, ...] = ()  # replay, bag + pose topic: 16 numbers, row-major body_from_camera; () = tf
+    bag_camera_axes: Literal["optical", "link"] = "optical"  # replay, bag: camera frame axes, optical or FLU link
+    bag_tolerance_s: float = 0.1  # replay, bag: a pose needs samples this close before and after a frame
+    bag_undistort: bool = True  # replay, bag: remap distorted frames to the pinhole image of K; false keeps D
     depthai_device: str = ""  # depthai: device id or name; "" = the first found
     depthai_socket: str = "CAM_A"  # depthai: dai.CameraBoardSocket name
     depthai_width: int = 1280  # depthai: output size in pixels (CROP resize of the sensor)
@@ -94,7 +105,8 @@ def open_source(spec: dict | SourceParams) -> Source:
     if kind == "replay":
         from .replay import ReplaySource
 
-        return ReplaySource(p["source"], p["rate_hz"] or None, p["fast"])
+        bag = {name: value for name, value in p.items() if name.startswith("bag_")}
+        return ReplaySource(p["source"], p["rate_hz"] or None, p["fast"], bag=bag)
     if kind == "exif_folder":
         from .exif import ExifFolderSource
 
