@@ -44,3 +44,10 @@ def test_sim_make_bag_writes_the_replay_logs_frames(tmp_path):
         assert (camera_info.width, camera_info.height) == (320, 240)
         world_from_camera = _matrix(tf.transforms[0].transform) @ link_from_optical
         np.testing.assert_allclose(world_from_camera, frame.camera.world_from_camera, rtol=0, atol=1e-9)
+    # and the replay source reads the bag as it reads the log (sources/rosbag.py)
+    again = list(read_replay(bag))
+    assert [(f.name, f.stamp_ns, f.jpeg) for f in again] == [(f.name, f.stamp_ns, f.jpeg) for f in frames]
+    for a, b in zip(frames, again, strict=True):
+        np.testing.assert_array_equal(b.image, a.image)
+        np.testing.assert_array_equal(b.camera.K, a.camera.K)
+        np.testing.assert_allclose(b.camera.world_from_camera, a.camera.world_from_camera, rtol=0, atol=1e-9)

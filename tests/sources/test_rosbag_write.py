@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -19,6 +20,8 @@ from olsplat_nodes.sources.replay_log import encode_jpeg, read_replay, write_mca
 from olsplat_nodes.sources.rosbag_write import write_rosbag2
 
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
+PLUMB_BOB = (0.1, -0.02, 0.001, 0.002, 0.003)  # OpenCV k1 k2 p1 p2 k3
+RATIONAL = (*PLUMB_BOB, 0.01, 0.02, 0.004)  # + k4 k5 k6
 EPOCH_NS = 1_717_200_000_123_456_789  # 2024-06-01, with nanoseconds that an int32 second field must keep
 TOPICS = {
     "/camera/image/compressed": "sensor_msgs/msg/CompressedImage",
@@ -78,9 +81,7 @@ def read_bag(path: Path) -> dict:
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
-@pytest.mark.parametrize(
-    "dist", [(), (0.1, -0.02, 0.001, 0.002, 0.003), (0.1, -0.02, 0.001, 0.002, 0.003, 0.01, 0.02, 0.004)]
-)
+@pytest.mark.parametrize("dist", [(), PLUMB_BOB, RATIONAL])
 def test_the_bag_as_rosbags_reads_it(tmp_path, storage, dist):
     frames = make_frames(dist=dist)
     out = tmp_path / "flight"
@@ -215,3 +216,26 @@ def test_record_nothing_leaves_no_bag(tmp_path):
     frames = make_frames(2)
     assert record(PacedSource(frames, fast=True), tmp_path / "two", out_format="rosbag2", storage="sqlite3") == 2
     assert (tmp_path / "two" / "two.db3").is_file()
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("dist", [(), PLUMB_BOB, RATIONAL])
+def test_round_trip_through_the_replay_source(tmp_path, storage, dist):
+    """write_rosbag2 -> read_replay (sources/rosbag.py), as the folder and as its storage file:
+    the same names, stamps, JPEG bytes, cameras, and poses within 1e-9 (D kept: bag_undistort false)."""
+    frames = make_frames(dist=dist)
+    bag = tmp_path / "flight"
+    write_rosbag2(bag, frames, storage)
+    inner = bag / ("flight.mcap" if storage == "mcap" else "flight.db3")
+    for path in (bag, inner):
+        again = list(read_replay(path, bag={"bag_undistort": False}))
+        assert [(f.name, f.stamp_ns) for f in again] == [(f.name, f.stamp_ns) for f in frames]
+        for a, b in zip(frames, again, strict=True):
+            assert b.jpeg == a.jpeg
+            np.testing.assert_array_equal(
+                b.image, cv2.imdecode(np.frombuffer(a.jpeg, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+            )
+            assert (b.camera.name, b.camera.width, b.camera.height) == (a.camera.name, a.camera.width, a.camera.height)
+            np.testing.assert_array_equal(b.camera.K, a.camera.K)
+            np.testing.assert_array_equal(np.trim_zeros(b.camera.dist, "b"), np.trim_zeros(a.camera.dist, "b"))
+            np.testing.assert_allclose(b.camera.world_from_camera, a.camera.world_from_camera, rtol=0, atol=1e-9)
