@@ -1,7 +1,7 @@
 """``python -m olsplat_nodes.nodes EXEC --name NAME --params-json JSON``: one node, one process.
 
-SIGTERM and SIGINT ask the node to stop (it finishes the message in hand); so does the death of
-the launcher that started it (``_lifeline``). The exit code is what ``run`` returned; a failure
+SIGTERM and SIGINT ask the node to stop (it finishes the message in hand); the abrupt death of
+the launcher that started it ends the node at once (``_lifeline``). The exit code is what ``run`` returned; a failure
 a restart cannot mend (bad input, bad configuration, an endpoint another process holds) exits
 with ``EXIT_BAD_INPUT`` or ``EXIT_CONFIG`` after one line ``node NAME: error: REASON`` on stderr
 and no traceback; any other exception is a crash (traceback, exit code 1)."""

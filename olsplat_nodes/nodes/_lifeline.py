@@ -2,10 +2,19 @@
 for a launch that no longer exists.
 
 The launcher puts its pid in ``OLSPLAT_LAUNCHER_PID`` of each child's environment. The child
-asks the kernel for SIGTERM when its parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``), then
+asks the kernel for SIGKILL when its parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``), then
 checks that its parent is still that pid (the launcher may have died between fork and prctl,
-and then no signal would ever come). SIGTERM takes the node's normal stop path. Where prctl is
-not available, a daemon thread polls ``os.getppid()`` instead.
+and then no signal would ever come: the node takes its normal stop path at once).
+
+Why SIGKILL and not a graceful SIGTERM: the launcher stops its nodes itself with SIGTERM on
+every orderly end (Ctrl-C, SIGTERM, a node giving up); the parent-death signal fires only when
+the launcher died abruptly (``kill -9``, out of memory). Then nobody supervises the node, and a
+graceful stop is not bounded: a Python signal handler runs only between bytecodes, so a node
+inside a long numba or ONNX call (seconds on a loaded machine) kept the query port for that
+long. Every node's output is durable against SIGKILL already (atomic writes; the power-cut
+tests kill each node mid-flight), so the kernel's SIGKILL loses nothing and ends the node at
+once. Where prctl is not available, a daemon thread polls ``os.getppid()`` and takes the
+graceful stop path instead.
 
 The kernel sends the signal when the *thread* that forked the child ends, not the process: the
 supervisor starts every child from the one thread that runs its loop, which lives as long as
@@ -37,7 +46,7 @@ def die_with_launcher(on_orphaned) -> str:
     if not expected.isdigit():
         return ""
     parent = int(expected)
-    how = "prctl" if _set_pdeathsig(signal.SIGTERM) else "watchdog"
+    how = "prctl" if _set_pdeathsig(signal.SIGKILL) else "watchdog"
     if os.getppid() != parent:  # the launcher died before prctl took effect: no signal will come
         log.error("launcher (pid %d) is gone: stopping", parent)
         on_orphaned()

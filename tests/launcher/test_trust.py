@@ -32,13 +32,22 @@ OLSPLAT = Path(sys.executable).with_name("olsplat")
 
 
 def running(pid: int) -> bool:
-    """Whether ``pid`` is a live process (a zombie nobody has reaped yet is not: an orphan's
-    new parent may be slow to reap it)."""
+    """Whether ``pid`` is a live process: any of its threads not a zombie. A zombie nobody has
+    reaped yet is not live (an orphan's new parent may be slow to reap it); but a killed
+    process's main thread turns zombie before its other threads (numba, ZeroMQ) have exited, and
+    until the last one has, the process still holds its sockets."""
     try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except OSError:
         return False
-    return state not in ("Z", "X")
+    for task in tasks:
+        try:
+            state = (task / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            continue
+        if state not in ("Z", "X"):
+            return True
+    return False
 
 
 def launch(path, *args: str) -> subprocess.Popen:
