@@ -92,7 +92,8 @@ def ulog_priors(photos: list, path: Path, tolerance_s: float = 0.5) -> UlogPrior
         else photos
     )
     match = match_photos([p.stamp_ns for p in order], [p.utc_us if by_utc else p.stamp_us for p in triggers])
-    pose_of_photo, refused = {}, Counter()
+    pose_of_photo: dict[Path, CapturePose] = {}
+    refused: Counter[str] = Counter()
     for photo, j in zip(order, match.capture_of_photo.tolist(), strict=True):
         if j >= 0 and triggers[j].quat_ned_from_body is not None:
             pose_of_photo[photo.path] = triggers[j]

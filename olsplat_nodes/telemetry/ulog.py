@@ -111,7 +111,8 @@ class CapturePose:
         where = self.geodetic if self.geodetic is not None else position_geodetic
         if self.quat_ned_from_body is None or where is None:
             return None
-        ned = geodetic_to_ned(*np.asarray(where, np.float64), reference)
+        lat, lon, alt = (float(v) for v in where)
+        ned = geodetic_to_ned(lat, lon, alt, reference)
         return world_from_camera(ned, quat_to_rotmat(self.quat_ned_from_body), mount)
 
 
