@@ -241,7 +241,7 @@ def _pick(path: Path, roles, wanted: tuple[str, ...], chosen: str, param: str, n
         if chosen not in roles:
             raise SceneFormatError(path, f"{param}: no topic {chosen!r} in the bag; {what} topics: {candidates}")
         if roles[chosen][1] not in wanted:
-            raise SceneFormatError(path, f"{param}: {chosen} is {roles[chosen][0]}, not a {what} topic")
+            raise SceneFormatError(path, f"{param}: {chosen} is {roles[chosen][0]}; {what} topics: {candidates}")
         return chosen
     if len(candidates) > 1 and near:  # a camera's CameraInfo sits in its namespace: /cam/image_raw -> /cam/camera_info
         beside = [t for t in candidates if near.startswith(t.rsplit("/", 1)[0] + "/")]
