@@ -26,6 +26,7 @@ from olsplat_msgs import (
     ViewsRequest,
 )
 
+from ..query.geojson import from_records
 from ..query.localize import Instance3D
 from ..query.service import MapState
 from ..query.splats import BrowserSplats, unpack_splats
@@ -157,6 +158,8 @@ class LinkSource:
             reply.map_version,
             margin,
             instances,
+            located=from_records(reply.instances),
+            height_ref=reply.height_ref,
         )
         if view and reply.heatmap is not None and reply.mask is not None and reply.image is not None:
             boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]

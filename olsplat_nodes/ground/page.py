@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from .colours import colour_bar_html, relevance_colours
-from .review import DEFAULT_NEGATIVES, WebAnswer, split_negatives
+from .review import DEFAULT_NEGATIVES, WebAnswer, answer_geojson, split_negatives
 
 log = logging.getLogger(__name__)
 LEVEL_COLOURS = {"OK": "#2b8a3e", "WARN": "#e67700", "ERROR": "#c92a2a", "STALE": "#868e96"}
@@ -77,6 +77,8 @@ class GroundPage:
             self.ask_button = gui.add_button("Ask")
             self.query_message = gui.add_markdown("Type a query and press Ask.")
             self.colour_bar = gui.add_html(colour_bar_html(), visible=False)
+            # the answer's 3D instances in WGS-84, when the map has a georeference
+            self.geojson_button = gui.add_button("Download GeoJSON", visible=False)
         self.instances_folder = gui.add_folder("Instances")
         with gui.add_folder("View"):
             self.view_choice = gui.add_dropdown("view", ["(none)"], initial_value="(none)")
@@ -85,6 +87,7 @@ class GroundPage:
         with gui.add_folder("Map"):
             self.map_caption = gui.add_markdown("waiting for the prior map ...")
         self.ask_button.on_click(lambda _event: self._ask())
+        self.geojson_button.on_click(lambda event: self._download_geojson(event.client))
         # a view chosen with a query typed: its heatmap at once
         self.view_choice.on_update(lambda _event: self._ask() if self.query_text.value.strip() else None)
 
@@ -191,6 +194,7 @@ class GroundPage:
                 return
             self.last_query = (answer.text, negatives)
             self.answer = answer
+            self.geojson_button.visible = answer_geojson(answer) is not None
             shown = answer.heatmap_picture is not None
             if shown:  # the pictures first: the one thing that changes when only the view does
                 self.heatmap_image.image = answer.heatmap_picture
@@ -225,6 +229,14 @@ class GroundPage:
                 button = self.server.gui.add_button(label)
             button.on_click(self._flier(np.asarray(inst.centre), float(size.max())))
             self.instance_buttons.append(button)
+
+    def _download_geojson(self, client) -> None:
+        """The current answer's GeoJSON to the browser that asked, as a file."""
+        with self.lock:
+            text = None if self.answer is None else answer_geojson(self.answer)
+        if client is not None and text is not None:
+            name = "".join(c if c.isalnum() else "_" for c in self.answer.text)[:40] if self.answer else "answer"
+            client.send_file_download(f"{name}.geojson", text.encode(), save_immediately=True)
 
     def _flier(self, centre: np.ndarray, extent: float):
         return lambda _event: self._fly(centre, extent)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import OlsplatInputError
+from ..query.geojson import GeoInstance, dumps_geojson, feature_collection, locate
 from ..query.localize import Instance3D
 from ..query.negatives import AERIAL_VOCABULARY
 from ..query.service import MAX_NEGATIVES, MAX_TEXT_CHARS, MapService, MapState, text_problem
@@ -85,9 +86,19 @@ class WebAnswer:
     margin: np.ndarray | None = None  # [M] per browser splat: cos(query) - max cos(negatives); NaN: unobserved
     instances: list[Instance3D] = field(default_factory=list)  # world metres, largest first
     view: str = ""
+    located: list[GeoInstance] = field(default_factory=list)  # ``instances`` on the Earth (NaN: no georeference)
+    height_ref: str = ""  # the map's georeference's height reference; "": none (no GeoJSON)
     heatmap_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + heatmap + legend
     mask_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + mask + legend
     seconds: float = 0.0
+
+
+def answer_geojson(answer: WebAnswer) -> str | None:
+    """The answer's 3D instances as GeoJSON text (``query.geojson``), or None when the map has no
+    georeference or the answer no instance: what the page offers for download."""
+    if not answer.height_ref or not answer.located:
+        return None
+    return dumps_geojson(feature_collection(answer.located, answer.text, answer.map_version, answer.height_ref))
 
 
 class RunReview:
@@ -148,6 +159,8 @@ class RunReview:
             result.margin,
             answer.instances,
         )
+        georef = self.service.georef
+        outcome.located, outcome.height_ref = locate(answer.instances, georef), georef.height_ref if georef else ""
         if result.photo is not None and answer.heatmap is not None and answer.mask is not None:
             assert answer.alpha is not None
             outcome.view = view
