@@ -289,7 +289,8 @@ class _Messages:
     def __iter__(self) -> Iterator[tuple[str, int, int, Any]]:
         """(topic, index on the topic, log time ns, message)."""
         try:
-            for connection, log_ns, raw in self.reader.messages(connections=self.connections):
+            stream = self.reader.messages(connections=self.connections) if self.connections else ()  # [] = all
+            for connection, log_ns, raw in stream:
                 index = self.counts.get(connection.topic, 0)
                 self.counts[connection.topic] = index + 1
                 try:
