@@ -82,3 +82,16 @@ def test_images_without_a_pose_are_dropped_and_reported(tmp_path):
         f"{bag}: 1 of 4 frames on /camera/image/compressed had no pose and were dropped "
         "(1 no_sample_after map->camera_link)"
     )
+
+
+def test_olsplat_record_turns_a_bag_into_a_replay_log(tmp_path, capsys):
+    from olsplat_nodes.cli import main
+
+    messages, custom, expected = contract_messages(count=3)
+    bag = write_bag(tmp_path / "flight_bag", messages, custom=custom)
+    out = tmp_path / "flight.mcap"
+    assert main(["record", "--source-kind", "replay", "--source", str(bag), "--out", str(out)]) == 0
+    frames = list(read_replay(out))
+    assert [f.name for f in frames] == ["shot_0.jpg", "shot_1.jpg", "shot_2.jpg"]
+    assert [(f.stamp_ns, f.jpeg) for f in frames] == [(s, data) for s, _, data in expected]
+    np.testing.assert_allclose(frames[2].camera.world_from_camera, expected[2][1], atol=1e-9)
