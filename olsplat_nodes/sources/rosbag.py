@@ -494,9 +494,13 @@ def _read_frames(
         cameras = _CameraInfos(images, selection.camera_info, infos, _is_rectified(selection.image))
         poses = _CameraPoses(path, params, selection, tf, track, track_frames)
         dropped: dict[str, int] = {}
-        yielded = 0
+        yielded, zero_stamps = 0, 0
         for topic, index, log_ns, message in images:
             stamp_ns = _stamp_ns(message.header, log_ns)
+            if not (message.header.stamp.sec or message.header.stamp.nanosec):
+                zero_stamps += 1
+                if zero_stamps == 1:  # a driver that leaves stamps unset: said once
+                    log.warning("%s: %s message %d has a zero header stamp: its log time is used", path, topic, index)
             frame_id = (params.camera_frame or message.header.frame_id).lstrip("/")
             if not frame_id:
                 raise images.error(topic, index, "the image has no header.frame_id: set bag_camera_frame")

@@ -95,3 +95,14 @@ def test_olsplat_record_turns_a_bag_into_a_replay_log(tmp_path, capsys):
     assert [f.name for f in frames] == ["shot_0.jpg", "shot_1.jpg", "shot_2.jpg"]
     assert [(f.stamp_ns, f.jpeg) for f in frames] == [(s, data) for s, _, data in expected]
     np.testing.assert_allclose(frames[2].camera.world_from_camera, expected[2][1], atol=1e-9)
+
+
+def test_a_zero_header_stamp_falls_back_on_the_log_time(tmp_path, caplog):
+    messages, _, expected = contract_messages(count=2)
+    log_ns = expected[1][0]
+    messages = [m for m in messages if m[0] != "/camera/image/compressed"]
+    messages.append(("/camera/image/compressed", log_ns, compressed(0, expected[1][2])))  # a driver that stamps nothing
+    (frame,) = read_bag(write_bag(tmp_path / "b", messages))
+    assert frame.stamp_ns == log_ns and frame.seq == 0
+    np.testing.assert_allclose(frame.camera.world_from_camera, expected[1][1], atol=1e-9)
+    assert "/camera/image/compressed message 0 has a zero header stamp: its log time is used" in caplog.text
