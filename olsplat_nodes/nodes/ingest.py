@@ -29,12 +29,14 @@ import logging
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any
 
 from olsplat_msgs import EndOfStream, MapUpdated, ObservationsAdded
 
 from ..durable import append_line
 from ..extras import require
+from ..scene.geodesy import write_georef
 from ..sources import SourceParams, open_source
 from ..transport import CONTROL_MAX_BYTES, Diagnostics, Publisher, Subscriber
 from ..transport.convert import frame_message
@@ -63,6 +65,9 @@ class IngestNode(Node):
         topic_map: str = "map"
         hwm: int = 4
         state_file: str = "{run_dir}/ingest_acknowledged.txt"  # acknowledged frame names: a restart skips them
+        # where the source's georeference goes (photos with GPS: the ENU origin), so that the
+        # run's answers carry latitude and longitude; "" = nowhere
+        georef_out: str = "{run_dir}/map/georef.json"
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -94,6 +99,18 @@ class IngestNode(Node):
         self.last_eos = 0.0
         self.source: Any = None  # a sources.Source once open
         self.source = self.own(open_source({f.name: getattr(p, f.name) for f in fields(SourceParams)}))
+        self._write_georeference()
+
+    def _write_georeference(self) -> None:
+        """The source's georeference into ``georef_out`` (the query service reads it from the
+        run's map folder when the prior map has none beside its PLY)."""
+        georef = self.source.georeference()
+        if georef is None or not self.params.georef_out:
+            return
+        path = Path(self.params.georef_out)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_georef(path, georef)
+        log.info("georeference of the source (%s) written to %s", georef.source, path)
 
     def spin(self) -> int | None:
         if self.phase == "streaming":

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import OlsplatInputError
 from ..scene import Camera
+from ..scene.geodesy import Georeference
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3  # DiagnosticStatus levels (msgs/: 0 OK, 1 WARN, 2 ERROR, 3 STALE)
 
@@ -64,6 +65,13 @@ class Source:
 
     def close(self) -> None:
         pass
+
+    def georeference(self) -> Georeference | None:
+        """Where the source's world frame lies on the Earth (its ENU origin), when the source
+        knows it (photos with GPS: the first photo or ``exif_reference``), else None. The ingest
+        node writes it into the run's map folder, so that the run's answers carry latitude and
+        longitude."""
+        return None
 
     def __iter__(self) -> Iterator[SourceFrame]:
         """Every frame until the source is done (live sources: forever)."""

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..errors import OlsplatInputError
 from ..scene import Camera
+from ..scene.geodesy import Georeference
 from ..telemetry.pose import ENU_FROM_NED, CameraMount, geodetic_to_ned, mount_rotation
 from .base import PacedSource, SourceFrame
 from .exif_ulog import find_ulog, ulog_priors
@@ -266,6 +267,7 @@ class ExifFolderSource(PacedSource):
         folder = Path(folder)
         if not folder.is_dir():
             raise OlsplatInputError(f"exif_folder source: {folder} is not a folder")
+        self.folder, self.reference_given = folder, bool(reference)
         files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         photos = [read_exif(p) for p in files]
         # a PX4 log beside the photos: poses at the camera triggers (exif_ulog.py)
@@ -314,6 +316,13 @@ class ExifFolderSource(PacedSource):
             sorted(set(self.heading_sources)),
             sorted(set(self.focal_rules)),
         )
+
+    def georeference(self) -> Georeference:
+        """The world's ENU origin: the reference photo's GPS position, altitude above mean sea
+        level (EXIF GPS altitude is MSL)."""
+        lat, lon, alt = (float(v) for v in self.reference)
+        where = "exif_reference" if self.reference_given else "the first photo's GPS position"
+        return Georeference(lat, lon, alt, height_ref="msl", source=f"exif_folder {self.folder}: {where}")
 
     def _frames_of(self):
         first = next((p.stamp_ns for p in self.photos if p.stamp_ns is not None), 0)

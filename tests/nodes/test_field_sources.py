@@ -13,6 +13,7 @@ import zmq
 from olsplat_msgs import DiagnosticStatus, ImageFrame, StatusRequest
 from olsplat_nodes.launcher import Supervisor, load_launch
 from olsplat_nodes.nodes.ingest import IngestNode
+from olsplat_nodes.scene.geodesy import read_georef
 from olsplat_nodes.sources import discover_devices
 from olsplat_nodes.transport import QueryClient, curve
 from tests.helpers import free_port, wait_for
@@ -82,6 +83,7 @@ def test_ingest_streams_geotagged_photos(ctx, sockdir, tmp_path):
             "acks_in": f"ipc://{sockdir}/a.sock",
             "map_in": f"ipc://{sockdir}/m.sock",
             "state_file": "",
+            "georef_out": str(tmp_path / "run" / "map" / "georef.json"),
         },
         ctx,
     )
@@ -98,6 +100,10 @@ def test_ingest_streams_geotagged_photos(ctx, sockdir, tmp_path):
         )
     finally:
         tap.close()
+    # the run's answers are georeferenced by the photos' ENU origin: the first photo's GPS, MSL
+    georef = read_georef(tmp_path / "run" / "map" / "georef.json")
+    assert (georef.latitude, georef.longitude, georef.altitude) == pytest.approx(TRACK[0], abs=1e-9)
+    assert georef.axes == "enu" and georef.height_ref == "msl" and "first photo" in georef.source
 
 
 @pytest.mark.slow
