@@ -358,7 +358,13 @@ class _CameraPoses:
     """world_from_camera [4, 4] of an image frame at a stamp: tf chain, or pose track + mount."""
 
     def __init__(
-        self, path: Path, params: BagParams, selection: Selection, tf: TfBuffer, track: TfBuffer, track_frames
+        self,
+        path: Path,
+        params: BagParams,
+        selection: Selection,
+        tf: TfBuffer,
+        track: TfBuffer,
+        track_frames: tuple[str, str],
     ):
         self.path, self.params, self.selection = path, params, selection
         self.tf, self.track, self.track_frames = tf, track, track_frames
@@ -410,7 +416,8 @@ class _CameraPoses:
         if not s.pose:
             pose = self.tf.lookup(p.world_frame, frame_id, stamp_ns, tol)
         else:
-            pose = self.track.lookup(*self.track_frames, stamp_ns, tol)
+            world, body = self.track_frames
+            pose = self.track.lookup(world, body, stamp_ns, tol)
             if self.mount is not None:
                 return pose @ self.mount
             pose = pose @ self.tf.lookup(p.body_frame or self.track_frames[1], frame_id, stamp_ns, tol)
