@@ -92,6 +92,22 @@ def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
+def k_from_opencv(k_opencv) -> np.ndarray:
+    """[3, 3] K in OpenCV's and ROS CameraInfo's convention (the top-left pixel's centre is
+    (0, 0)) -> ours (COLMAP's: (0.5, 0.5)): the principal point moves by half a pixel. Exact in
+    floating point for any principal point of at least half a pixel, so a round trip is exact."""
+    k = np.array(k_opencv, np.float64, copy=True).reshape(3, 3)
+    k[:2, 2] += 0.5
+    return k
+
+
+def k_to_opencv(k) -> np.ndarray:
+    """[3, 3] our K -> OpenCV's convention (``k_from_opencv``'s inverse)."""
+    k = np.array(k, np.float64, copy=True).reshape(3, 3)
+    k[:2, 2] -= 0.5
+    return k
+
+
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """[4, 4] world_from_camera (OpenCV axes) for a camera at ``eye`` looking at ``target``.
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from ..errors import SceneFormatError
 from ..scene import Camera
+from ..scene.camera import k_from_opencv
 from ..telemetry.tf import LINK_FROM_OPTICAL, TfBuffer, TfError, TfTimeError, TfTreeError, quat_from_ros
 from .base import SourceFrame
 
@@ -541,7 +542,8 @@ def _read_frames(
                     "a Camera (OpenCV pinhole coefficients): leave bag_undistort on",
                 )
             name = names[index] if index < len(names) else f"frame_{index:04d}.jpg"
-            camera = Camera(name, intrinsics.width, intrinsics.height, intrinsics.K, pose, dist, model)
+            K = k_from_opencv(intrinsics.K)  # undistortion above ran with the bag's own K
+            camera = Camera(name, intrinsics.width, intrinsics.height, K, pose, dist, model)
             yielded += 1
             yield SourceFrame(index, stamp_ns, name, image, camera, jpeg)
     finally:

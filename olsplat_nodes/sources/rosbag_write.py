@@ -32,6 +32,7 @@ import numpy as np
 
 from ..errors import OlsplatInputError
 from ..scene import Camera
+from ..scene.camera import k_to_opencv
 from ..scene.rotations import rotmat_to_quat
 from ..telemetry.tf import LINK_FROM_OPTICAL
 from .base import SourceFrame
@@ -118,15 +119,16 @@ def _frame_messages(frame: SourceFrame, jpeg: bytes, stamp_ns: int) -> dict[str,
     camera = frame.camera
     header = _header(stamp_ns, OPTICAL_FRAME)
     model, dist = _distortion(camera)
+    k_ros = k_to_opencv(camera.K)  # CameraInfo's pixel centres are at integers, ours at +0.5
     info = t["sensor_msgs/msg/CameraInfo"](
         header=header,
         height=camera.height,
         width=camera.width,
         distortion_model=model,
         d=dist,
-        k=camera.K.reshape(-1).copy(),
+        k=k_ros.reshape(-1).copy(),
         r=np.eye(3).reshape(-1),
-        p=np.c_[camera.K, np.zeros(3)].reshape(-1),
+        p=np.c_[k_ros, np.zeros(3)].reshape(-1),
         binning_x=0,
         binning_y=0,
         roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),

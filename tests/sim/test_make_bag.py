@@ -10,6 +10,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from olsplat_nodes.cli import main
+from olsplat_nodes.scene.camera import k_to_opencv
 from olsplat_nodes.scene.rotations import quat_to_rotmat
 from olsplat_nodes.sources.replay_log import read_replay
 
@@ -40,7 +41,7 @@ def test_sim_make_bag_writes_the_replay_logs_frames(tmp_path):
     for frame, (log_ns, image), (_, camera_info), (_, tf) in zip(frames, images, infos, poses, strict=True):
         assert log_ns == frame.stamp_ns
         assert bytes(image.data) == frame.jpeg == (out / "images" / frame.name).read_bytes()
-        np.testing.assert_array_equal(camera_info.k.reshape(3, 3), frame.camera.K)
+        np.testing.assert_array_equal(camera_info.k.reshape(3, 3), k_to_opencv(frame.camera.K))  # ROS pixel centres
         assert (camera_info.width, camera_info.height) == (320, 240)
         world_from_camera = _matrix(tf.transforms[0].transform) @ link_from_optical
         np.testing.assert_allclose(world_from_camera, frame.camera.world_from_camera, rtol=0, atol=1e-9)

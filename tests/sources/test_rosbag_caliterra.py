@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from olsplat_nodes.scene.camera import k_to_opencv
 from olsplat_nodes.sources import open_source
 from olsplat_nodes.sources.replay_log import read_replay
 
@@ -36,7 +37,11 @@ def test_real_photos_replay_through_a_bag_as_the_exif_source_gives_them(tmp_path
         child = "camera_link" if chain == "link" else "camera_optical_frame"
         messages += [
             ("/tf", stamp, tf_message(transform(stamp, "map", child, pose))),
-            ("/camera/camera_info", stamp, camera_info(stamp, camera.width, camera.height, K=camera.K, D=[0.0] * 5)),
+            (
+                "/camera/camera_info",
+                stamp,
+                camera_info(stamp, camera.width, camera.height, K=k_to_opencv(camera.K), D=[0.0] * 5),
+            ),
             ("/camera/image/compressed", stamp, compressed(stamp, frame.jpeg)),
         ]
     bag = write_bag(

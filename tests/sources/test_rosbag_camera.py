@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
+from olsplat_nodes.scene.camera import k_from_opencv
 from olsplat_nodes.sources.rosbag import read_bag
 
 from .bags import T0, camera_info, compressed, jpeg_bytes, patches, raw_image, rigid, tf_message, transform, write_bag
@@ -62,8 +63,8 @@ def test_undistorted_frames_put_points_at_their_pinhole_pixels(tmp_path, model):
     image = spots(distorted_pixels(model))
     (frame,) = read_bag(distorted_bag(tmp_path, model, raw_image(T0, "rgb8", image)))
     assert frame.camera.dist.size == 0 and frame.camera.model == "PINHOLE" and frame.jpeg is None
-    np.testing.assert_array_equal(frame.camera.K, K)
-    pinhole = (POINTS @ K.T)[:, :2] / POINTS[:, 2:]
+    np.testing.assert_array_equal(frame.camera.K, k_from_opencv(K))  # our pixel centres are at +0.5
+    pinhole = (POINTS @ K.T)[:, :2] / POINTS[:, 2:]  # OpenCV's convention: array indices, as centroid
     assert np.abs(distorted_pixels(model) - pinhole).max() > 5  # the distortion is not negligible
     found = np.array([centroid(frame.image, p) for p in pinhole])
     np.testing.assert_allclose(found, pinhole, atol=0.15)

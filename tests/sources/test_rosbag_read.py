@@ -37,7 +37,9 @@ def test_the_writers_layout_reads_with_no_parameter(tmp_path, storage, inner):
         np.testing.assert_array_equal(frame.image, cv2.imdecode(np.frombuffer(data, np.uint8), 1)[..., ::-1])
         np.testing.assert_allclose(frame.camera.world_from_camera, pose, atol=1e-9)
         assert (frame.camera.width, frame.camera.height, frame.camera.model) == (80, 60, "PINHOLE")
-        np.testing.assert_array_equal(frame.camera.K, [[100, 0, 40], [0, 100, 30], [0, 0, 1]])
+        np.testing.assert_array_equal(
+            frame.camera.K, [[100, 0, 40.5], [0, 100, 30.5], [0, 0, 1]]
+        )  # +0.5: pixel centres
         assert frame.camera.dist.size == 0
 
 

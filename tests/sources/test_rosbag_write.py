@@ -15,6 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 from olsplat_nodes.cli import main
 from olsplat_nodes.errors import OlsplatInputError
 from olsplat_nodes.scene import Camera, intrinsics, look_at
+from olsplat_nodes.scene.camera import k_to_opencv
 from olsplat_nodes.sources import SourceFrame
 from olsplat_nodes.sources.replay_log import encode_jpeg, read_replay, write_mcap
 from olsplat_nodes.sources.rosbag_write import write_rosbag2
@@ -121,9 +122,9 @@ def test_the_bag_as_rosbags_reads_it(tmp_path, storage, dist):
         assert image.format == "jpeg" and bytes(image.data) == frame.jpeg
         camera = frame.camera
         assert (camera_info.width, camera_info.height) == (camera.width, camera.height)
-        np.testing.assert_array_equal(camera_info.k.reshape(3, 3), camera.K)
+        np.testing.assert_array_equal(camera_info.k.reshape(3, 3), k_to_opencv(camera.K))
         np.testing.assert_array_equal(camera_info.r.reshape(3, 3), np.eye(3))
-        np.testing.assert_array_equal(camera_info.p.reshape(3, 4), np.c_[camera.K, np.zeros(3)])
+        np.testing.assert_array_equal(camera_info.p.reshape(3, 4), np.c_[k_to_opencv(camera.K), np.zeros(3)])
         expected_d = list(dist) + [0.0] * (5 - len(dist)) if len(dist) <= 5 else list(dist)
         assert camera_info.distortion_model == ("plumb_bob" if len(dist) <= 5 else "rational_polynomial")
         assert camera_info.d.tolist() == expected_d
