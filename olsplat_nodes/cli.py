@@ -84,7 +84,8 @@ EXAMPLES = {
     "bench cluster": "olsplat bench cluster --scene medium0 --tile-m 0,100 --workers 1,2 --work /tmp/bc --json c.json",
     "record": "olsplat record --source scene/replay.mcap --out session.mcap --frames 20\n"
     "olsplat record --source-kind exif_folder --source photos/ --out photos.mcap",
-    "bag info": "olsplat bag info flight_bag\nolsplat bag info flight_bag/flight_bag.mcap --set bag_world_frame=odom --check",
+    "bag info": "olsplat bag info flight_bag\n"
+    "olsplat bag info flight_bag/flight_bag.mcap --set bag_world_frame=odom --check",
 }
 
 
