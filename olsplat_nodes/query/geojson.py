@@ -122,6 +122,7 @@ def properties(inst: GeoInstance, text: str, map_version: int, height_ref: str, 
     dx, dy, dz = inst.extent
     return {
         "query": text,
+        "centre": [round(inst.longitude, PRECISION), round(inst.latitude, PRECISION), round(inst.altitude, 3)],
         "map_version": int(map_version),
         "rank": inst.rank,
         "gaussians": inst.gaussians,
@@ -135,10 +136,12 @@ def properties(inst: GeoInstance, text: str, map_version: int, height_ref: str, 
 
 
 def feature_collection(instances: Sequence[GeoInstance], text: str, map_version: int, height_ref: str):
-    """A ``geojson.FeatureCollection``: one Feature per located instance, its geometry a
-    GeometryCollection of the centre Point [lon, lat, alt] and the footprint Polygon (closed,
-    counter-clockwise), its ``properties`` as above. ValueError when an instance is not located
-    (the map has no georeference)."""
+    """A ``geojson.FeatureCollection``: one Feature per located instance, its geometry the
+    footprint Polygon (closed, counter-clockwise, at the box's lowest altitude), its centre
+    [lon, lat, alt] and the rest in ``properties`` (above). A plain Polygon rather than a
+    GeometryCollection with a centre Point: QGIS makes one layer per geometry type, and
+    QGroundControl's GeoJSON import takes polygons, lines and points, not collections.
+    ValueError when an instance is not located (the map has no georeference)."""
     import geojson
 
     total = sum(i.gaussians for i in instances)
@@ -146,13 +149,12 @@ def feature_collection(instances: Sequence[GeoInstance], text: str, map_version:
     for inst in instances:
         if not inst.located:
             raise ValueError(f"3D instance #{inst.rank} has no latitude and longitude: the map has no georeference")
-        centre = geojson.Point((inst.longitude, inst.latitude, inst.altitude), precision=PRECISION)
-        ring = [*inst.footprint, inst.footprint[0]]
+        ring = [(lon, lat, inst.box_altitude[0]) for lon, lat in (*inst.footprint, inst.footprint[0])]
         footprint = geojson.Polygon([ring], precision=PRECISION)
         features.append(
             geojson.Feature(
                 id=inst.rank,
-                geometry=geojson.GeometryCollection([centre, footprint]),
+                geometry=footprint,
                 properties=properties(inst, text, map_version, height_ref, total),
             )
         )

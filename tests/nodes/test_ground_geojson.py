@@ -60,8 +60,8 @@ def check_features(path, scene) -> None:
     first = collection["features"][0]
     assert first["properties"]["query"] == QUERY and first["properties"]["rank"] == 0
     assert first["properties"]["map_version"] == 1 and first["properties"]["height_ref"] == "ellipsoid"
-    point, polygon = first["geometry"]["geometries"]
-    lon, lat, _alt = point["coordinates"]
+    polygon = first["geometry"]
+    lon, lat, _alt = first["properties"]["centre"]
     _, truth_lat, truth_lon = building_truth(scene)
     east, north, _ = pymap3d.geodetic2enu(lat, lon, 488.0, truth_lat, truth_lon, 488.0)
     assert np.hypot(east, north) < 1.0, f"the feature's centre is {np.hypot(east, north):.2f} m from the building's"
@@ -94,7 +94,7 @@ def test_ground_query_and_query_write_features_on_the_building(ctx, sockdir, tin
     query_features = geojson.loads((tmp_path / "q").read_text())["features"]
     assert len(query_features) == len(ground_features)
     for mine, theirs in zip(query_features, ground_features, strict=True):  # float32 sums: cm apart at most
-        a, b = (np.array(f["geometry"]["geometries"][0]["coordinates"]) for f in (mine, theirs))
+        a, b = (np.array(f["properties"]["centre"]) for f in (mine, theirs))
         assert np.abs(a[:2] - b[:2]).max() < 1e-6 and abs(a[2] - b[2]) < 0.05
 
 

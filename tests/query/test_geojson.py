@@ -62,12 +62,18 @@ def test_geojson_is_valid_lon_lat_ordered_closed_ccw_and_8_decimals():
     assert len(collection["features"]) == len(INSTANCES)
     for feature, inst in zip(collection["features"], INSTANCES, strict=True):
         assert feature.is_valid
-        point, polygon = feature["geometry"]["geometries"]
-        assert point["type"] == "Point" and polygon["type"] == "Polygon"
-        lon, lat, alt = point["coordinates"]
+        polygon = feature["geometry"]
+        assert polygon["type"] == "Polygon"
+        lon, lat, alt = feature["properties"]["centre"]
         assert 8.5 < lon < 8.6 and 47.3 < lat < 47.4 and 480 < alt < 500  # longitude first
         ring = polygon["coordinates"][0]
         assert len(ring) == 5 and ring[0] == ring[-1]  # closed
+        assert [corner[2] for corner in ring] == pytest.approx(
+            [feature["properties"]["altitude_min"]] * 5, abs=1e-3
+        )  # at the box's bottom
+        assert min(c[0] for c in ring) < lon < max(c[0] for c in ring) and min(c[1] for c in ring) < lat < max(
+            c[1] for c in ring
+        )
         assert _signed_area(ring) > 0  # counter-clockwise: RFC 7946's exterior ring
         props = feature["properties"]
         assert props["query"] == "red roof buildings" and props["map_version"] == 7
@@ -76,7 +82,7 @@ def test_geojson_is_valid_lon_lat_ordered_closed_ccw_and_8_decimals():
         assert props["extent_m"] == pytest.approx(np.subtract(inst.box_max, inst.box_min).tolist(), abs=1e-3)
         assert props["altitude_min"] <= props["altitude"] <= props["altitude_max"]
     # 8 decimals, not the package's default 6 (~0.1 m)
-    numbers = [c for c in json.loads(text)["features"][0]["geometry"]["geometries"][0]["coordinates"]]
+    numbers = [c for corner in json.loads(text)["features"][0]["geometry"]["coordinates"][0] for c in corner[:2]]
     assert all(len(repr(c).split(".")[1]) <= 8 for c in numbers)
     assert any(len(repr(c).split(".")[1]) > 6 for c in numbers)
 
