@@ -45,6 +45,29 @@ def test_check_names_a_missing_map(tmp_path, replay_sets):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_ros2_bag_as_the_replay_source_is_checked_as_a_bag(tmp_path, tiny, replay_sets):
+    """A rosbag2 folder is a bag, not an image folder without a COLMAP model; a broken one is a
+    blocker naming it."""
+    from olsplat_nodes.sources.replay_log import read_replay
+    from olsplat_nodes.sources.rosbag_write import write_rosbag2
+
+    scene, summary = tiny
+    bag, broken = tmp_path / "flight_bag", tmp_path / "broken_bag"
+    write_rosbag2(bag, read_replay(scene / "replay.mcap"))
+    broken.mkdir()
+    (broken / "metadata.yaml").write_text("not: [a bag")
+    rows = {}
+    for source in (bag, broken):
+        done = run_olsplat("launch", "--check", "replay", "--run-dir", str(tmp_path / "run"), *replay_sets,
+                           "--set", f"ingest.source={source}", *_endpoint(free_port()), cwd=tmp_path)  # fmt: skip
+        rows[source] = (done.returncode, next(ln for ln in done.stdout.splitlines() if ln.startswith("input replay")))
+    code, line = rows[bag]
+    assert code == 0 and " ok " in line and "ROS 2 bag (mcap)" in line, line
+    assert f"/camera/image/compressed {summary['views']}" in line
+    code, line = rows[broken]
+    assert code == 1 and "blocker" in line and str(broken) in line and "cannot open the bag" in line, line
+
+
 def test_a_port_with_a_listener_is_a_blocker_naming_the_process(tmp_path, replay_sets):
     with socket.socket() as listener:
         listener.bind(("127.0.0.1", 0))

@@ -141,6 +141,10 @@ def _map(path: Path) -> tuple[str, str]:
 
 
 def _replay(path: Path) -> tuple[str, str]:
+    from ...sources.rosbag import is_rosbag2
+
+    if is_rosbag2(path) or path.name == "metadata.yaml":
+        return _bag(path)
     if path.is_file():
         if not os.access(path, os.R_OK):
             return "not readable", ""
@@ -152,6 +156,23 @@ def _replay(path: Path) -> tuple[str, str]:
         images = path / "images" if (path / "images").is_dir() else path
         return "", f"image folder, {sum(1 for _ in images.iterdir())} files, COLMAP model in {model}"
     return "no such file or folder", ""
+
+
+def _bag(path: Path) -> tuple[str, str]:
+    """A ROS 2 bag opens and has images (which topics the ingest's ``bag_*`` params pick, and
+    whether each frame has a pose, ``olsplat bag info BAG --check`` says in full)."""
+    from ...errors import SceneFormatError
+    from ...sources.rosbag_info import bag_summary
+
+    try:
+        summary = bag_summary(path, tf_messages=0)
+    except SceneFormatError as exc:
+        return exc.problem, ""
+    images = [t for t in summary.topics if t.role == "image"]
+    if not images:
+        return "a ROS 2 bag without an Image or CompressedImage topic", ""
+    counts = ", ".join(f"{t.topic} {t.count}" for t in images)
+    return "", f"ROS 2 bag ({summary.storage}), {summary.duration_ns / 1e9:.0f} s, images: {counts}"
 
 
 def _exif_folder(path: Path) -> tuple[str, str]:
