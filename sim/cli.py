@@ -20,7 +20,8 @@ def add_parser(subparsers) -> None:
         help="generate a scene, fly over it, write a dataset",
         epilog="examples:\n  olsplat sim make --preset tiny --seed 0 --out scene\n"
         "  olsplat sim make --preset small --seed 1 --out small1 --views 30\n"
-        "  olsplat sim make --preset small --seed 1 --flight-seed 7 --out small1-f7   # small1's map, another flight",
+        "  olsplat sim make --preset small --seed 1 --flight-seed 7 --out small1-f7   # small1's map, another flight\n"
+        "  olsplat sim make --preset small --seed 1 --flight-seed 8 --changes default --out small1-f8  # changed",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     make.add_argument(
@@ -43,6 +44,14 @@ def add_parser(subparsers) -> None:
         metavar="M",
         help="fly the town of --seed again on another path (turned, other noise; frames flight<M>_frame_NNNN.jpg): "
         "the same map/point_cloud.ply, so that flights can be aggregated into one map (default: the seed's flight)",
+    )
+    make.add_argument(
+        "--changes",
+        metavar="SPEC",
+        help="with --flight-seed: the flight sees the town after changes (the map stays the one of before; "
+        "truth/changes/ says what changed): default (a mix of every kind, sized to the town), none, or "
+        "kind=N,... of cars_moved, cars_added, cars_removed, objects_added, roofs_damaged, roofs_recoloured, "
+        "trees_felled, flooded_m2, burnt_m2 (sim/README.md, 'Changes between flights')",
     )
     make.add_argument("--out", type=Path, required=True, help="a new or empty folder for the dataset")
     make.add_argument("--force", action="store_true", help="empty --out first if it holds files")
@@ -151,6 +160,16 @@ def run_make(args: argparse.Namespace) -> int:
     if args.flight_seed is not None and args.flight_seed < 0:
         raise OlsplatInputError(f"--flight-seed must be >= 0, got {args.flight_seed}")
     preset = dataclasses.replace(preset, **changes)
+    change_spec = None
+    if args.changes is not None:
+        from .changes import ChangeSpec
+
+        if args.flight_seed is None:
+            raise OlsplatInputError("--changes needs --flight-seed: changes happen between two flights of a town")
+        try:
+            change_spec = ChangeSpec.parse(args.changes, preset.size_m)
+        except ValueError as exc:
+            raise OlsplatInputError(str(exc)) from None
     try:
         world = with_settings(WORLDS[args.world], args.world_set)
     except ValueError as exc:
@@ -162,7 +181,14 @@ def run_make(args: argparse.Namespace) -> int:
         ReconstructionSpec(pose_position_m=0.0, pose_rotation_deg=0.0) if args.no_pose_noise else ReconstructionSpec()
     )
     options = MakeOptions(world, recon, rate_hz=args.rate, fov_deg=args.fov)
-    make_dataset(preset, args.seed, args.out, options, flight_seed=args.flight_seed, bag=args.bag)
+    try:
+        make_dataset(
+            preset, args.seed, args.out, options, flight_seed=args.flight_seed, bag=args.bag, changes=change_spec
+        )
+    except ValueError as exc:  # a town too small for the changes asked for (changes.py), before any file is written
+        if change_spec is None or not str(exc).startswith("--changes"):
+            raise
+        raise OlsplatInputError(str(exc)) from None
     return 0
 
 

@@ -42,6 +42,8 @@ from olsplat_nodes.sources.rosbag_write import write_rosbag2
 from .annotate import annotate_view, label_maps
 from .appearance import sun_vector, with_view_dependence
 from .atmosphere import CloudField, apply_haze, shadow_light, surface_points
+from .change_truth import change_mask, mark_map, write_changes, write_mask
+from .changes import ChangeSpec, apply_changes, change_summary, changes_rng
 from .flight import EPOCH_NS, FlightFrame, FlightSpec, plan_flight
 from .labels import CATEGORIES, LABELS, QUERIES
 from .presets import Preset
@@ -165,17 +167,30 @@ def make_dataset(
     log=print,
     flight_seed: int | None = None,
     bag: Literal["mcap", "sqlite3"] | None = None,
+    changes: ChangeSpec | None = None,
 ) -> dict:
     """Write the dataset of ``preset`` and ``seed`` to ``out``; returns the scene.json summary.
 
     ``flight_seed`` (>= 0): the same town and map, flown on another path (turned, other pose and
     sensor noise, frames ``flight<M>_frame_NNNN.jpg``); None: the seed's own flight. ``bag``: also
     write replay.mcap's frames (its JPEG bytes, stamps, names, cameras) to the rosbag2 folder
-    replay_bag/ in that storage."""
+    replay_bag/ in that storage. ``changes`` (needs a flight seed): the flight sees the town after
+    these changes (changes.py); the map stays the unchanged town's, truth/changes/ says what changed."""
+    if changes is not None and flight_seed is None:
+        raise ValueError("changes need a flight seed: they happen between two flights")
     start = time.perf_counter()
+    truth, spec, frames, recon, (sensor_rng, pose_rng, world_rng) = _town_flight_map(preset, seed, options, flight_seed)
+    before, changed = truth, None
+    if changes is not None:  # the flight sees the changed town; the map is made from the unchanged one
+        changed = apply_changes(truth, changes, changes_rng(flight_seed))  # before any file: a bad spec leaves none
+        truth = changed.truth
     for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    truth, spec, frames, recon, (sensor_rng, pose_rng, world_rng) = _town_flight_map(preset, seed, options, flight_seed)
+    change_folder = out / "truth" / "changes"
+    if changed is not None and changes is not None:
+        map_change = mark_map(changed, before.layout, recon.gaussians.means, recon.instance, recon.category)
+        write_changes(change_folder, changes, changed.records, map_change)
+        log(f"changes: {len(changed.records)} ({int((map_change >= 0).sum()):,} map Gaussians) -> {change_folder}")
     log(f"scene: {len(truth.gaussians):,} Gaussians, {len(truth.layout.buildings)} buildings, "
         f"{len(truth.layout.trees)} trees, {len(truth.layout.cars)} cars on {preset.size_m:.0f} m x "
         f"{preset.size_m:.0f} m")  # fmt: skip
@@ -216,6 +231,10 @@ def make_dataset(
                 result.topk_ids, result.topk_weights, result.alpha, truth.label, truth.instance
             )
             doc = annotate_view(labels, instances, f"../images/{frame.camera.name}")
+            if changed is not None:
+                old = rasterize(before.gaussians, frame.camera, background=BACKGROUND).topk_ids
+                mask = change_mask(old, result.topk_ids, changed.before_ids, changed.after_ids)
+                write_mask(change_folder, Path(frame.camera.name).stem, mask)
             (out / "annotations" / (Path(frame.camera.name).stem + ".json")).write_text(json.dumps(doc))
             for shape in doc["shapes"]:
                 if shape["group_id"] is not None:
@@ -260,6 +279,8 @@ def make_dataset(
         "cars": len(truth.layout.cars),
         "options": asdict(options),
     }
+    if changed is not None and changes is not None:  # the key only with changes: other scene.json stay as they were
+        summary["changes"] = change_summary(changes, changed.records)
     (out / "scene.json").write_text(json.dumps(summary, indent=2))
     log(f"done in {time.perf_counter() - start:.0f} s -> {out}")
     return summary
