@@ -71,6 +71,9 @@ class ChangeSpec:
     trees_felled: int = 0
     flooded_m2: float = 0.0  # one flooded area of about this size (0: none)
     burnt_m2: float = 0.0  # one burnt area of about this size (0: none)
+    # fewer cars moved or removed, trees felled and roofs changed where the town has fewer (default's
+    # mix); False: such a spec is refused
+    fit_town: bool = False
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -79,8 +82,8 @@ class ChangeSpec:
     def default(size_m: float) -> ChangeSpec:
         """``DEFAULT_PER_HECTARE`` scaled by the town's area (``size_m`` side, metres), counts >= 1."""
         scale = size_m**2 / 10_000.0
-        return ChangeSpec(**{k: (v * scale if isinstance(v, float) else max(1, round(v * scale)))
-                             for k, v in DEFAULT_PER_HECTARE.items()})  # fmt: skip
+        return ChangeSpec(**{k: (float(round(v * scale)) if isinstance(v, float) else max(1, round(v * scale)))
+                             for k, v in DEFAULT_PER_HECTARE.items()}, fit_town=True)  # fmt: skip
 
     @staticmethod
     def parse(text: str, size_m: float) -> ChangeSpec:
@@ -92,7 +95,7 @@ class ChangeSpec:
         spec = ChangeSpec()
         if items[0] in ("default", "none"):
             spec = ChangeSpec.default(size_m) if items.pop(0) == "default" else spec
-        types = {f.name: f.type for f in fields(ChangeSpec)}
+        types = {f.name: f.type for f in fields(ChangeSpec) if f.name != "fit_town"}
         values = {}
         for item in items:
             key, sep, value = item.partition("=")
@@ -271,17 +274,17 @@ class _Editor:
         the tries on a road's lane (along the road), the others across (as in a parking stall)."""
         half = self.layout.size_m / 2
         for _ in range(400):
-            along_x = bool(self.rng.random() < 0.5)
+            along_x, allowed = bool(self.rng.random() < 0.5), categories
             x, y = self.rng.uniform(-half + 3, half - 3, 2)
             if lanes and self.layout.roads and self.rng.random() < 0.5:
                 axis, c, hw = self.layout.roads[self.rng.integers(len(self.layout.roads))]
                 lane = c + hw / 2 * self.rng.choice([-1.0, 1.0])
                 x, y, along_x = (x, lane, True) if axis == "x" else (lane, y, False)
             elif lanes:
-                categories, along_x = [CATEGORY["parking"]], False
+                allowed, along_x = [CATEGORY["parking"]], False
             hx, hy = (length / 2, width / 2) if along_x else (width / 2, length / 2)
             box = (x - hx, y - hy, x + hx, y + hy)
-            if self.free(box) and self.on(box, categories):
+            if self.free(box) and self.on(box, allowed):
                 self.taken.append(box)
                 return float(x), float(y), along_x
         raise ValueError(f"--changes: no free place left in the town for a {length:.1f} m x {width:.1f} m change")
@@ -290,12 +293,20 @@ class _Editor:
         self.parts.append((part, k))
 
 
+def _fit(counts: tuple[int, ...], available: int, fit: bool, what: str) -> tuple[int, ...]:
+    """``counts`` of things to take from ``available`` (in turn, as far as they go, when ``fit``)."""
+    if sum(counts) <= available:
+        return counts
+    if not fit:
+        raise ValueError(f"--changes: {sum(counts)} {what} but the town has {available}")
+    taken = np.minimum(counts, available - np.r_[0, np.cumsum(counts)[:-1]].clip(max=available))
+    return tuple(int(v) for v in taken)
+
+
 def _cars(ed: _Editor, spec: ChangeSpec) -> None:
     lanes = [CATEGORY["road"]]
-    wanted = spec.cars_removed + spec.cars_moved
-    if wanted > len(ed.cars):
-        raise ValueError(f"--changes: {wanted} cars to remove or move but the town has {len(ed.cars)}")
-    chosen = ed.rng.choice(len(ed.cars), wanted, replace=False)
+    removed, moved = _fit((spec.cars_removed, spec.cars_moved), len(ed.cars), spec.fit_town, "cars to remove or move")
+    chosen = ed.rng.choice(len(ed.cars), removed + moved, replace=False)
     for n, index in enumerate(chosen):
         car = ed.cars[index]
         old = _rect(
@@ -303,7 +314,7 @@ def _cars(ed: _Editor, spec: ChangeSpec) -> None:
         )
         own = ed.truth.instance == car.instance
         z = (-Z_MARGIN, round(car.height + Z_MARGIN, 3))
-        if n < spec.cars_removed:
+        if n < removed:
             k = ed.add(
                 "car_removed",
                 instance=car.instance,
@@ -417,9 +428,8 @@ def _objects(ed: _Editor, spec: ChangeSpec) -> None:
 
 
 def _trees(ed: _Editor, spec: ChangeSpec) -> None:
-    if spec.trees_felled > len(ed.trees):
-        raise ValueError(f"--changes: {spec.trees_felled} trees to fell but the town has {len(ed.trees)}")
-    chosen = ed.rng.choice(len(ed.trees), spec.trees_felled, replace=False)
+    (felled,) = _fit((spec.trees_felled,), len(ed.trees), spec.fit_town, "trees to fell")
+    chosen = ed.rng.choice(len(ed.trees), felled, replace=False)
     for index in chosen:
         tree = ed.trees[index]
         own = ed.truth.instance == tree.instance
@@ -447,15 +457,15 @@ def _trees(ed: _Editor, spec: ChangeSpec) -> None:
 
 
 def _roofs(ed: _Editor, spec: ChangeSpec) -> None:
-    wanted = spec.roofs_damaged + spec.roofs_recoloured
-    if wanted > len(ed.buildings):
-        raise ValueError(f"--changes: {wanted} roofs to change but the town has {len(ed.buildings)} buildings")
+    damaged, recoloured = _fit(
+        (spec.roofs_damaged, spec.roofs_recoloured), len(ed.buildings), spec.fit_town, "roofs to change"
+    )
     roof = ed.truth.category == CATEGORY["roof"]
-    for n, index in enumerate(ed.rng.choice(len(ed.buildings), wanted, replace=False)):
+    for n, index in enumerate(ed.rng.choice(len(ed.buildings), damaged + recoloured, replace=False)):
         b = ed.buildings[index]
         own = roof & (ed.truth.instance == b.instance)
         label = building_label(b.roof_color)
-        if n < spec.roofs_damaged:
+        if n < damaged:
             x0, y0, x1, y1 = b.boxes[0]
             area = (x1 - x0) * (y1 - y0) * ed.rng.uniform(0.15, 0.35)
             r = min(np.sqrt(area / np.pi), 0.4 * min(x1 - x0, y1 - y0))
