@@ -46,13 +46,15 @@ def mark_map(
 
 
 def change_mask(
-    topk_before: np.ndarray,  # [H, W, K] Gaussian ids of the unchanged truth's render, -1 padded
-    topk_after: np.ndarray,  # [H, W, K] of the changed truth's render at the same camera
+    topk_before: np.ndarray | None,  # [H, W, K] Gaussian ids of the unchanged truth's render, -1 padded
+    topk_after: np.ndarray | None,  # [H, W, K] of the changed truth's render at the same camera
     before_ids: np.ndarray,  # [N before] ChangedTruth.before_ids
     after_ids: np.ndarray,  # [N after] ChangedTruth.after_ids
 ) -> np.ndarray:
     """[H, W] uint8: 0 unchanged, k + 1 where the top Gaussian (the highest weight) after the change
     belongs to record k, else where the top Gaussian before it does."""
+    if topk_before is None or topk_after is None:
+        raise ValueError("change masks need the renders' top-K ids (rasterize with want_topk=True)")
     top_before, top_after = topk_before[..., 0], topk_after[..., 0]
     before = np.where(top_before >= 0, before_ids[np.maximum(top_before, 0)], -1)
     after = np.where(top_after >= 0, after_ids[np.maximum(top_after, 0)], -1)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, fields
+from typing import Any
 
 import cv2
 import numpy as np
@@ -31,7 +32,7 @@ from olsplat_nodes.scene import Gaussians
 from olsplat_nodes.scene.gaussians import SH_C0
 
 from .labels import CATEGORY, LABEL, LABELS, ROOF_COLORS, building_label
-from .layout import Car, _Builder, _shadows
+from .layout import Car, Tree, _Builder, _shadows
 from .scene import GROUND_COLORS, TruthScene, _car, _Part, _part, _shade, _shapes, footprint_mask
 
 # The flight seed M's streams are children of SeedSequence(M, spawn_key=(4,)): flight, sensor and
@@ -82,8 +83,11 @@ class ChangeSpec:
     def default(size_m: float) -> ChangeSpec:
         """``DEFAULT_PER_HECTARE`` scaled by the town's area (``size_m`` side, metres), counts >= 1."""
         scale = size_m**2 / 10_000.0
-        return ChangeSpec(**{k: (float(round(v * scale)) if isinstance(v, float) else max(1, round(v * scale)))
-                             for k, v in DEFAULT_PER_HECTARE.items()}, fit_town=True)  # fmt: skip
+        values: dict[str, Any] = {
+            k: float(round(v * scale)) if isinstance(v, float) else max(1, round(v * scale))
+            for k, v in DEFAULT_PER_HECTARE.items()
+        }
+        return ChangeSpec(**values, fit_town=True)
 
     @staticmethod
     def parse(text: str, size_m: float) -> ChangeSpec:
@@ -96,7 +100,7 @@ class ChangeSpec:
         if items[0] in ("default", "none"):
             spec = ChangeSpec.default(size_m) if items.pop(0) == "default" else spec
         types = {f.name: f.type for f in fields(ChangeSpec) if f.name != "fit_town"}
-        values = {}
+        values: dict[str, Any] = {}
         for item in items:
             key, sep, value = item.partition("=")
             key = key.strip()
@@ -232,7 +236,7 @@ class _Editor:
         self.cars, self.trees = list(self.layout.cars), list(self.layout.trees)
         self.buildings = list(self.layout.buildings)
         self.casters: list[tuple[int, Car]] = []  # (record id, a box casting a shadow) of new things
-        self.removed_casters: list[tuple[int, object]] = []  # (record id, car or tree) gone
+        self.removed_casters: list[tuple[int, Car | Tree]] = []  # (record id, car or tree) gone
         self.next_instance = int(truth.instance.max()) + 1
         self.footprint = footprint_mask(self.layout)
         half = self.layout.size_m / 2
@@ -424,7 +428,7 @@ def _objects(ed: _Editor, spec: ChangeSpec) -> None:
             centre=(x, y, height / 2),
         )
         ed.new_part(_part(means, normals, colors, OBJECT_CATEGORY, instance, -1), k)
-        ed.casters.append((k, Car(x, y, along_x, length, width, height, tuple(rgb), instance)))
+        ed.casters.append((k, Car(x, y, along_x, length, width, height, (rgb[0], rgb[1], rgb[2]), instance)))
 
 
 def _trees(ed: _Editor, spec: ChangeSpec) -> None:
@@ -547,7 +551,7 @@ def _reshade(ed: _Editor) -> tuple[np.ndarray, np.ndarray]:
         if not mine:
             continue
         cars = [c for c in mine if isinstance(c, Car)]
-        trees = [c for c in mine if not isinstance(c, Car)]
+        trees = [c for c in mine if isinstance(c, Tree)]
         own = _shadows(dataclasses.replace(layout, buildings=[], trees=trees, cars=cars)) > 0.05
         owner[own & changed & (owner < 0)] = rec.id
     shaded = np.flatnonzero(ed.ground & (ed.removed < 0) & (ed.z < Z_MARGIN))
@@ -590,9 +594,13 @@ def apply_changes(truth: TruthScene, spec: ChangeSpec, rng: np.random.Generator)
         new = Gaussians.from_colors(means, colors, scales, opacities, quats)
         new_sh = np.zeros((len(new), sh.shape[1], 3), np.float32)
         new_sh[:, :1] = new.sh
-        kept = Gaussians(*(np.concatenate([a, b]) for a, b in (
-            (kept.means, new.means), (kept.quats, new.quats), (kept.log_scales, new.log_scales),
-            (kept.opacity_logits, new.opacity_logits), (kept.sh, new_sh))))  # fmt: skip
+        kept = Gaussians(
+            means=np.concatenate([kept.means, new.means]),
+            quats=np.concatenate([kept.quats, new.quats]),
+            log_scales=np.concatenate([kept.log_scales, new.log_scales]),
+            opacity_logits=np.concatenate([kept.opacity_logits, new.opacity_logits]),
+            sh=np.concatenate([kept.sh, new_sh]),
+        )
         after_ids = np.concatenate([after_ids, *[np.full(len(p.means), k, np.int32) for p, k in ed.parts]])
         category = np.concatenate([category, *[p.category for p in parts]])
         instance = np.concatenate([instance, *[p.instance for p in parts]])

@@ -181,7 +181,7 @@ def make_dataset(
     start = time.perf_counter()
     truth, spec, frames, recon, (sensor_rng, pose_rng, world_rng) = _town_flight_map(preset, seed, options, flight_seed)
     before, changed = truth, None
-    if changes is not None:  # the flight sees the changed town; the map is made from the unchanged one
+    if changes is not None and flight_seed is not None:  # the flight sees the changed town, the map is the old one
         changed = apply_changes(truth, changes, changes_rng(flight_seed))  # before any file: a bad spec leaves none
         truth = changed.truth
     for sub in ("map", "sparse/0", "images", "annotations", "truth/true_poses", "preview"):
