@@ -120,3 +120,47 @@ def fold_dense(prior_mean, weight, features, strength, config: AggregationConfig
         fell_back = config.min_retained_views is not None and kept < config.min_retained_views
         weight[i] = d.sum() if fell_back else rho.sum()
     return F, weight
+
+
+def flight_evidence_dense(features, strength, config: AggregationConfig):
+    """One flight's map and evidence from its raw views, in plain numpy: (F [N, D], W [N],
+    count [N], n_eff [N], spread [N]) for features [N, V, D] f_iv and strength [N, V] d_iv
+    (0 = not seen). W = sum d, count = views with d > 0, n_eff = (sum d)^2 / sum d^2,
+    spread = sum d (1 - cos(f, F)) / sum d (NaN where unseen)."""
+    F = refine_dense(features, strength, config)
+    W = strength.sum(1)
+    count = (strength > 0).sum(1)
+    n_eff = np.zeros(len(F))
+    spread = np.full(len(F), np.nan)
+    for i in range(len(F)):
+        seen = strength[i] > 0
+        if not seen.any():
+            continue
+        d, f = strength[i, seen], features[i, seen]
+        n_eff[i] = d.sum() ** 2 / (d**2).sum()
+        cos = f @ F[i] / (np.linalg.norm(f, axis=1) * np.linalg.norm(F[i]) + config.eps)
+        spread[i] = (d * (1 - cos)).sum() / d.sum()
+    return F, W, count, n_eff, spread
+
+
+def change_score_dense(features, strength, flight, a, b, config: AggregationConfig, rule):
+    """[N] change scores of flight ``a`` to flight ``b`` (``aggregate/change.py``'s rule) from
+    raw views: features [N, V, D], strength [N, V] (0 = not seen), flight [V] each view's
+    flight. Each flight's map comes from its own views alone (``flight_evidence_dense``)."""
+    maps = {}
+    for name in (a, b):
+        views = np.asarray(flight) == name
+        maps[name] = flight_evidence_dense(features[:, views], strength[:, views], config)
+    (F_a, W_a, _, n_a, s_a), (F_b, W_b, _, n_b, s_b) = maps[a], maps[b]
+    score = np.full(len(F_a), np.nan)
+    for i in range(len(F_a)):
+        well = [
+            n >= rule.min_views and W >= rule.min_weight and np.isfinite(s)
+            for n, W, s in ((n_a[i], W_a[i], s_a[i]), (n_b[i], W_b[i], s_b[i]))
+        ]
+        if not all(well):
+            continue
+        cos = F_a[i] @ F_b[i] / (np.linalg.norm(F_a[i]) * np.linalg.norm(F_b[i]))
+        noise = s_a[i] + s_b[i] + rule.prior_spread / n_a[i] + rule.prior_spread / n_b[i]
+        score[i] = (1 - cos) / noise
+    return score

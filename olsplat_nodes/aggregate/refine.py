@@ -142,7 +142,7 @@ def _prior_mean(prior_row, norm, out):
 
 @njit(parallel=True, cache=True, fastmath=True)
 def _consistency(
-    first, order, strength, entry_offsets, slots, weights, bank, betas, eps, min_retained, prior, weight, norm
+    first, order, strength, entry_offsets, slots, weights, bank, betas, eps, min_retained, prior, weight, norm, spread
 ):
     """[n, D] float32 F per Gaussian; betas [T] beta_t; min_retained <= 0 turns the F0 fallback off.
 
@@ -151,7 +151,9 @@ def _consistency(
     already holds earlier views, whose mean is prior [n, D]'s row direction at length norm, and
     folds these in: each new view weighs rho = d exp(beta_T cos(f, F)) against that mean and
     F = (W F + sum rho f) / (W + sum rho + eps). On return weight holds the sum of the final
-    weights (rho, or d after the F0 fallback) and norm |F|."""
+    weights (rho, or d after the F0 fallback) and norm |F|. spread [n] float64, unless it has
+    no rows, gets each computed Gaussian's spread of views about F (``_spread``; NaN for a fold,
+    which no longer holds the earlier views)."""
     n, dim = first.shape[0] - 1, bank.shape[1]
     out = np.zeros((n, dim), np.float32)
     beta_last = betas[-1] if betas.shape[0] > 0 else 0.0
@@ -181,6 +183,8 @@ def _consistency(
                 weight[g] = total
                 norm[g] = np.sqrt(_dot(F, F))
                 out[g] = F
+                if spread.shape[0] > 0:
+                    spread[g] = np.nan
                 continue
             _weighted_mean(features, d, eps, F0)
             F[:] = F0
@@ -203,18 +207,37 @@ def _consistency(
             weight[g] = total
             norm[g] = np.sqrt(_dot(F, F))
             out[g] = F
+            if spread.shape[0] > 0:
+                spread[g] = _spread(features, norms, d, F, eps)
     return out
 
 
+@njit(inline="always")
+def _spread(features, norms, w, F, eps):
+    """The w-weighted mean of 1 - cos(f_j, F) over a Gaussian's views (0: they all point
+    along F; 1: orthogonal on average): how much its views scatter about the feature made of
+    them. w = d_iv, the views' own evidence, not the consistency weights rho: rho = d exp(8 cos)
+    all but drops the views that disagree with F, and a Gaussian whose views split into two
+    camps (an edge seen against two backgrounds) would look certain of the camp it chose."""
+    norm_F = np.sqrt(_dot(F, F))
+    total = spread = 0.0
+    for j in range(features.shape[0]):
+        total += w[j]
+        spread += w[j] * (1.0 - _dot(features[j], F) / (norms[j] * norm_F + eps))
+    return spread / total if total > 0.0 else np.nan
+
+
 @njit(parallel=True, cache=True)
-def _streaming_median(first, order, strength, entry_offsets, slots, weights, bank, prior, weight, norm):
+def _streaming_median(first, order, strength, entry_offsets, slots, weights, bank, prior, weight, norm, spread):
     """[n, D] float32 unit rows: VALA's streaming weighted geometric median in cosine space
     (VALA Sec. 4.2, Algorithm 1), per Gaussian over its observations in arrival order: z starts
     at the first unit feature with W = its weight; each next one (unit f, weight w) moves z
     along its tangent direction, z <- normalize(z + w / (W + w) * (f - (f . z) z)), W += w.
     Observations with a zero feature or weight are skipped. A Gaussian with weight W > 0 goes on
     from z = prior [n, D]'s row direction (the median is incremental by nature); weight [n] is
-    read and written, norm [n] is set to 1 where z is set."""
+    read and written, norm [n] is set to 1 where z is set; spread [n] (unless it has no rows)
+    gets the d-weighted ``_spread`` about z of the views a Gaussian computed from scratch
+    (NaN when it went on from a prior)."""
     n, dim = first.shape[0] - 1, bank.shape[1]
     out = np.zeros((n, dim), np.float32)
     most = _most_observed(first)
@@ -244,6 +267,8 @@ def _streaming_median(first, order, strength, entry_offsets, slots, weights, ban
                         z[c] += eta * (features[j, c] / norms[j] - along * z[c])
                     z /= np.sqrt(_dot(z, z))
                 total += d[j]
+            if spread.shape[0] > 0:
+                spread[g] = np.nan if weight[g] > 0.0 else _spread(features, norms, d, z, 1e-30)
             weight[g] = total
             norm[g] = 1.0 if total > 0.0 else 0.0
             out[g] = z
@@ -255,6 +280,7 @@ def refine_mixed(
     n: int,
     config: AggregationConfig = AggregationConfig(),
     state: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    evidence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(F [n, D] float32, observation count [n] int64) combining each Gaussian's observations
     as ``config.combine`` says: the consistency update with config.iterations iterations, or
@@ -263,12 +289,21 @@ def refine_mixed(
     ``state`` = (prior [n, D] float32 or [0, D], weight [n] float64, norm [n] float64) is a live
     map's running state, updated in place: Gaussians with weight 0 (all of them when the prior
     has no rows) are computed exactly, the others fold these observations into their prior (see
-    ``_consistency``; the median folds exactly). Without it every Gaussian is computed exactly."""
+    ``_consistency``; the median folds exactly). Without it every Gaussian is computed exactly.
+
+    ``evidence`` = (strength sum [n], effective views [n], spread [n]) float64 is written for
+    every Gaussian with an observation here: the sum of its d_iv (how much of the views' pixel
+    weight it drew, after the quality factors), Kish's effective number of its views under d,
+    (sum d)^2 / sum d^2 (one strong view and two glimpses count little more than one), and the
+    spread of its views about its F (``_spread``: the d-weighted mean of 1 - cos; NaN where a
+    prior was folded into)."""
     first, order = _group_by_owner(observations.owner, n)
     dim = observations.bank.shape[1]
     prior, weight, norm = state if state is not None else (np.zeros((0, dim), np.float32), np.zeros(n), np.zeros(n))
     if len(weight) != n or len(norm) != n or prior.shape not in ((n, dim), (0, dim)):
         raise ValueError(f"state for {n} Gaussians of width {dim}: prior {prior.shape}, weight {weight.shape}")
+    if evidence is not None and any(len(array) != n for array in evidence):
+        raise ValueError(f"evidence for {n} Gaussians: {[len(array) for array in evidence]} rows")
     if not len(prior):  # no prior: every observed Gaussian is computed exactly
         weight[np.diff(first) > 0] = 0.0
     arrays = (
@@ -281,12 +316,20 @@ def refine_mixed(
         np.ascontiguousarray(observations.bank, np.float32),
     )
     prior = np.ascontiguousarray(prior, np.float32)
+    seen = np.diff(first) > 0
+    spread = np.full(n if evidence is not None else 0, np.nan)
     if config.combine == "streaming_median":
-        F = _streaming_median(*arrays, prior, weight, norm)
+        F = _streaming_median(*arrays, prior, weight, norm, spread)
     else:
         betas = np.array([config.beta_at(t) for t in range(1, config.iterations + 1)], np.float64)
         min_retained = -1.0 if config.min_retained_views is None else float(config.min_retained_views)
-        F = _consistency(*arrays, betas, float(config.eps), min_retained, prior, weight, norm)
+        F = _consistency(*arrays, betas, float(config.eps), min_retained, prior, weight, norm, spread)
+    if evidence is not None:
+        d = observations.strength.astype(np.float64)
+        sums = np.bincount(observations.owner, d, minlength=n)[seen]
+        squares = np.bincount(observations.owner, d * d, minlength=n)[seen]
+        evidence[0][seen], evidence[2][seen] = sums, spread[seen]
+        evidence[1][seen] = sums**2 / np.maximum(squares, 1e-300)
     return F, np.diff(first)
 
 

@@ -9,7 +9,9 @@ in one of two forms:
   K = 1024. Measured on the small preset (seed 0): mIoU 65.9 / Loc@50 60.2 against 65.9 /
   60.3 for float16 (``olsplat bench compression``). Loading decodes it to dense rows.
 Both carry ``observed`` [N] bool, ``encoder`` (the encoder or fusion spec text), ``version``.
-Version 1 files (float16 only, no ``form``) still load.
+Version 1 files (float16 only, no ``form``) still load. A map of one flight (``flights.py``)
+also carries its evidence per Gaussian, which change scores need (``EVIDENCE``); maps without
+it load with None there.
 """
 
 from __future__ import annotations
@@ -30,6 +32,13 @@ from ..errors import SceneFormatError
 
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
+# Optional per-Gaussian evidence arrays of a map (name -> stored type); all or none are present.
+EVIDENCE = {
+    "strength_sum": np.float32,
+    "view_count": np.int32,
+    "effective_views": np.float32,
+    "view_spread": np.float32,
+}
 
 
 @njit(cache=True)
@@ -64,6 +73,11 @@ class LanguageMap:
     form: str = "float16"  # how it was (or will be) stored: "float16" or "codebook"
     codes: np.ndarray | None = None  # codebook form, as loaded: [N] uint16 (65535: never observed)
     centres: np.ndarray | None = None  # codebook form, as loaded: [K, D] float16 unit rows
+    # Evidence (a flight's map; None when the map does not carry it), per Gaussian over the views it was made of:
+    strength_sum: np.ndarray | None = None  # [N] float32 sum of d_iv (pixel weight x quality; 0: unobserved)
+    view_count: np.ndarray | None = None  # [N] int32 views that kept an observation of it (d_iv > tau_d)
+    effective_views: np.ndarray | None = None  # [N] float32 Kish's (sum d)^2 / sum d^2 (0: unobserved)
+    view_spread: np.ndarray | None = None  # [N] float32 d-weighted mean of 1 - cos(f_iv, F_i) (NaN: unobserved)
 
     def __len__(self) -> int:
         """The number of Gaussians (also when the features are kept as codes)."""
@@ -92,8 +106,21 @@ class LanguageMap:
             arrays = {"form": "codebook", "codes": codes, "centres": centres.astype(np.float16)}
         else:
             arrays = {"form": "float16", "features": np.asarray(self.features, np.float16)}  # no copy if float16
-        content: dict[str, Any] = {**arrays, **common}
+        content: dict[str, Any] = {**arrays, **common, **self._evidence()}
         write_atomic(path, lambda f: np.savez(f, **content))
+
+    def has_evidence(self) -> bool:
+        return all(getattr(self, key) is not None for key in EVIDENCE)
+
+    def _evidence(self) -> dict[str, np.ndarray]:
+        """The evidence arrays to store (none, or all of them with one row per Gaussian)."""
+        arrays = {key: getattr(self, key) for key in EVIDENCE}
+        if all(value is None for value in arrays.values()):
+            return {}
+        if any(value is None or len(value) != len(self) for value in arrays.values()):
+            shapes = {key: None if value is None else np.shape(value) for key, value in arrays.items()}
+            raise ValueError(f"evidence needs all of {sorted(EVIDENCE)} with {len(self)} rows, got {shapes}")
+        return {key: np.asarray(value, EVIDENCE[key]) for key, value in arrays.items()}
 
     @staticmethod
     def load(path: str | Path, decode: bool = True) -> LanguageMap:
@@ -145,7 +172,11 @@ class LanguageMap:
                 raise SceneFormatError(path, f"{len(features)} features but {len(observed)} observed flags")
         else:
             raise SceneFormatError(path, f"unknown language map form {form!r}")
-        return LanguageMap(features, observed, str(data["encoder"]), form, codes, centres)
+        evidence = {key: data[key] for key in EVIDENCE if key in data}
+        if evidence and (len(evidence) < len(EVIDENCE) or any(len(a) != len(observed) for a in evidence.values())):
+            shapes = {key: value.shape for key, value in evidence.items()}
+            raise SceneFormatError(path, f"evidence arrays {shapes} for {len(observed)} Gaussians")
+        return LanguageMap(features, observed, str(data["encoder"]), form, codes, centres, **evidence)
 
 
 # The run's map folder: versioned snapshots and latest.json, the late joiner's way in.

@@ -19,6 +19,7 @@ import logging
 import mmap
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -118,12 +119,21 @@ class ObservationStore:
     """A store folder opened by its one writer (``writer=True``: the accumulator, an offline
     run) or by any number of readers (the refiner, tools, tests). Only the writer removes the
     ``*.tmp`` segment a crash left behind: a reader that did so could delete a segment the
-    live writer is still filling, which then enters the store with files missing."""
+    live writer is still filling, which then enters the store with files missing.
 
-    def __init__(self, folder: str | Path, n_gaussians: int, writer: bool = False):
+    A reader with ``keep`` (a test of a view's name) sees only the views it keeps, in store
+    order (e.g. one flight's, ``f1/...``): their map is the map of those views alone."""
+
+    def __init__(
+        self, folder: str | Path, n_gaussians: int, writer: bool = False, keep: Callable[[str], bool] | None = None
+    ):
+        if writer and keep is not None:
+            raise ValueError(f"{folder}: a store's writer sees every view (keep is for readers)")
         self.folder = Path(folder)
         self.n_gaussians = n_gaussians
         self.writer = writer
+        self.keep = keep
+        self.kept: dict[str, bool] = {}  # segment folder name -> keep(its view name), once per segment
         if writer:
             (self.folder / "views").mkdir(parents=True, exist_ok=True)
             for leftover in (self.folder / "views").glob("*.tmp"):  # a crash during an earlier append
@@ -145,7 +155,18 @@ class ObservationStore:
         views = self.folder / "views"
         if not views.is_dir():  # a reader before the writer's first view
             return []
-        return sorted(p for p in views.iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
+        found = sorted(p for p in views.iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
+        return found if self.keep is None else [p for p in found if self._kept(p)]
+
+    def _kept(self, segment: Path) -> bool:
+        """Whether ``keep`` keeps this segment's view (one whose name cannot be read is not kept)."""
+        if segment.name not in self.kept:
+            try:
+                name = (segment / "name.txt").read_text()
+            except OSError:
+                return False  # perhaps not yet: asked again next time
+            self.kept[segment.name] = bool(self.keep and self.keep(name))
+        return self.kept[segment.name]
 
     def append(self, name: str, observations: ViewObservations, bank: np.ndarray) -> int:
         """Write one view's observations and its stacked region bank [R, D]; returns the view index."""
@@ -356,6 +377,7 @@ class ObservationStore:
         state: tuple[np.ndarray, np.ndarray] | None = None,
         views: tuple[int, int] | None = None,
         gaussians: tuple[int, int] | None = None,
+        evidence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
@@ -376,11 +398,14 @@ class ObservationStore:
         in them are computed exactly, the others are approximated (the consistency update weighs
         the new views against the current F, without re-weighing the earlier ones). With
         ``gaussians`` = (lo, hi) the pass recomputes exactly the Gaussians lo <= g < hi that any
-        view observed (a live map's refresh of one slice), and leaves ``touched`` alone too."""
+        view observed (a live map's refresh of one slice), and leaves ``touched`` alone too.
+        ``evidence`` = (strength sum [N], effective views [N], spread [N]) float64 gets, for
+        every Gaussian computed, its sum of d_iv, its effective number of views and the spread
+        of its views about its feature (``refine_mixed``)."""
         segments = self.segments()
         if views is not None:
-            if F is None or state is None:
-                raise ValueError("folding views in needs the current features and their state")
+            if F is None or state is None or evidence is not None:
+                raise ValueError("folding views in needs the current features and their state (and gives no evidence)")
             counts = self._counts_in(segments, *views)
             selected = counts > 0
         else:
@@ -427,9 +452,15 @@ class ObservationStore:
             if state is not None:  # a fold's prior is the selected rows; an exact pass has none
                 prior = np.asarray(out[rows] if views is not None else out[:0], np.float32)
                 range_state = (prior, state[0][rows], state[1][rows])  # slices: written in place
-            refined, count = refine_mixed(replace(observations, owner=owner), len(picked), config, range_state)
+            range_evidence = None if evidence is None else tuple(array[rows] for array in evidence)
+            refined, count = refine_mixed(
+                replace(observations, owner=owner), len(picked), config, range_state, range_evidence
+            )
             if state is not None and range_state is not None and not whole:  # index copies: written back
                 state[0][rows], state[1][rows] = range_state[1], range_state[2]
+            if evidence is not None and range_evidence is not None and not whole:
+                for array, part in zip(evidence, range_evidence, strict=True):
+                    array[rows] = part
             if unit_float16:
                 normalise_rows(refined)  # in place: ``unit_rows`` without its temporaries
             out[rows] = refined  # recomputed; unobserved ones get 0

@@ -54,6 +54,12 @@ def add_parser(subparsers) -> None:
         "the same map, a tile per Ray actor with --cluster",
     )
     agg.add_argument(
+        "--per-flight",
+        action="store_true",
+        help="also write one map per flight, OUT/flights/f<k>/language_map.npz (float16, with the evidence change "
+        "scores need; flight k = the k-th --scene) and OUT/flights/flights.json",
+    )
+    agg.add_argument(
         "--cluster",
         metavar="ADDRESS",
         help="run on a Ray cluster (pip install olsplat[cluster]): 'auto' (the one `ray start` runs here, else a "
@@ -117,6 +123,7 @@ def run_aggregate(args: argparse.Namespace) -> int:
             args.codebook,
             tile_m=args.tile_m,
         )
+    flights = _flight_maps(args, scenes, method) if args.per_flight else []
     print(
         f"{args.method}: {views} views of {len(scenes)} flight(s)"
         + (f" ({stats['views_refused']} refused: off the map)" if stats.get("views_refused") else "")
@@ -125,4 +132,18 @@ def run_aggregate(args: argparse.Namespace) -> int:
         f"peak memory {stats['peak_rss_mb']:.0f} MB, "
         f"{stats['observed_gaussians']:,} Gaussians observed -> {args.out}"
     )
+    for record in flights:
+        print(f"  flight {record['flight']}: {record['views']} views -> {args.out / 'flights' / record['map']}")
     return 0
+
+
+def _flight_maps(args: argparse.Namespace, scenes: list, method) -> list[dict]:
+    """Each flight's map from the run's store (``storage/flights.py``); the index's records."""
+    from ..pipeline.offline import same_prior_map
+    from ..storage import LanguageMap
+    from ..storage.flights import write_flight_maps
+    from ..storage.tiles import TileGrid, Tiling
+
+    tiling = Tiling.of(same_prior_map(scenes).means, TileGrid(args.tile_m))
+    encoder = LanguageMap.load(args.out / "language_map.npz", decode=False).encoder  # what the run's map says
+    return write_flight_maps(args.out, tiling, method.aggregation, encoder, [str(s.folder) for s in scenes])
