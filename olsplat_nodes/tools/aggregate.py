@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 from pathlib import Path
 
 
@@ -134,7 +135,29 @@ def run_aggregate(args: argparse.Namespace) -> int:
     )
     for record in flights:
         print(f"  flight {record['flight']}: {record['views']} views -> {args.out / 'flights' / record['map']}")
+    for before, after in itertools.pairwise(flights):
+        print(f"  {_change_line(args.out / 'flights', before, after)}")
     return 0
+
+
+def _change_line(folder: Path, before: dict, after: dict) -> str:
+    """One line on the change scores from one flight's map to the next (``aggregate/change.py``)."""
+    import numpy as np
+
+    from ..aggregate.change import ChangeRule, change_score
+    from ..storage import LanguageMap
+
+    rule = ChangeRule()
+    score = change_score(LanguageMap.load(folder / before["map"]), LanguageMap.load(folder / after["map"]), rule)
+    scored = score[np.isfinite(score)]
+    if not len(scored):
+        return f"change {before['flight']} -> {after['flight']}: no Gaussian seen well enough by both flights"
+    p50, p99, p999 = np.percentile(scored, [50, 99, 99.9])
+    return (
+        f"change {before['flight']} -> {after['flight']}: {len(scored):,} of {len(score):,} Gaussians seen well "
+        f"enough by both; score p50 {p50:.2f}, p99 {p99:.2f}, p99.9 {p999:.2f}, max {scored.max():.2f}; "
+        f"{int((scored > rule.threshold).sum()):,} above {rule.threshold:g}"
+    )
 
 
 def _flight_maps(args: argparse.Namespace, scenes: list, method) -> list[dict]:

@@ -73,7 +73,7 @@ def test_flight_of_a_view_name():
     assert flight_of("frame_0003.jpg") == "f0" and flight_of("flight7_frame_0001.jpg") == "f0"
 
 
-def test_per_flight_maps_of_two_simulated_flights(tmp_path):
+def test_per_flight_maps_of_two_simulated_flights(tmp_path, capsys):
     """``olsplat aggregate --scene A --scene B --per-flight``: flight f0's map is, to the bit, the
     map of ``olsplat aggregate --scene A`` (the same views refined alone, in the same order, by
     the same kernels), f1's that of B; the combined map is written as before."""
@@ -82,6 +82,8 @@ def test_per_flight_maps_of_two_simulated_flights(tmp_path):
         assert main([*make, *extra]) == 0
     both = ["aggregate", "--scene", str(tmp_path / "A"), "--scene", str(tmp_path / "B")]
     assert main([*both, "--out", str(tmp_path / "AB"), "--per-flight"]) == 0
+    printed = capsys.readouterr().out
+    assert "flight f1: 3 views" in printed and "change f0 -> f1: " in printed, printed
     assert main(["aggregate", "--scene", str(tmp_path / "A"), "--out", str(tmp_path / "Aonly")]) == 0
     index = json.loads((tmp_path / "AB" / "flights" / "flights.json").read_text())
     assert [(r["flight"], r["views"], r["scene"]) for r in index["flights"]] == [
