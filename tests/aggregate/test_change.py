@@ -167,3 +167,28 @@ def test_misuse_is_refused(tmp_path):
         ChangeRule(min_views=0.5)
     with pytest.raises(ValueError, match="a store's writer sees every view"):
         ObservationStore(tmp_path, 3, writer=True, keep=lambda name: True)
+
+
+def test_the_medians_evidence_equals_the_dense_reference():
+    """VALA's streaming median (``--method vala``) gives its evidence too: the spread about z."""
+    from olsplat_nodes.aggregate._reference import streaming_median_reference
+    from olsplat_nodes.aggregate.refine import MixedObservations, refine_mixed
+
+    features, strength, _ = _views(np.random.default_rng(5))
+    owner, view = np.nonzero(strength)
+    n = len(features)
+    sums, effective, spread = np.zeros(n), np.zeros(n), np.full(n, np.nan)
+    observations = MixedObservations.dense(owner, strength[owner, view], features[owner, view])
+    median = AggregationConfig(combine="streaming_median")
+    z, _ = refine_mixed(observations, n, median, evidence=(sums, effective, spread))
+    expected, _ = streaming_median_reference(owner, view, strength[owner, view], features[owner, view], n)
+    np.testing.assert_allclose(z, expected, atol=1e-5)
+    for i in range(n):
+        seen = strength[i] > 0
+        if not seen.any():
+            assert np.isnan(spread[i]) and sums[i] == 0
+            continue
+        d, f = strength[i, seen], features[i, seen]
+        cos = f @ expected[i] / np.linalg.norm(f, axis=1)
+        assert spread[i] == pytest.approx((d * (1 - cos)).sum() / d.sum(), rel=1e-4, abs=1e-6)
+        assert effective[i] == pytest.approx(d.sum() ** 2 / (d**2).sum(), rel=1e-9)
