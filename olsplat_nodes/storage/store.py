@@ -452,7 +452,7 @@ class ObservationStore:
             if state is not None:  # a fold's prior is the selected rows; an exact pass has none
                 prior = np.asarray(out[rows] if views is not None else out[:0], np.float32)
                 range_state = (prior, state[0][rows], state[1][rows])  # slices: written in place
-            range_evidence = None if evidence is None else tuple(array[rows] for array in evidence)
+            range_evidence = None if evidence is None else (evidence[0][rows], evidence[1][rows], evidence[2][rows])
             refined, count = refine_mixed(
                 replace(observations, owner=owner), len(picked), config, range_state, range_evidence
             )
