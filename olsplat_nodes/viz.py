@@ -50,19 +50,24 @@ def query_pictures(
     mask: np.ndarray,
     boxes,
     caption: str = "",
+    scale: tuple[float, float] | None = None,
+    unit: str = "cos",
 ) -> tuple[np.ndarray, np.ndarray]:
     """(heatmap picture, mask picture) as uint8 BGR, each the view [H, W] with a legend strip
     below it (so [H + LEGEND_H, W, 3]). Heatmap: the photo [H, W, 3] RGB blended with the cosine
     heatmap [H, W] in turbo (a perceptual map), stretched over the view's 1st..99th percentile
     (compact encoders give every text a high cosine, so a fixed -1..1 scale shows little); black
     where ``valid`` is False; the legend holds ``caption`` and a colour bar labelled with the
-    cosines at its ends. Mask: the photo with the mask [H, W] bool in yellow and each
+    cosines at its ends (``scale``: a fixed (lo, hi) instead of the percentiles; ``unit`` names
+    the bar's values, e.g. "score" for a change heatmap). Mask: the photo with the mask [H, W] bool in yellow and each
     (x0, y0, x1, y1) box (exclusive end) in green; the legend holds ``caption`` and the area."""
     cv2 = _cv2()
     photo = image_rgb[..., ::-1].astype(np.float32)
     usable = valid & np.isfinite(heatmap)
     lo = float(np.percentile(heatmap[usable], 1)) if usable.any() else 0.0
     hi = float(np.percentile(heatmap[usable], 99)) if usable.any() else 1.0
+    if scale is not None:
+        lo, hi = scale
     heat = colorize(heatmap, valid, lo, hi).astype(np.float32)
     overlay = photo.copy()
     overlay[mask] = 0.4 * overlay[mask] + 0.6 * np.array([0, 220, 255])
@@ -71,7 +76,7 @@ def query_pictures(
         cv2.rectangle(overlay, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), (0, 255, 0), 1)
     width = photo.shape[1]
     share = 100.0 * mask.sum() / max(mask.size, 1)
-    heat_legend = _legend(width, caption, colour_bar=(lo, hi))
+    heat_legend = _legend(width, caption, colour_bar=(lo, hi), unit=unit)
     mask_legend = _legend(width, f"{caption}  |  mask: {int(mask.sum()):,} px ({share:.1f} %), {len(boxes)} regions")
     heat_picture = (0.45 * photo + 0.55 * heat).astype(np.uint8)
     return np.concatenate([heat_picture, heat_legend]), np.concatenate([overlay, mask_legend])
@@ -97,7 +102,7 @@ def _wrap(text: str, width: int, font, scale: float, lines: int) -> list[str]:
     return out
 
 
-def _legend(width: int, caption: str, colour_bar: tuple[float, float] | None = None) -> np.ndarray:
+def _legend(width: int, caption: str, colour_bar: tuple[float, float] | None = None, unit: str = "cos") -> np.ndarray:
     """[LEGEND_H, width, 3] uint8 BGR: the caption (two lines at most) on top and, with
     ``colour_bar`` = (lo, hi), a turbo bar from lo to hi with the two cosines at its ends."""
     cv2 = _cv2()
@@ -110,7 +115,7 @@ def _legend(width: int, caption: str, colour_bar: tuple[float, float] | None = N
         left, right = 64, max(65, width - 48)
         ramp = np.linspace(0, 255, right - left).astype(np.uint8)[None, :]
         strip[38:52, left:right] = cv2.applyColorMap(np.repeat(ramp, 14, axis=0), cv2.COLORMAP_TURBO)
-        cv2.putText(strip, f"cos {lo:.3f}", (2, 49), font, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(strip, f"{unit} {lo:.3f}", (2, 49), font, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
         cv2.putText(strip, f"{hi:.3f}", (right + 4, 49), font, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
     return strip
 

@@ -14,7 +14,10 @@ def add_parser(subparsers) -> None:
         epilog='examples:\n  olsplat query --map maps/ols/language_map.npz --scene scene "red roof buildings" '
         '--view 3 --out q/\n  olsplat query --map m.npz --scene scene road --negatives "trees,lawn,cars" '
         '--cluster-radius 3\n  olsplat query --map run/map --scene flight "red roof buildings" --geojson roofs.geojson '
-        "--kml roofs.kml",
+        "--kml roofs.kml\n"
+        "  olsplat query --map ab/flights/f1 --since ab/flights/f0 --scene B --json changes.json\n"
+        '  olsplat query --map ab/flights/f1 --since ab/flights/f0 --scene B "cars" --view 3 --out q/\n'
+        '  olsplat query --map ab/flights/f1 --since ab/flights/f0 --scene B "trees" --gone',
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
@@ -26,7 +29,25 @@ def add_parser(subparsers) -> None:
         "instances are gathered (no view is rendered)",
     )
     parser.add_argument("--scene", required=True, type=Path, help="the scene the map was made from")
-    parser.add_argument("text", help='what to find, e.g. "red roof buildings"')
+    parser.add_argument(
+        "text",
+        nargs="?",
+        help='what to find, e.g. "red roof buildings"; with --since: what appeared (or with --gone: went), and '
+        "without it every change",
+    )
+    parser.add_argument(
+        "--since",
+        type=Path,
+        metavar="MAP",
+        help="what changed since an earlier flight: MAP and --map are two flights' maps of olsplat aggregate "
+        "--per-flight (OUT/flights/f0, OUT/flights/f1 or their language_map.npz) and --scene the later flight; "
+        "no TEXT: every change instance ranked by change score; TEXT: what moved towards it (docs/method.md, "
+        "'Maps per flight and what changed')",
+    )
+    parser.add_argument(
+        "--gone", action="store_true", help="with --since and TEXT: what matched TEXT before and no longer does"
+    )
+    parser.add_argument("--json", type=Path, metavar="FILE", help="with --since: write the change instances here")
     parser.add_argument("--view", help="view to render (name or index; default: the first)")
     parser.add_argument(
         "--negatives", help="comma-separated texts to beat (default: the scene's other queries, else canonical)"
@@ -40,7 +61,9 @@ def add_parser(subparsers) -> None:
         "map's density, 2 x spacing x sqrt(min-points / pi), at least 1.5 m)",
     )
     parser.add_argument(
-        "--min-points", type=int, default=20, help="3D instances: the fewest Gaussians that make one (default 20)"
+        "--min-points",
+        type=int,
+        help="3D instances: the fewest Gaussians that make one (default 20; with --since, the change rule's)",
     )
     parser.add_argument(
         "--geojson",
@@ -66,9 +89,16 @@ def run(args: argparse.Namespace) -> int:
     from ..storage.snapshot import LanguageMap
     from ..viz import write_query_pictures
 
-    text = args.text.strip()
+    if args.since is not None:
+        from .query_change import run_change
+
+        return run_change(args)
+    if args.gone or args.json:
+        raise OlsplatInputError(f"{'--gone' if args.gone else '--json'} needs --since (a change query)")
+    text = (args.text or "").strip()
     if not text:
         raise OlsplatInputError("the query text is empty")
+    args.min_points = 20 if args.min_points is None else args.min_points
     if args.out:
         output_folder(args.out)
     scene = Scene.open(args.scene)
@@ -199,15 +229,18 @@ def write_geo_files(geojson_path, kml_path, located, text: str, version: int, he
         log(f"{len(located)} instances -> {path}")
 
 
-def _print_instances(instances, georef=None) -> None:
+def _print_instances(instances, georef=None, scores=None) -> None:
+    """The first 20 instances, one line each; ``scores``: each one's median change score, added."""
     from ..query.geojson import locate
 
-    for inst, place in zip(instances[:20], locate(instances[:20], georef), strict=True):
+    scores = scores if scores is not None else [None] * len(instances)
+    for inst, place, score in zip(instances[:20], locate(instances[:20], georef), scores[:20], strict=True):
         c, lo, hi = inst.centre, inst.box_min, inst.box_max
         where = f", lat {place.latitude:.7f} lon {place.longitude:.7f}" if place.located else ""
         print(
             f"  3D #{place.rank}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m{where}, box {hi[0] - lo[0]:.1f} x "
             f"{hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst.gaussians} Gaussians"
+            + (f", median change score {score:.2f}" if score is not None else "")
         )
 
 
