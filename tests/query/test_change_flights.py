@@ -1,0 +1,114 @@
+"""``olsplat query --since`` over real simulated flights of the tiny town (training seed 1005:
+the change rule's cuts were chosen on seeds 1001-1006, never on the held-out 0-9): an earlier
+flight A, the later flight B after the default changes and the later flight N without any,
+aggregated once with ``--per-flight`` (f0 = A, f1 = B, f2 = N)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.cli import main
+from olsplat_nodes.storage import LanguageMap
+
+SEED = "1005"
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory):
+    root = tmp_path_factory.mktemp("change_flights")
+    make = ["sim", "make", "--preset", "tiny", "--seed", SEED]
+    assert main([*make, "--out", str(root / "A")]) == 0
+    assert main([*make, "--flight-seed", "1", "--changes", "default", "--out", str(root / "B")]) == 0
+    assert main([*make, "--flight-seed", "1", "--changes", "none", "--out", str(root / "N")]) == 0
+    scenes = [arg for name in "ABN" for arg in ("--scene", str(root / name))]
+    assert main(["aggregate", *scenes, "--out", str(root / "out"), "--per-flight"]) == 0
+    return root
+
+
+def _query(root, later: str, scene: str, *extra: str, name="q.json") -> dict:
+    flights = root / "out" / "flights"
+    args = ["query", "--map", str(flights / later), "--since", str(flights / "f0"), "--scene", str(root / scene)]
+    assert main([*args, *extra, "--json", str(root / name)]) == 0
+    return json.loads((root / name).read_text())
+
+
+def _inside(point, polygon) -> bool:
+    x, y = point[:2]
+    (x0, y0), (x1, y1) = np.min(polygon, 0), np.max(polygon, 0)  # the footprints are axis-aligned boxes
+    return bool(x0 <= x <= x1 and y0 <= y <= y1)
+
+
+def test_unchanged_flights_give_no_change_instance(flights):
+    assert _query(flights, "f2", "N")["instances"] == []
+    for text in ("cars", "new vehicles", "trees"):
+        for direction in ((), ("--gone",)):
+            assert _query(flights, "f2", "N", text, *direction)["instances"] == [], (text, direction)
+
+
+def test_what_changed_is_where_the_changes_are(flights, tmp_path, capsys):
+    """Every change instance of the changed pair is mostly the prior map's changed Gaussians
+    (truth/changes/map_changed.npz), ranked by median score x Gaussians; the heatmap and mask
+    of a view and the GeoJSON are written."""
+    from olsplat_nodes.aggregate.change import change_score
+    from olsplat_nodes.query.change import change_instances
+    from olsplat_nodes.scene import read_ply
+
+    answer = _query(flights, "f1", "B", "--view", "2", "--out", str(tmp_path), "--geojson", str(tmp_path / "c.geojson"))
+    assert answer["text"] is None and answer["direction"] == "changed" and len(answer["instances"]) >= 3
+    ranks = [i["score"] * i["gaussians"] for i in answer["instances"]]
+    assert ranks == sorted(ranks, reverse=True) and all("latitude" in i for i in answer["instances"])
+    printed = capsys.readouterr().out
+    assert f"{len(answer['instances'])} change instances" in printed and "median change score" in printed
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == [
+        "flight1_frame_0002_changed_heatmap.png",
+        "flight1_frame_0002_changed_mask.png",
+    ]
+    assert len(json.loads((tmp_path / "c.geojson").read_text())["features"]) == len(answer["instances"])
+    # the instances' members against the truth (the CLI's instances are these: same centres)
+    maps = [LanguageMap.load(flights / "out" / "flights" / f / "language_map.npz") for f in ("f0", "f1")]
+    found = change_instances(read_ply(flights / "B" / "map" / "point_cloud.ply").means, change_score(*maps))
+    assert [list(i.centre) for i in found] == [i["centre"] for i in answer["instances"]]
+    changed = np.load(flights / "B" / "truth" / "changes" / "map_changed.npz")["change_id"]
+    assert all((changed[i.members] >= 0).mean() >= 0.5 for i in found)
+
+
+def test_new_vehicles_are_the_added_cars(flights):
+    records = json.loads((flights / "B" / "truth" / "changes" / "changes.json").read_text())["changes"]
+    added = [r["footprint"] for r in records if r["kind"] == "car_added"]
+    for text in ("cars", "new vehicles"):
+        answer = _query(flights, "f1", "B", text)
+        assert answer["direction"] == "appeared" and "cars" not in answer["negatives"]
+        assert answer["instances"], text
+        assert any(_inside(i["centre"], footprint) for i in answer["instances"] for footprint in added), text
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("combined", "a map without the evidence a change needs"),
+        ("other prior map", "not a map of this prior map"),
+        ("missing", "does not exist"),
+        ("gone without since", "--gone needs --since"),
+    ],
+)
+def test_change_queries_refuse_in_one_line(flights, tmp_path, capsys, case, message):
+    out = flights / "out"
+    args = ["query", "--map", str(out / "flights" / "f1"), "--since", str(out / "flights" / "f0")]
+    if case == "combined":
+        args[2] = str(out / "language_map.npz")
+    elif case == "other prior map":
+        small = LanguageMap.load(out / "flights" / "f0" / "language_map.npz")
+        for key in ("features", "observed", "strength_sum", "view_count", "effective_views", "view_spread"):
+            setattr(small, key, getattr(small, key)[:-5])
+        small.save(tmp_path / "small.npz")
+        args[4] = str(tmp_path / "small.npz")
+    elif case == "missing":
+        args[4] = str(tmp_path / "nowhere.npz")
+    else:
+        args = ["query", "--map", str(out / "flights" / "f1"), "cars", "--gone"]
+    assert main([*args, "--scene", str(flights / "B")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
