@@ -235,7 +235,7 @@ def write_reply_geo_files(reply, geojson_path: Path | None, kml_path: Path | Non
     the drone: its map's georef.json); refused in one line when the drone's map has none."""
     from ..errors import OlsplatInputError
     from ..query.geojson import from_records
-    from .query import write_geo_files
+    from .answers import write_geo_files
 
     if not reply.height_ref:
         raise OlsplatInputError(

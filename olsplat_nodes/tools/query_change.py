@@ -38,7 +38,7 @@ class ChangeAnswer:
 def flight_map_file(path: Path, option: str) -> Path:
     """The language map file of ``--map``/``--since``: a file as it is; a folder holding a
     language_map.npz (``OUT/flights/f1``), that file; a run's map folder, its newest snapshot."""
-    from .query import snapshot_of
+    from .answers import snapshot_of
 
     if path.is_dir():
         inside = path / "language_map.npz"
@@ -138,7 +138,7 @@ def run_change(args: argparse.Namespace) -> int:
     from ..query.geojson import locate
     from ..query.negatives import AERIAL_VOCABULARY
     from ..scene import read_ply, select_view
-    from .query import _print_instances, _ref, map_georef, write_geo_files
+    from .answers import height_ref, map_georef, print_instances, write_geo_files
 
     text = args.text.strip() if args.text is not None else None
     if text == "":
@@ -176,9 +176,9 @@ def run_change(args: argparse.Namespace) -> int:
     )
     if answer.negatives:
         print(f"  (the move must favour the text over: {', '.join(answer.negatives)})")
-    _print_instances(answer.instances, georef, scores=[i.score for i in answer.instances])
+    print_instances(answer.instances, georef, scores=[i.score for i in answer.instances])
     title = answer.title if text is not None else "what changed"
-    write_geo_files(args.geojson, args.kml, locate(answer.instances, georef), title, 0, _ref(georef))
+    write_geo_files(args.geojson, args.kml, locate(answer.instances, georef), title, 0, height_ref(georef))
     if args.json:
         output_folder(Path(args.json).parent, "--json", given=Path(args.json))
         record = {
