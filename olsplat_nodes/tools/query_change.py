@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -230,7 +229,3 @@ def write_change_pictures(folder: Path, camera, photo: np.ndarray, answer: Chang
     for path, picture in zip(paths, pictures, strict=True):
         write_png(path, picture)
     return paths
-
-
-def scores_line(score: float) -> str:
-    return "" if math.isnan(score) else f", median change score {score:.2f}"
