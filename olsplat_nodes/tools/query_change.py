@@ -9,10 +9,14 @@ import argparse
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import OlsplatInputError
+
+if TYPE_CHECKING:  # the method loads when a change query runs: olsplat --help stays fast
+    from ..query.change import ChangeInstance, ChangeParams
 
 
 @dataclass
@@ -24,8 +28,8 @@ class ChangeAnswer:
     negatives: list[str]
     scored: int  # Gaussians both flights saw well enough
     candidates: int  # of them, the candidates that were clustered
-    instances: list  # query.change.ChangeInstance, ranked
-    params: object  # query.change.ChangeParams
+    instances: list[ChangeInstance]  # ranked
+    params: ChangeParams
     heatmap: np.ndarray | None = None  # [H, W] float32 change score, NaN: not scored
     alpha: np.ndarray | None = None  # [H, W]
 
@@ -209,11 +213,11 @@ def write_change_pictures(folder: Path, camera, photo: np.ndarray, answer: Chang
     assert answer.heatmap is not None and answer.alpha is not None
     heat = answer.heatmap
     valid = (answer.alpha > 0.5) & np.isfinite(heat)
-    mask = valid & (np.nan_to_num(heat, nan=0.0) > answer.params.candidate)  # type: ignore[attr-defined]
+    mask = valid & (np.nan_to_num(heat, nan=0.0) > answer.params.candidate)
     regions = regions_in_view(mask)
     caption = f"{answer.title} since {Path(since).name or since} on {Path(camera.name).name}; mask: score > "
-    caption += f"{answer.params.candidate:g}"  # type: ignore[attr-defined]
-    top = 2.0 * answer.params.object_score  # type: ignore[attr-defined]
+    caption += f"{answer.params.candidate:g}"
+    top = 2.0 * answer.params.object_score
     pictures = query_pictures(
         photo,
         np.nan_to_num(heat, nan=0.0),
