@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zmq
 
-from olsplat_msgs import EndOfStream, QueryReply, QueryRequest, StatusReply, StatusRequest, decode, encode
+from olsplat_msgs import VERSION, EndOfStream, QueryReply, QueryRequest, StatusReply, StatusRequest, decode, encode
 from olsplat_nodes.transport import NoReply, QueryClient, QueryServer
 from tests.helpers import free_port, wait_for
 
@@ -179,7 +179,7 @@ def test_client_skips_garbage_and_stale_replies(ctx):
         router.send_multipart([identity, b"no delimiter"])
         router.send_multipart([identity, b"", *good[:1]])  # truncated
         router.send_multipart(
-            [identity, b"", good[0], msgpack.packb({**msgpack.unpackb(good[1]), "version": 3}), *good[2:]]
+            [identity, b"", good[0], msgpack.packb({**msgpack.unpackb(good[1]), "version": VERSION + 1}), *good[2:]]
         )
         router.send_multipart([identity, b"", *encode(QueryReply(request_id="old"), "query")])
         router.send_multipart([identity, b"", *good])
