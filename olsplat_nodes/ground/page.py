@@ -118,8 +118,17 @@ class GroundPage:
         self.poller.start()
 
     def close(self) -> None:
+        """Stop serving, then let the source finish its background work (a run folder's
+        service warms its kernels and text encoder in threads): a process that exits while one
+        is inside onnxruntime or numba is aborted by the C++ runtime ("terminate called
+        without an active exception")."""
         self.stop.set()
         self.server.stop()
+        if self.poller.is_alive():
+            self.poller.join(10.0)
+        close_source = getattr(self.source, "close", None)
+        if close_source is not None:
+            close_source()
 
     def _poll(self) -> None:
         while not self.stop.is_set():
