@@ -41,6 +41,7 @@ if TYPE_CHECKING:  # the heavy modules load at run time: a node class is importe
     from ..scene.geodesy import Georeference
     from ..storage import LanguageMap, SavedView
     from .answer import CachedTexts, QueryAnswer, QueryFeatures
+    from .change_answer import ChangeAnswer
     from .localize import VoxelIndex
     from .splats import BrowserSplats
 
@@ -142,6 +143,11 @@ class MapAnswer:
     margin: np.ndarray | None = None  # [M] float32 per browser splat (``answer(splats=M)``), NaN: unobserved
     loaded: LoadedMap | None = field(default=None, repr=False)  # the map version it read
     encoder: CachedTexts | None = field(default=None, repr=False)
+    change: ChangeAnswer | None = None  # a change query's answer (``answer_change``); ``answer`` is None
+    since: str = ""  # a change query's earlier flight
+    now: str = ""  # ... and its later one, the newest of ``flights_dir``
+    change_mask: np.ndarray | None = None  # [H, W] bool: the change heatmap over the candidate cut
+    change_regions: list = field(default_factory=list)  # its ``Region2D``s, largest first
 
 
 class Background:
@@ -181,7 +187,9 @@ class MapService:
     and its near-duplicates). ``max_text_chars``, ``max_negatives``: the query texts' limits.
     ``max_reply_mb``: a view whose heatmap, mask and photo (8 bytes a pixel) would exceed it is
     refused; ``heatmap_max_side``: a view is rendered at most this many pixels on its longer side
-    (0: its own size). ``name`` prefixes the background threads' names.
+    (0: its own size). ``flights_dir``: an aggregate's ``OUT/flights`` (``olsplat aggregate
+    --per-flight``), which change queries read (``answer_change``); "" none. ``name`` prefixes
+    the background threads' names.
 
     Not thread-safe beyond its own background threads: one caller thread asks (the node's loop,
     or the page under its lock)."""
@@ -200,6 +208,7 @@ class MapService:
         max_negatives: int = MAX_NEGATIVES,
         max_reply_mb: float = math.inf,
         heatmap_max_side: int = 0,
+        flights_dir: str | Path = "",
         name: str = "map",
     ):
         from ..scene import read_ply
@@ -207,6 +216,8 @@ class MapService:
         from .localize import default_cluster_radius
 
         self.map_dir, self.views_dir, self.name = Path(map_dir), Path(views_dir), name
+        self.flights_dir = Path(flights_dir) if flights_dir else None
+        self._flight_maps: dict[tuple[str, float], LanguageMap] = {}  # (path, mtime) -> map: the last pair
         self.cluster_min_points, self.negatives = cluster_min_points, tuple(negatives)
         self.max_text_chars, self.max_negatives = max_text_chars, max_negatives
         self.max_reply_mb, self.heatmap_max_side = max_reply_mb, heatmap_max_side
@@ -422,6 +433,78 @@ class MapService:
         if splats:  # the page's colours: per splat of its decimation, in its order
             result.margin = self.margin(result, self.splats(splats))
         return result
+
+    def flights(self) -> list[str]:
+        """The flights of ``flights_dir`` in flight order (``flights.json``); [] without one."""
+        from .change_answer import flight_ids
+
+        return flight_ids(self.flights_dir) if self.flights_dir is not None else []
+
+    def answer_change(
+        self, text: str, since: str, gone: bool = False, negatives: Sequence[str] = (), view: str = ""
+    ) -> MapAnswer:
+        """What changed from flight ``since`` (an id of ``flights()``, e.g. "f0") to the newest
+        flight (``change_answer.answer_change``): without ``text`` ("") every change instance,
+        with it what moved towards it (or away, ``gone``), its negatives ``negatives`` or the
+        aerial vocabulary's. With ``view``, that view's change heatmap (score, NaN: not scored),
+        its mask (score > the candidate cut) and 2D regions. Refusals come back as a status."""
+        from ..scene import select_view
+        from .change import TEXT_PARAMS, ChangeParams
+        from .change_answer import answer_change
+        from .localize import regions_in_view
+        from .negatives import AERIAL_VOCABULARY
+
+        def refuse(status: str, message: str) -> MapAnswer:
+            return MapAnswer(status, message, self.version, since=since)
+
+        flights = self.flights()
+        if not flights:
+            return refuse("bad_request", f"since {since}: this map has no flights (olsplat aggregate --per-flight)")
+        now = flights[-1]
+        if since not in flights[:-1]:
+            return refuse("bad_request", f"since {since}: not an earlier flight of {', '.join(flights)}")
+        text = text.strip()
+        if text:
+            problem = self.text_problem(text, negatives)
+            if problem is not None:
+                return refuse("bad_request", problem.message)
+        try:
+            map_a, map_b = (self._flight_map(f) for f in (since, now))
+            views = self.views()
+            camera = select_view([v.camera for v in views], view) if view else None
+            photo = None
+            if camera is not None:
+                saved = views[[v.camera for v in views].index(camera)]
+                camera = self._reply_camera(camera)
+                photo = self._photo(saved, camera)
+            params = TEXT_PARAMS if text else ChangeParams()
+            vocabulary = tuple(self.negatives) or AERIAL_VOCABULARY
+            change = answer_change(
+                map_a, map_b, self.gaussians, text or None, gone, list(negatives) or None, vocabulary, params, camera
+            )
+        except OlsplatInputError as exc:
+            return refuse("bad_request", str(exc))
+        result = MapAnswer("ok", "", self.version, camera=camera, photo=photo, change=change, since=since, now=now)
+        if change.heatmap is not None and change.alpha is not None:
+            valid = (change.alpha > 0.5) & np.isfinite(change.heatmap)
+            result.change_mask = valid & (np.nan_to_num(change.heatmap, nan=0.0) > params.candidate)
+            result.change_regions = regions_in_view(result.change_mask)
+        return result
+
+    def _flight_map(self, flight: str) -> LanguageMap:
+        """Flight ``flight``'s map, checked (``check_flight_map``); the last two read are kept."""
+        from ..storage import LanguageMap
+        from .change_answer import check_flight_map
+
+        assert self.flights_dir is not None
+        path = self.flights_dir / flight / "language_map.npz"
+        if not path.is_file():
+            raise OlsplatInputError(f"{path}: flight {flight}'s map is missing")
+        key = (str(path), path.stat().st_mtime)
+        if key not in self._flight_maps:
+            language_map = check_flight_map(LanguageMap.load(path), str(path), len(self.gaussians))
+            self._flight_maps = {k: v for k, v in list(self._flight_maps.items())[-1:]} | {key: language_map}
+        return self._flight_maps[key]
 
     def margin(self, result: MapAnswer, splats: BrowserSplats) -> np.ndarray:
         """[M] float32 cos(query) - max cos(negatives) of ``splats`` (``splats.ids`` into the prior

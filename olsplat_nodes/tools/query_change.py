@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,26 +16,7 @@ import numpy as np
 from ..errors import OlsplatInputError
 
 if TYPE_CHECKING:  # the method loads when a change query runs: olsplat --help stays fast
-    from ..query.change import ChangeInstance, ChangeParams
-
-
-@dataclass
-class ChangeAnswer:
-    """A change query's outcome, as ``olsplat query --since`` prints and writes it."""
-
-    text: str | None  # None: what changed, every change instance
-    direction: str  # "appeared" or "gone" (with a text), "changed" (without)
-    negatives: list[str]
-    scored: int  # Gaussians both flights saw well enough
-    candidates: int  # of them, the candidates that were clustered
-    instances: list[ChangeInstance]  # ranked
-    params: ChangeParams
-    heatmap: np.ndarray | None = None  # [H, W] float32 change score, NaN: not scored
-    alpha: np.ndarray | None = None  # [H, W]
-
-    @property
-    def title(self) -> str:
-        return "what changed" if self.text is None else f'"{self.text}" {self.direction}'
+    from ..query.change_answer import ChangeAnswer
 
 
 def flight_map_file(path: Path, option: str) -> Path:
@@ -54,63 +35,14 @@ def flight_map_file(path: Path, option: str) -> Path:
 def load_flight_pair(later: Path, earlier: Path, prior_gaussians: int):
     """(map of the earlier flight, map of the later one), both checked: evidence fields (a
     per-flight map) and one prior map (the same Gaussian count, also the scene's)."""
+    from ..query.change_answer import check_flight_map
     from ..storage import LanguageMap
 
     maps = []
     for path, option in ((earlier, "--since"), (later, "--map")):
         language_map = LanguageMap.load(flight_map_file(path, option))
-        if not language_map.has_evidence():
-            raise OlsplatInputError(
-                f"{option} {path}: a map without the evidence a change needs (strength_sum, view_count, "
-                "effective_views, view_spread): give a flight's map of olsplat aggregate --per-flight "
-                "(OUT/flights/f0/language_map.npz)"
-            )
-        if len(language_map) != prior_gaussians:
-            raise OlsplatInputError(
-                f"{option} {path}: a map of {len(language_map):,} Gaussians, the scene's prior map has "
-                f"{prior_gaussians:,}: not a map of this prior map"
-            )
-        maps.append(language_map)
+        maps.append(check_flight_map(language_map, f"{option} {path}", prior_gaussians))
     return maps[0], maps[1]
-
-
-def answer_change(
-    map_a, map_b, gaussians, text: str | None, gone: bool, negatives: list[str] | None, vocabulary, params, camera=None
-) -> ChangeAnswer:
-    """The change instances from flight a's map to flight b's (``query.change``), with the text's
-    direction when ``text`` is given, and with ``camera`` the change heatmap of that view."""
-    from ..aggregate.change import change_score
-    from ..query.answer import encoder_for_map
-    from ..query.change import change_instances, change_negatives, render_change, text_change, text_moves
-
-    if map_a.encoder != map_b.encoder:
-        raise OlsplatInputError(f"the flights' maps come from other encoders ({map_a.encoder}, {map_b.encoder})")
-    score = change_score(map_a, map_b)
-    means = gaussians.means
-    moved = None
-    if text is None:
-        direction, used = "changed", []
-        instances = change_instances(means, score, params)
-    else:
-        direction = "gone" if gone else "appeared"
-        encoder = encoder_for_map(map_b)
-        used = negatives or change_negatives(text, encoder, vocabulary)
-        used = [n for n in used if n != text]
-        if not used:
-            raise OlsplatInputError("no negatives left once the query itself is removed: give other texts to compare")
-        embeddings = encoder.encode_text([text, *used])
-        moved = text_moves(map_a, map_b, embeddings, direction)  # type: ignore[arg-type]
-        instances = text_change(means, score, map_a, map_b, embeddings, direction, params)  # type: ignore[arg-type]
-    with np.errstate(invalid="ignore"):
-        candidates = score > params.candidate
-    if moved is not None:
-        candidates &= moved
-    answer = ChangeAnswer(
-        text, direction, used, int(np.isfinite(score).sum()), int(candidates.sum()), instances, params
-    )
-    if camera is not None:
-        answer.heatmap, answer.alpha = render_change(gaussians, score, camera, moved)
-    return answer
 
 
 def instance_records(answer: ChangeAnswer, georef) -> list[dict]:
@@ -138,6 +70,7 @@ def run_change(args: argparse.Namespace) -> int:
     from ..outputs import output_folder
     from ..pipeline import Scene
     from ..query.change import TEXT_PARAMS, ChangeParams
+    from ..query.change_answer import answer_change
     from ..query.geojson import locate
     from ..query.negatives import AERIAL_VOCABULARY
     from ..scene import read_ply, select_view
