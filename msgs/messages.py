@@ -151,6 +151,8 @@ class QueryRequest:
     threshold: float = math.nan  # NaN = the server's default rule
     negatives: list[str] = field(default_factory=list)
     splats: int = 0  # 0 = no splat_margin; else the max_splats of the client's SplatsReply
+    since: str = ""  # a change query's earlier flight ("f0"); "" = an ordinary query
+    gone: bool = False  # with since and a text: what moved away from it
 
 
 @dataclass
@@ -170,6 +172,9 @@ class QueryReply:
     mask: np.ndarray | None = None  # [H, W] uint8, 0 | 1
     image: np.ndarray | None = None  # [H, W, 3] uint8 RGB overlay
     splat_margin: np.ndarray | None = None  # [M] float16 per browser splat; NaN = never observed
+    since: str = ""  # a change query's earlier flight; "" = an ordinary query
+    now: str = ""  # a change query's later flight
+    change_scores: np.ndarray | None = None  # [K] float32 median change score per 3D instance
     seconds: float = 0.0
 
 

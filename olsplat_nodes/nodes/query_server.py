@@ -93,6 +93,9 @@ class QueryServerNode(Node):
         # a query_endpoint other computers can reach needs CURVE (server_secret, allow_dir);
         # true: serve it in clear anyway (a lab network), said in every status the server gives
         insecure: bool = False
+        # an aggregate's per-flight maps (OUT/flights of olsplat aggregate --per-flight): a request
+        # naming `since` (an earlier flight) is answered against the newest one; "" = none
+        flights: str = ""
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -160,6 +163,7 @@ class QueryServerNode(Node):
             max_negatives=p.max_negatives,
             max_reply_mb=p.max_reply_mb,
             heatmap_max_side=p.heatmap_max_side,
+            flights_dir=p.flights,
             name=self.name,
         )
 
@@ -247,6 +251,8 @@ class QueryServerNode(Node):
         )
 
     def _query(self, request: QueryRequest) -> QueryReply:
+        if request.since:
+            return self._change_query(request)
         result: MapAnswer = self.service.answer(
             request.text,
             request.negatives,
@@ -268,6 +274,47 @@ class QueryServerNode(Node):
         reply = reply_for(result.answer, request, result.version, result.photo, 0.0, self.service.georef)
         if result.margin is not None:  # the page's colours, per splat of its decimation
             reply.splat_margin = result.margin.astype(np.float16)
+        return reply
+
+    def _change_query(self, request: QueryRequest) -> QueryReply:
+        """What changed since flight ``request.since`` (``MapService.answer_change``): the change
+        instances as 3D ``Instance`` records with their median scores in ``change_scores``; with a
+        view, the change heatmap (score, 0 where not scored), its mask and regions."""
+        from ..query.answer import QueryAnswer
+
+        result = self.service.answer_change(
+            request.text, request.since, request.gone, request.negatives, view=request.view
+        )
+        change = result.change
+        if change is None:
+            return QueryReply(
+                stamp_ns=time.time_ns(),
+                request_id=request.request_id,
+                status=result.status,
+                message=result.message,
+                text=request.text,
+                view=request.view,
+                map_version=result.version,
+                since=request.since,
+            )
+        heatmap = change.heatmap if request.heatmap else None
+        as_query = QueryAnswer(
+            change.text or "",
+            change.negatives,
+            change.candidates,
+            list(change.instances),
+            heatmap=None if heatmap is None else np.nan_to_num(heatmap, nan=0.0).astype(np.float32),
+            mask=result.change_mask if request.heatmap else None,
+            regions=result.change_regions,
+        )
+        reply = reply_for(as_query, request, result.version, result.photo, 0.0, self.service.georef)
+        reply.message = (
+            f"{change.title} since flight {result.since} (now {result.now}): {change.scored:,} Gaussians seen well "
+            f"enough by both flights, {change.candidates:,} candidates"
+            + (f"; the move must favour the text over: {', '.join(change.negatives)}" if change.negatives else "")
+        )
+        reply.since, reply.now = result.since, result.now
+        reply.change_scores = np.array([i.score for i in change.instances], np.float32)
         return reply
 
     def _values(self) -> dict:

@@ -16,7 +16,16 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("ground", help="ground station: query the drone, show node status")
     commands = parser.add_subparsers(dest="ground_command", required=True, metavar="COMMAND")
     query = commands.add_parser("query", help="ask the query server for a text")
-    query.add_argument("text", help='what to find, e.g. "red roof buildings"')
+    query.add_argument(
+        "text", nargs="?", default="", help='what to find, e.g. "red roof buildings" (with --since: may be left out)'
+    )
+    query.add_argument(
+        "--since",
+        default="",
+        metavar="FLIGHT",
+        help="what changed since this earlier flight (f0) of a per-flight map; with a text, what appeared",
+    )
+    query.add_argument("--gone", action="store_true", help="with --since and a text: what went away instead")
     query.add_argument("--view", default="", help="answer with a heatmap and mask over this view (name or index)")
     query.add_argument("--out", type=Path, help="write the heatmap and mask PNGs here (needs --view)")
     query.add_argument("--negatives", help="comma-separated texts to beat (default: the server's)")
@@ -186,8 +195,10 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import EXIT_FAILED, OlsplatInputError
     from ..transport import NoReply
 
-    if args.ground_command == "query" and not args.text.strip():
-        raise OlsplatInputError("the query text is empty")
+    if args.ground_command == "query" and not args.text.strip() and not args.since:
+        raise OlsplatInputError("the query text is empty (only --since may leave it out)")
+    if args.ground_command == "query" and args.gone and not (args.since and args.text.strip()):
+        raise OlsplatInputError("--gone needs --since and a text")
     try:
         client = _client(args)
     except zmq.ZMQError as exc:  # a malformed endpoint (no port, unknown transport): same exit as an unreachable one
@@ -213,6 +224,8 @@ def run(args: argparse.Namespace) -> int:
                 heatmap=bool(args.view),
                 threshold=args.threshold,
                 negatives=negatives,
+                since=args.since,
+                gone=args.gone,
             )
         )
         code = print_answer(reply, args.json, args.out, args.threshold)
@@ -275,8 +288,9 @@ def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math
                     "view": reply.view,
                     "map_version": reply.map_version,
                     "height_ref": reply.height_ref,
+                    **({"since": reply.since, "now": reply.now} if reply.since else {}),
                     # JSON has no NaN: a map without a georeference gives null latitudes
-                    "instances": [{k: _finite_or_none(v) for k, v in i.items()} for i in reply.instances],
+                    "instances": [{k: _finite_or_none(v) for k, v in i.items()} for i in _scored(reply)],
                     "seconds": reply.seconds,
                 },
                 indent=1,
@@ -293,12 +307,13 @@ def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math
             f'"{reply.text}" (map version {reply.map_version}, {reply.seconds:.2f} s): {reply.message}; '
             f"{len(found3d)} instances in 3D"
         )
-        for inst in found3d[:20]:
+        for inst in _scored(reply)[: len(found3d)][:20]:
             c, lo, hi = inst["centroid"], inst["box_min"], inst["box_max"]
             where = f", lat {inst['latitude']:.7f} lon {inst['longitude']:.7f}" if reply.height_ref else ""
             print(
                 f"  3D #{inst['id']}: centre ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) m{where}, box {hi[0] - lo[0]:.1f} x "
                 f"{hi[1] - lo[1]:.1f} x {hi[2] - lo[2]:.1f} m, {inst['n_gaussians']} Gaussians"
+                + (f", median change score {inst['score']:.2f}" if "score" in inst else "")
             )
         if reply.view:
             print(f"view {reply.view}: {len(found2d)} regions")
@@ -324,6 +339,15 @@ def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math
         if not as_json:
             print(f"pictures -> {', '.join(str(p) for p in paths)}")
     return 0
+
+
+def _scored(reply) -> list[dict]:
+    """The reply's instances, a change query's 3D ones with their median change ``score``."""
+    scores = reply.change_scores if reply.change_scores is not None else []
+    return [
+        {**inst, "score": round(float(scores[inst["id"]]), 4)} if inst["kind"] == "3d" and len(scores) else inst
+        for inst in reply.instances
+    ]
 
 
 def _finite_or_none(value):
