@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from . import (
     aggregate,
+    change,
     cluster,
     compression,
     diagnose,
@@ -39,3 +40,4 @@ def add_parser(subparsers) -> None:
     tune.add_parser(targets)
     diagnose.add_parser(targets)
     paper.add_parser(targets)
+    change.add_parser(targets)
