@@ -74,6 +74,13 @@ class GroundPage:
         with gui.add_folder("Query"):
             self.query_text = gui.add_text("query", "", hint="what to look for, e.g. red roof buildings")
             self.negatives_text = gui.add_text("negatives", negatives, hint="comma-separated")
+            # a change query: what changed since an earlier flight of a per-flight map (a run
+            # folder with flights/), the query text optional; "none": an ordinary query
+            flights = self.source.flights() if hasattr(self.source, "flights") else []
+            self.since_choice = gui.add_dropdown(
+                "since flight", ["none", *flights], initial_value="none", visible=bool(flights)
+            )
+            self.gone_box = gui.add_checkbox("gone (with a text)", False, visible=bool(flights))
             self.ask_button = gui.add_button("Ask")
             self.query_message = gui.add_markdown("Type a query and press Ask.")
             self.colour_bar = gui.add_html(colour_bar_html(), visible=False)
@@ -194,8 +201,12 @@ class GroundPage:
             text = self.query_text.value if text is None else text
             negatives = split_negatives(self.negatives_text.value) if negatives is None else negatives
             view = self.view_choice.value if self.view_choice.value != "(none)" else ""
+            since = self.since_choice.value if self.since_choice.value != "none" else ""
             self.query_message.content = f"asking *{_escape(text[:60])}* ..."
-            answer = self.source.ask(text, negatives, view)
+            if since:  # a run folder's source only (the dropdown is shown for it alone)
+                answer = self.source.ask(text, negatives, view, since=since, gone=self.gone_box.value)
+            else:
+                answer = self.source.ask(text, negatives, view)
             self.query_message.content = f"**{answer.status}**: {_escape(answer.message)}" + (
                 f" ({answer.seconds * 1000:.0f} ms, map v{answer.map_version})" if answer.status == "ok" else ""
             )
@@ -209,7 +220,7 @@ class GroundPage:
                 self.heatmap_image.image = answer.heatmap_picture
                 self.mask_image.image = answer.mask_picture
             self.heatmap_image.visible = self.mask_image.visible = shown
-            question = (answer.text, tuple(negatives), answer.map_version)
+            question = (answer.text, tuple(negatives), answer.map_version, since, self.gone_box.value)
             if question != self.coloured:  # else a view chosen for the same question: colours stand
                 assert answer.margin is not None and self.splats is not None
                 self.splats.rgbs = relevance_colours(answer.margin)  # ~3.6 MB to each browser

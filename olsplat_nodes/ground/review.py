@@ -91,6 +91,19 @@ class WebAnswer:
     heatmap_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + heatmap + legend
     mask_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + mask + legend
     seconds: float = 0.0
+    since: str = ""  # a change query's earlier flight; "" an ordinary query
+
+
+def change_margin(change, ids: np.ndarray, span: float = 0.2) -> np.ndarray:
+    """[M] float32 per browser splat (``ids`` into the prior map): a change query's score as the
+    page's relevance margin, the candidate cut at 0, score 0 at -``span`` and twice the cut at
+    +``span`` (``relevance_colours``); with a text, a Gaussian that did not move towards it (away,
+    for gone) at most 0. NaN: not scored."""
+    cut = change.params.candidate
+    margin = (change.scores[ids].astype(np.float32) - cut) * np.float32(span / cut)
+    if change.moved is not None:
+        margin = np.where(change.moved[ids], margin, np.minimum(margin, 0.0)).astype(np.float32)
+    return margin
 
 
 def answer_geojson(answer: WebAnswer) -> str | None:
@@ -109,7 +122,12 @@ class RunReview:
         if not self.run_dir.is_dir():
             raise OlsplatInputError(f"{self.run_dir}: no such run folder")
         self.service = MapService(
-            prior_map, self.run_dir / "map", self.run_dir / "views", heatmap_cache_mb=heatmap_cache_mb, name="ground"
+            prior_map,
+            self.run_dir / "map",
+            self.run_dir / "views",
+            heatmap_cache_mb=heatmap_cache_mb,
+            flights_dir=self.run_dir / "flights",  # an aggregate's per-flight maps, when it has them
+            name="ground",
         )
         self.max_splats = max_splats
         self.splats: BrowserSplats = self.service.splats(max_splats)
@@ -137,10 +155,18 @@ class RunReview:
         """Wait for the service's background work (the kernels' warm-up, the warm query)."""
         self.service.close()
 
-    def ask(self, text: str, negatives: list[str], view: str = "") -> WebAnswer:
+    def flights(self) -> list[str]:
+        """The earlier flights a change query may name (``RUN/flights`` of olsplat aggregate
+        --per-flight; the newest one is "now"); [] without per-flight maps."""
+        return self.service.flights()[:-1]
+
+    def ask(self, text: str, negatives: list[str], view: str = "", since: str = "", gone: bool = False) -> WebAnswer:
         """The query's relevance on the browser splats, its 3D instances and, with ``view`` (a
-        view's exact name; another is ignored), the view's heatmap and mask pictures. Bad input
-        and a missing map come back as a status."""
+        view's exact name; another is ignored), the view's heatmap and mask pictures; with
+        ``since`` (a flight of ``flights()``) what changed since it instead (``ask_change``). Bad
+        input and a missing map come back as a status."""
+        if since:
+            return self.ask_change(text, negatives, view, since, gone)
         start = time.perf_counter()
         text, negatives, problem = prepared_query(text, negatives)
         if problem:
@@ -174,6 +200,52 @@ class RunReview:
                 view,
                 result.version,
             )
+        outcome.seconds = time.perf_counter() - start
+        return outcome
+
+    def ask_change(self, text: str, negatives: list[str], view: str, since: str, gone: bool) -> WebAnswer:
+        """What changed since flight ``since`` (``MapService.answer_change``; an empty ``text``:
+        every change instance, else what appeared, or with ``gone`` went, for it over
+        ``negatives``): the change instances, the change score as the splats' margin
+        (``change_margin``) and, with ``view``, its change heatmap and mask pictures."""
+        from ..viz import query_pictures
+
+        start = time.perf_counter()
+        text = text.strip()
+        negatives = [n for n in negatives if n.lower() != text.lower()] if text else []
+        view = view if view in {c.name for c in self.cameras()} else ""
+        result = self.service.answer_change(text, since, gone, negatives, view)
+        change = result.change
+        if change is None:
+            return WebAnswer(result.status, result.message, text, since=since)
+        outcome = WebAnswer(
+            "ok",
+            f"{change.title} since flight {since} (now {result.now}): {change.candidates:,} candidates; "
+            f"{len(change.instances)} change instances",
+            text,
+            result.version,
+            change_margin(change, self.splats.ids),
+            list(change.instances),
+            since=since,
+        )
+        georef = self.service.georef
+        outcome.located, outcome.height_ref = locate(outcome.instances, georef), georef.height_ref if georef else ""
+        if result.photo is not None and change.heatmap is not None and result.change_mask is not None:
+            assert change.alpha is not None
+            outcome.view = view
+            caption = f"{change.title} since {since} on {Path(view).name}; mask: score > {change.params.candidate:g}"
+            heat, masked = query_pictures(
+                result.photo,
+                np.nan_to_num(change.heatmap, nan=0.0),
+                (change.alpha > 0.5) & np.isfinite(change.heatmap),
+                result.change_mask,
+                [r.box for r in result.change_regions],
+                caption,
+                scale=(0.0, 2.0 * change.params.object_score),
+                unit="score",
+            )
+            outcome.heatmap_picture = np.ascontiguousarray(heat[..., ::-1])  # BGR -> RGB
+            outcome.mask_picture = np.ascontiguousarray(masked[..., ::-1])
         outcome.seconds = time.perf_counter() - start
         return outcome
 

@@ -34,6 +34,8 @@ class ChangeAnswer:
     params: ChangeParams
     heatmap: np.ndarray | None = None  # [H, W] float32 change score, NaN: not scored
     alpha: np.ndarray | None = None  # [H, W]
+    scores: np.ndarray | None = None  # [N] float32 change score per Gaussian, NaN: not scored
+    moved: np.ndarray | None = None  # [N] bool: moved in the text's direction (with a text), else None
 
     @property
     def title(self) -> str:
@@ -103,6 +105,7 @@ def answer_change(
     answer = ChangeAnswer(
         text, direction, used, int(np.isfinite(score).sum()), int(candidates.sum()), instances, params
     )
+    answer.scores, answer.moved = score, moved
     if camera is not None:
         answer.heatmap, answer.alpha = render_change(gaussians, score, camera, moved)
     return answer

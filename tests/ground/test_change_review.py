@@ -1,0 +1,89 @@
+"""The ground page's "since flight" selector over an aggregate's per-flight maps, through
+``RunReview`` and a real ``GroundPage`` (its viser server; no browser): two flights of the tiny
+town (training seed 1005; f0 = A, f1 = B after the default changes, "now"), the views of B saved
+as a run's views. The page's change answer is ``olsplat query --since``'s."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from olsplat_nodes.cli import main
+from olsplat_nodes.ground.review import RunReview
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    from olsplat_nodes.pipeline import Scene
+    from olsplat_nodes.storage import save_view
+
+    root = tmp_path_factory.mktemp("change_review")
+    make = ["sim", "make", "--preset", "tiny", "--seed", "1005"]
+    assert main([*make, "--out", str(root / "A")]) == 0
+    assert main([*make, "--flight-seed", "1", "--changes", "default", "--out", str(root / "B")]) == 0
+    assert (
+        main(
+            [
+                "aggregate",
+                "--scene",
+                str(root / "A"),
+                "--scene",
+                str(root / "B"),
+                "--out",
+                str(root / "out"),
+                "--per-flight",
+            ]
+        )
+        == 0
+    )
+    scene = Scene.open(root / "B")
+    for index, camera in enumerate(scene.cameras[:3]):
+        save_view(root / "out" / "views", index, camera, scene.image(camera))
+    return root
+
+
+def test_since_flight_gives_the_change_of_olsplat_query_since(run, tmp_path):
+    review = RunReview(run / "out", run / "B" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
+    try:
+        assert review.flights() == ["f0"]
+        view = review.cameras()[2].name
+        answer = review.ask("", [], view, since="f0")
+        assert (
+            answer.status == "ok" and answer.since == "f0" and "what changed since flight f0 (now f1)" in answer.message
+        )
+        args = ["query", "--map", str(run / "out" / "flights" / "f1"), "--since", str(run / "out" / "flights" / "f0")]
+        assert main([*args, "--scene", str(run / "B"), "--json", str(tmp_path / "q.json")]) == 0
+        expected = json.loads((tmp_path / "q.json").read_text())["instances"]
+        assert len(expected) >= 1
+        assert [list(i.centre) for i in answer.instances] == [i["centre"] for i in expected]
+        assert answer.margin is not None and answer.margin.shape == (len(review.splats.ids),)
+        assert np.nanmax(answer.margin) > 0 > np.nanmin(answer.margin)  # changed splats above the cut, others below
+        assert answer.heatmap_picture is not None and answer.mask_picture is not None
+        assert answer.heatmap_picture.dtype == np.uint8 and answer.heatmap_picture.shape[2] == 3
+        # an ordinary query over this folder (no map/): no map, as before
+        assert review.ask("cars", []).status == "no_map"
+        assert review.ask("", [], since="f1").status == "bad_request"
+    finally:
+        review.close()
+
+
+# the page's theme call (viser's own deprecation, not this feature's)
+@pytest.mark.filterwarnings("ignore:`control_layout` is deprecated:DeprecationWarning")
+def test_the_page_shows_the_selector_and_asks_the_change(run):
+    from olsplat_nodes.ground.page import GroundPage
+
+    review = RunReview(run / "out", run / "B" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
+    page = GroundPage(review, port=0)
+    try:
+        assert page.since_choice.visible and tuple(page.since_choice.options) == ("none", "f0")
+        page.since_choice.value = "f0"
+        page._ask("", [])
+        assert page.answer is not None and page.answer.since == "f0" and page.answer.instances
+        assert "what changed since flight f0" in page.query_message.content
+    finally:
+        page.server.stop()
+        review.close()
