@@ -60,6 +60,8 @@ EXAMPLES = {
     "keys generate": "olsplat keys generate --out keys --name drone",
     "export-clip": "olsplat export-clip --checkpoint RemoteCLIP-ViT-B-32.pt --vocab bpe_simple_vocab_16e6.txt.gz "
     "--out enc/remoteclip",
+    "bench change": "olsplat bench change --preset tiny --seeds 0,1,2,3,4 --train-seeds 1001,1002,1003 "
+    "--work change --json change.json --md change.md",
     "bench raster": "olsplat bench raster --gaussians 1000000 --sizes 960x720 --json raster.json",
     "bench regions": "olsplat bench regions --scene small0",
     "bench encode": "olsplat bench encode --scene small0",
