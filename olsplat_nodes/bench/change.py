@@ -32,6 +32,7 @@ import numpy as np
 
 from . import change_metrics as metrics
 from .change_scores import METHODS, best_view_difference, feature_difference
+from .change_text import TEXT, TextTruth, params_of, score_text, text_truth, tune_text
 
 # folder -> (flight seed, --changes): the seed's own flight, a changed later one, an unchanged one
 FLIGHTS: dict[str, tuple[int | None, str | None]] = {"a": (None, None), "b": (1, "default"), "c": (2, "none")}
@@ -41,6 +42,7 @@ DEFAULTS = "ours, default cuts"  # the shipped ChangeParams, reported beside the
 # ceiling the instances and the >= 50 % rule leave (adjacent changes merge), reported, never claimed
 CEILING = "truth as the score"
 REPORTED = (*METHODS, DEFAULTS, CEILING)
+TEXT_ROWS = (f'"{TEXT}" appeared (ours)', f'"{TEXT}" appeared (ours, default cuts)')  # change_text.py
 CLAIMED = ("precision", "recall", "f1", "false_alarms_per_km2")
 
 
@@ -74,6 +76,7 @@ class Seed:
     visible: np.ndarray  # [K] bool: the changes flight b shows (change_metrics.MIN_PIXELS)
     area_m2: float  # the town
     scores: dict[str, dict[str, np.ndarray]]  # method -> "changed" (a -> b) / "unchanged" (a -> c) -> [N]
+    text: TextTruth | None = None  # ours' moves towards change_text.TEXT and the arrivals' truth
 
 
 # --- flights and runs --------------------------------------------------------------------------
@@ -213,7 +216,8 @@ def prepare(work: Path, preset: str, views: int | None, seed: int) -> Seed:
     truth_score = (change_id >= 0).astype(np.float32)
     scores[CEILING] = {"changed": truth_score, "unchanged": np.zeros_like(truth_score)}
     visible = metrics.visible_changes(truth / "masks", len(records))
-    return Seed(seed, means, change_id, visible, float(size) ** 2, scores)
+    text = text_truth({f: maps(ours, f) for f in ("f0", "f1", "f2")}, means, change_id, records, visible)
+    return Seed(seed, means, change_id, visible, float(size) ** 2, scores, text)
 
 
 # --- scoring -----------------------------------------------------------------------------------
@@ -274,7 +278,7 @@ def _cell(summary: dict[str, Any], digits: int) -> str:
 
 def tables(per_seed: dict[str, dict[str, dict]], tuned: dict[str, Any], seeds: list[int]) -> tuple[list[str], dict]:
     """Markdown lines (per-seed counts, means with intervals, paired differences) and figures."""
-    names = list(REPORTED)
+    names = [*REPORTED, *TEXT_ROWS]  # the text rows: "changes in view" are the arrivals in view
     summaries = {m: {k: metrics.summary([per_seed[m][str(s)][k] for s in seeds]) for k in CLAIMED} for m in names}
     lines = ["| seed | method | instances | true positives | changes in view | found | unchanged-pair instances |",
              "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
@@ -289,7 +293,9 @@ def tables(per_seed: dict[str, dict[str, dict]], tuned: dict[str, Any], seeds: l
               "| --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for m in names:
         c, figure = tuned[m], summaries[m]
-        cuts = f"{c['candidate']:.3g} / {c['object_score']:.3g}"
+        cuts = f"{c['candidate']:.3g} / {c['object_score']:.3g}" + (
+            f", {c['members']} members" if "members" in c else ""
+        )
         cells = [_cell(figure[k], 2) for k in ("precision", "recall", "f1")]
         lines.append(f"| {m} | {cuts} | {' | '.join(cells)} | {_cell(figure['false_alarms_per_km2'], 0)} |")
     lines += ["", "Paired differences, ours − baseline, per held-out seed (win: both 95 % intervals on ours' better "
@@ -319,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
     from olsplat_sim.presets import PRESETS
 
     from ..errors import OlsplatInputError
-    from ..query.change import ChangeParams
+    from ..query.change import TEXT_PARAMS, ChangeParams
     from .paper import parse_seeds
 
     seeds = parse_seeds(args.seeds, "--seeds", training=False)
@@ -338,18 +344,28 @@ def run(args: argparse.Namespace) -> int:
     training = [prepare(args.work, args.preset, args.views, s) for s in train]
     tuning = tune(training)
     tuned = {m: tuning[m]["chosen"] for m in METHODS}
-    (args.work / "tune.json").write_text(json.dumps(_plain({"train_seeds": train, "methods": tuning}), indent=1))
+    text_tuning = tune_text([(d.means, d.scores["ours"], d.text) for d in training if d.text is not None])
+    tuned[TEXT_ROWS[0]] = text_tuning["chosen"]
+    choices = {"train_seeds": train, "methods": tuning, "text": {"query": TEXT, **text_tuning}}
+    (args.work / "tune.json").write_text(json.dumps(_plain(choices), indent=1))
     print(f"cuts chosen on the training seeds ({time.perf_counter() - started:.0f} s; fewest no-change instances, "
           "then the best mean F1):")  # fmt: skip
     for m in METHODS:
         c = tuned[m]
         print(f"  {m}: candidate {c['candidate']:.4g} (q {c['quantile']}), object {c['object_score']:.4g} "
               f"(x{c['ratio']}): training F1 {c['f1']:.3f}, no-change instances {c['alarms']}")  # fmt: skip
+    c = tuned[TEXT_ROWS[0]]
+    print(f'  "{TEXT}" appeared (ours): candidate {c["candidate"]:.3g}, object {c["object_score"]:.3g}, '
+          f"{c['members']} members: training F1 {c['f1']:.3f}, no-change instances {c['alarms']}")  # fmt: skip
 
     defaults, ceiling = ChangeParams(), ChangeParams(candidate=0.5, object_score=0.5)
     tuned[DEFAULTS] = {"candidate": defaults.candidate, "object_score": defaults.object_score}
     tuned[CEILING] = {"candidate": ceiling.candidate, "object_score": ceiling.object_score}
-    per_seed: dict[str, dict[str, dict]] = {m: {} for m in REPORTED}
+    tuned[TEXT_ROWS[1]] = {"candidate": TEXT_PARAMS.candidate, "object_score": TEXT_PARAMS.object_score,
+                           "members": TEXT_PARAMS.min_gaussians}  # fmt: skip
+    text_params = {row: params_of(tuned[row]["candidate"], tuned[row]["object_score"], tuned[row]["members"])
+                   for row in TEXT_ROWS}  # fmt: skip
+    per_seed: dict[str, dict[str, dict]] = {m: {} for m in (*REPORTED, *TEXT_ROWS)}
     print(f"held-out seeds {seeds}:", flush=True)
     for s in seeds:
         data = prepare(args.work, args.preset, args.views, s)
@@ -357,6 +373,12 @@ def run(args: argparse.Namespace) -> int:
             per_seed[m][str(s)] = score_seed(data, m, _params(tuned[m]["candidate"], tuned[m]["object_score"]))
         per_seed[DEFAULTS][str(s)] = score_seed(data, "ours", defaults)
         per_seed[CEILING][str(s)] = score_seed(data, CEILING, ceiling)
+        for row, params in text_params.items():
+            assert data.text is not None
+            per_seed[row][str(s)] = score_text(data.means, data.scores["ours"], data.text, params)
+            per_seed[row][str(s)]["false_alarms_per_km2"] = metrics.per_km2(
+                per_seed[row][str(s)]["unchanged_instances"], data.area_m2
+            )
         for m, rows in per_seed.items():
             r = rows[str(s)]
             print(

@@ -179,11 +179,15 @@ def test_bench_change_end_to_end_on_the_tiny_preset(tmp_path, capsys):
     assert printed.index("cuts chosen on the training seeds") < printed.index(f"made {work / 'tiny0' / 'a'}")
     assert (work / "tune.json").stat().st_mtime <= (work / "tiny0" / "a" / "scene.json").stat().st_mtime
     document = json.loads((tmp_path / "c.json").read_text())
-    methods = ["ours", "projection difference", "heatmap difference", "ours, default cuts", "truth as the score"]
+    methods = ["ours", "projection difference", "heatmap difference", "ours, default cuts", "truth as the score",
+               "\"new vehicles\" appeared (ours)", "\"new vehicles\" appeared (ours, default cuts)"]
     assert list(document["per_seed"]) == methods and document["seeds"] == [0] and document["town_m2"] == 10_000.0
     for method in methods:
         row = document["per_seed"][method]["0"]
-        assert row["changes"] >= 10 and row["false_alarms_per_km2"] == 100.0 * row["unchanged_instances"]
+        assert row["false_alarms_per_km2"] == 100.0 * row["unchanged_instances"]
+        assert row["changes"] >= 10 if "new vehicles" not in method else 1 <= row["changes"] <= 8  # cars arrived
+    assert {"candidate", "object_score", "members"} <= set(document["tuned"][methods[5]])
+    assert json.loads((work / "tune.json").read_text())["text"]["query"] == "new vehicles"
     assert {(r["baseline"], r["metric"]) for r in document["paired"]} == {
         (b, m) for b in methods[1:3] for m in ("precision", "recall", "f1", "false_alarms_per_km2")
     }
