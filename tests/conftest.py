@@ -73,3 +73,20 @@ def tiny_map(tiny, tmp_path_factory) -> Path:
     shutil.copytree(tiny[0], work / "scene")
     aggregate_scene(Scene.open(work / "scene"), named_method("outlangsplat"), encoder_from_spec(), work / "out")
     return work / "out" / "language_map.npz"
+
+
+@pytest.fixture(scope="session")
+def change_flights(tmp_path_factory) -> Path:
+    """Three flights of the tiny town of training seed 1005 over its one prior map, aggregated once
+    with ``--per-flight``: A (f0), B after the default changes (f1), N with none (f2, "now");
+    ``out/`` holds the aggregate and ``out/flights/`` the per-flight maps. Made once per session."""
+    from olsplat_nodes.cli import main
+
+    root = tmp_path_factory.mktemp("change_flights")
+    make = ["sim", "make", "--preset", "tiny", "--seed", "1005"]
+    assert main([*make, "--out", str(root / "A")]) == 0
+    assert main([*make, "--flight-seed", "1", "--changes", "default", "--out", str(root / "B")]) == 0
+    assert main([*make, "--flight-seed", "1", "--changes", "none", "--out", str(root / "N")]) == 0
+    scenes = [arg for name in "ABN" for arg in ("--scene", str(root / name))]
+    assert main(["aggregate", *scenes, "--out", str(root / "out"), "--per-flight"]) == 0
+    return root

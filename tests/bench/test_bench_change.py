@@ -179,8 +179,15 @@ def test_bench_change_end_to_end_on_the_tiny_preset(tmp_path, capsys):
     assert printed.index("cuts chosen on the training seeds") < printed.index(f"made {work / 'tiny0' / 'a'}")
     assert (work / "tune.json").stat().st_mtime <= (work / "tiny0" / "a" / "scene.json").stat().st_mtime
     document = json.loads((tmp_path / "c.json").read_text())
-    methods = ["ours", "projection difference", "heatmap difference", "ours, default cuts", "truth as the score",
-               "\"new vehicles\" appeared (ours)", "\"new vehicles\" appeared (ours, default cuts)"]
+    methods = [
+        "ours",
+        "projection difference",
+        "heatmap difference",
+        "ours, default cuts",
+        "truth as the score",
+        '"new vehicles" appeared (ours)',
+        '"new vehicles" appeared (ours, default cuts)',
+    ]
     assert list(document["per_seed"]) == methods and document["seeds"] == [0] and document["town_m2"] == 10_000.0
     for method in methods:
         row = document["per_seed"][method]["0"]

@@ -1,7 +1,8 @@
 """The ground page's "since flight" selector over an aggregate's per-flight maps, through
-``RunReview`` and a real ``GroundPage`` (its viser server; no browser): two flights of the tiny
-town (training seed 1005; f0 = A, f1 = B after the default changes, "now"), the views of B saved
-as a run's views. The page's change answer is ``olsplat query --since``'s."""
+``RunReview`` and a real ``GroundPage`` (its viser server; no browser): the session's three
+flights of the tiny town (training seed 1005; f0 = A, f1 = B after the default changes, f2 = N
+without them, "now": since f1 the changes are undone), the views of N saved as a run's views. The
+page's change answer is ``olsplat query --since``'s."""
 
 from __future__ import annotations
 
@@ -17,46 +18,27 @@ pytestmark = pytest.mark.timeout(180)
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(change_flights):
     from olsplat_nodes.pipeline import Scene
     from olsplat_nodes.storage import save_view
 
-    root = tmp_path_factory.mktemp("change_review")
-    make = ["sim", "make", "--preset", "tiny", "--seed", "1005"]
-    assert main([*make, "--out", str(root / "A")]) == 0
-    assert main([*make, "--flight-seed", "1", "--changes", "default", "--out", str(root / "B")]) == 0
-    assert (
-        main(
-            [
-                "aggregate",
-                "--scene",
-                str(root / "A"),
-                "--scene",
-                str(root / "B"),
-                "--out",
-                str(root / "out"),
-                "--per-flight",
-            ]
-        )
-        == 0
-    )
-    scene = Scene.open(root / "B")
+    scene = Scene.open(change_flights / "N")
     for index, camera in enumerate(scene.cameras[:3]):
-        save_view(root / "out" / "views", index, camera, scene.image(camera))
-    return root
+        save_view(change_flights / "out" / "views", index, camera, scene.image(camera))
+    return change_flights
 
 
 def test_since_flight_gives_the_change_of_olsplat_query_since(run, tmp_path):
-    review = RunReview(run / "out", run / "B" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
+    review = RunReview(run / "out", run / "N" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
     try:
-        assert review.flights() == ["f0"]
+        assert review.flights() == ["f0", "f1"]
         view = review.cameras()[2].name
-        answer = review.ask("", [], view, since="f0")
+        answer = review.ask("", [], view, since="f1")
         assert (
-            answer.status == "ok" and answer.since == "f0" and "what changed since flight f0 (now f1)" in answer.message
+            answer.status == "ok" and answer.since == "f1" and "what changed since flight f1 (now f2)" in answer.message
         )
-        args = ["query", "--map", str(run / "out" / "flights" / "f1"), "--since", str(run / "out" / "flights" / "f0")]
-        assert main([*args, "--scene", str(run / "B"), "--json", str(tmp_path / "q.json")]) == 0
+        args = ["query", "--map", str(run / "out" / "flights" / "f2"), "--since", str(run / "out" / "flights" / "f1")]
+        assert main([*args, "--scene", str(run / "N"), "--json", str(tmp_path / "q.json")]) == 0
         expected = json.loads((tmp_path / "q.json").read_text())["instances"]
         assert len(expected) >= 1
         assert [list(i.centre) for i in answer.instances] == [i["centre"] for i in expected]
@@ -66,7 +48,7 @@ def test_since_flight_gives_the_change_of_olsplat_query_since(run, tmp_path):
         assert answer.heatmap_picture.dtype == np.uint8 and answer.heatmap_picture.shape[2] == 3
         # an ordinary query over this folder (no map/): no map, as before
         assert review.ask("cars", []).status == "no_map"
-        assert review.ask("", [], since="f1").status == "bad_request"
+        assert review.ask("", [], since="f2").status == "bad_request"
     finally:
         review.close()
 
@@ -76,14 +58,14 @@ def test_since_flight_gives_the_change_of_olsplat_query_since(run, tmp_path):
 def test_the_page_shows_the_selector_and_asks_the_change(run):
     from olsplat_nodes.ground.page import GroundPage
 
-    review = RunReview(run / "out", run / "B" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
+    review = RunReview(run / "out", run / "N" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
     page = GroundPage(review, port=0)
     try:
-        assert page.since_choice.visible and tuple(page.since_choice.options) == ("none", "f0")
-        page.since_choice.value = "f0"
+        assert page.since_choice.visible and tuple(page.since_choice.options) == ("none", "f0", "f1")
+        page.since_choice.value = "f1"
         page._ask("", [])
-        assert page.answer is not None and page.answer.since == "f0" and page.answer.instances
-        assert "what changed since flight f0" in page.query_message.content
+        assert page.answer is not None and page.answer.since == "f1" and page.answer.instances
+        assert "what changed since flight f1" in page.query_message.content
     finally:
         page.server.stop()
         review.close()

@@ -14,19 +14,12 @@ from olsplat_nodes.cli import main
 from .test_ground_cli import ground, query_server, wait_until_up
 
 pytestmark = pytest.mark.timeout(180)
-SEED = "1005"
 
 
-@pytest.fixture(scope="module")
-def flights(tmp_path_factory):
-    root = tmp_path_factory.mktemp("ground_change")
-    make = ["sim", "make", "--preset", "tiny", "--seed", SEED]
-    assert main([*make, "--out", str(root / "A")]) == 0
-    assert main([*make, "--flight-seed", "1", "--changes", "default", "--out", str(root / "B")]) == 0
-    assert main([*make, "--flight-seed", "1", "--changes", "none", "--out", str(root / "N")]) == 0
-    scenes = [arg for name in "ABN" for arg in ("--scene", str(root / name))]
-    assert main(["aggregate", *scenes, "--out", str(root / "out"), "--per-flight"]) == 0
-    return root
+@pytest.fixture
+def flights(change_flights):
+    """The session's three flights of seed 1005 (tests/conftest.py)."""
+    return change_flights
 
 
 def offline(root, since: str, *extra: str) -> list[dict]:
