@@ -11,6 +11,8 @@ from olsplat_nodes.scene import Camera, Gaussians, intrinsics, look_at
 from olsplat_sim.make import make_dataset
 from olsplat_sim.presets import PRESETS
 
+from .promised import skip_unless_ci
+
 SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
 
@@ -47,7 +49,7 @@ def camera_for(kind: str, width: int, height: int) -> Camera:
 @pytest.fixture
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
-        pytest.skip(f"the shared real data folder is absent ({SHARED_DATA})")
+        skip_unless_ci("shared data", f"the shared real data folder is absent ({SHARED_DATA})")
     return SHARED_DATA
 
 

@@ -22,12 +22,18 @@ import pytest
 from olsplat_nodes.launcher import Supervisor
 from tests.helpers import free_port
 from tests.nodes.conftest import launch_tiny
+from tests.promised import skip_unless_ci
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 ARTIFACTS = Path(__file__).resolve().parents[2] / "build" / "test-artifacts" / "ground_web"
-pytestmark = pytest.mark.skipif(
-    CHROMIUM is None, reason="Debian's chromium is not installed (make setup installs it when run as root)"
-)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _chromium():
+    if CHROMIUM is None:
+        skip_unless_ci("browser", "Debian's chromium is not installed (make setup installs it when run as root)")
+
+
 OLSPLAT = str(Path(sys.executable).parent / "olsplat")
 LABELS = ["red roof buildings", "blue roof buildings", "white roof buildings", "grey roof buildings", "road", "tree"]
 

@@ -15,6 +15,7 @@ from olsplat_nodes.sources import ExifFolderSource, focal_length_px, headings_fr
 from olsplat_nodes.telemetry import geodetic_to_ned
 from olsplat_nodes.telemetry.pose import ENU_FROM_NED
 
+from ..promised import skip_unless_ci
 from .conftest import TRACK, dji_xmp, write_photo
 
 
@@ -107,7 +108,7 @@ def test_stamp_zone_from_gps_time_and_errors(tmp_path):
 def test_caliterra_photos(shared_data):
     folder = shared_data / "caliterra"
     if not folder.is_dir():
-        pytest.skip(f"{folder} is absent")
+        skip_unless_ci("shared data", f"{folder} is absent")
     source = open_source({"source_kind": "exif_folder", "source": str(folder), "fast": True})
     assert len(source.photos) == 24 and source.stats["photos_without_gps"] == 0
     # Canon SX260 HS at 4.5 mm: FocalPlaneXResolution gives ~2904 px at 4000 px wide, 726 px at the 1000 px copy

@@ -12,6 +12,7 @@ from olsplat_nodes.sources import open_source
 from olsplat_nodes.sources.replay_log import read_replay
 
 from ..conftest import SHARED_DATA
+from ..promised import skip_unless_ci
 from .bags import LINK_FROM_OPTICAL, camera_info, compressed, tf_message, transform, write_bag
 
 
@@ -19,7 +20,7 @@ from .bags import LINK_FROM_OPTICAL, camera_info, compressed, tf_message, transf
 def photos():
     shared = SHARED_DATA / "caliterra"
     if not shared.is_dir():
-        pytest.skip(f"the shared real photos are absent ({shared})")
+        skip_unless_ci("shared data", f"the shared real photos are absent ({shared})")
     return list(open_source({"source_kind": "exif_folder", "source": str(shared), "fast": True}))
 
 
