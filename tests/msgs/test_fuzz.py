@@ -79,6 +79,13 @@ def _mutate_bytes(rng: np.random.Generator, frames: list[bytes]) -> list[bytes]:
     return frames
 
 
+# How many of each seed's 1,500 mutants the decoder refuses. The mutants are the same on every
+# machine (seeded generators, fixed messages), so these are exact: a decoder that lets more damage
+# through (or refuses valid messages) changes them. Update them on purpose, with the reason.
+REFUSED_BYTES = {0: 1341, 1: 1356, 2: 1363, 3: 1348}  # of the others, each decodes to a valid message
+REFUSED_HEADERS = {0: 1466, 1: 1455, 2: 1459, 3: 1463}
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_damaged_bytes_only_raise_wire_errors(seed):
     rng = np.random.default_rng(seed)
@@ -88,7 +95,7 @@ def test_damaged_bytes_only_raise_wire_errors(seed):
         for _ in range(int(rng.integers(1, 4))):
             frames = _mutate_bytes(rng, frames) if frames else frames
         survived += _check(frames)
-    assert survived < 1500  # the damage is real: most variants are refused
+    assert 1500 - survived == REFUSED_BYTES[seed]
 
 
 def _walk(node, rng: np.random.Generator):
@@ -104,6 +111,7 @@ def _walk(node, rng: np.random.Generator):
 @pytest.mark.parametrize("seed", range(4))
 def test_mutated_header_values_only_raise_wire_errors(seed):
     rng = np.random.default_rng(100 + seed)
+    survived = 0
     for _ in range(1500):
         frames = list(ENCODED[int(rng.integers(0, len(ENCODED)))])
         header = msgpack.unpackb(frames[1])
@@ -117,7 +125,8 @@ def test_mutated_header_values_only_raise_wire_errors(seed):
             else:
                 container[key] = copy.deepcopy(WEIRD_VALUES[int(rng.integers(0, len(WEIRD_VALUES)))])
         frames[1] = msgpack.packb(header, use_bin_type=True)
-        _check(frames)
+        survived += _check(frames)
+    assert 1500 - survived == REFUSED_HEADERS[seed]
 
 
 def test_non_bytes_inputs_only_raise_wire_errors():
