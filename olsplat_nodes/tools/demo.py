@@ -108,6 +108,9 @@ class Ground:
         )
         return reply
 
+    def close(self) -> None:
+        self.client.close()
+
     def status(self):
         from olsplat_msgs import StatusRequest
 
@@ -205,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
         status = ground.status()
         print_status(status, as_json=False)
     finally:
+        ground.close()
         supervisor.request_stop(0)
         thread.join(30)
     nodes = {n["node"]: n["values"] for n in status.nodes}
