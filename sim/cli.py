@@ -263,7 +263,7 @@ def run_zeroshot(args: argparse.Namespace) -> int:
     encoders["fusion (lambda_2D = 0.6)"] = default_encoder()
     for folder in (args.encoders or "").split(",") if args.encoders else []:
         encoder = OnnxEncoder(Path(folder))
-        encoders[encoder.name] = encoder
+        encoders[folder if encoder.name in encoders else encoder.name] = encoder  # a retrained shipped one: its folder
     try:
         results = evaluate(encoders, args.seeds, args.views)
     except ValueError as exc:

@@ -29,11 +29,12 @@ def evaluate(encoders: Mapping[str, Any], seeds: list[int], views: int) -> dict[
     """name -> {"accuracy", "balanced", "per_label" [L], "n"} for each encoder (or FusedEncoder)."""
     if any(seed >= TRAINING_SEED_BASE for seed in seeds):
         raise ValueError(f"evaluation seeds must be below {TRAINING_SEED_BASE} (the training seeds), got {seeds}")
-    members = {}
+    styles: dict[str, Any] = {}
     for encoder in encoders.values():
         for m in encoder.encoders if isinstance(encoder, FusedEncoder) else [encoder]:
-            members[m.name] = m
-    styles = {name: (m.input_size, getattr(m, "crop_config", None) or CropConfig()) for name, m in members.items()}
+            style = (m.input_size, getattr(m, "crop_config", None) or CropConfig())
+            if styles.setdefault(m.name, style) != style:  # the crops are collected per encoder name
+                raise ValueError(f"two encoders named {m.name!r} crop their regions differently: rename one")
     samples = collect(seeds, views, styles)
     texts = label_queries()
     results: dict[str, Any] = {}

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..errors import OlsplatInputError
 from .ground_frame import GroundFrame, voxelise
 from .minkunet import MinkUNet
 from .sparse_conv import SparseTensor
@@ -151,6 +152,13 @@ def pretrain(maps: list[TrainingMap], config: PretrainConfig = PretrainConfig(),
     objective on windows of ``maps`` (see the module docstring), returned in eval mode."""
     if not maps:
         raise ValueError("pre-training needs at least one map")
+    bare = [m.name for m in maps if not (m.segment >= 0).any()]
+    if bare:  # a window must hold segments to contrast
+        raise OlsplatInputError(
+            f"map {', '.join(bare)}: no segment above the ground (points at least {config.ground_voxels:g} voxels "
+            f"high in clusters of >= {config.min_segment_points} points): nothing to contrast; a larger preset "
+            "(small) has buildings and trees that do"
+        )
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     model = MinkUNet(in_channels=3, cr=config.cr)
