@@ -55,8 +55,8 @@ class ChangeRule:
             raise ValueError(f"the threshold must be > 0, got {self.threshold}")
 
 
-class FlightMap(Protocol):
-    """What a change score reads of a flight's map (``storage.LanguageMap`` with its evidence)."""
+class FlightFeatures(Protocol):
+    """A flight's map's features (``storage.LanguageMap``), as rows or as codes."""
 
     @property
     def features(self) -> np.ndarray: ...  # [N, D] unit rows, or [0, D] when kept as codes
@@ -66,6 +66,11 @@ class FlightMap(Protocol):
     def codes(self) -> np.ndarray | None: ...  # [N] uint16 codebook form (65535: unobserved)
     @property
     def centres(self) -> np.ndarray | None: ...  # [K, D]
+
+
+class FlightMap(FlightFeatures, Protocol):
+    """What a change score reads of a flight's map (``storage.LanguageMap`` with its evidence)."""
+
     @property
     def strength_sum(self) -> np.ndarray | None: ...  # [N] W
     @property
@@ -74,13 +79,14 @@ class FlightMap(Protocol):
     def view_spread(self) -> np.ndarray | None: ...  # [N] s
 
 
-def _rows(flight: FlightMap, lo: int, hi: int) -> np.ndarray:
-    """Rows lo..hi-1 of a map's features as float64 (decoded from its codes if it keeps them)."""
+def feature_rows(flight: FlightFeatures, lo: int, hi: int, dtype=np.float64) -> np.ndarray:
+    """Rows lo..hi-1 of a map's features ([hi - lo, D], ``dtype``), decoded from its codes if it
+    keeps them."""
     if len(flight.features) == len(flight.observed):
-        return np.asarray(flight.features[lo:hi], np.float64)
+        return np.asarray(flight.features[lo:hi], dtype)
     if flight.codes is None or flight.centres is None:
         raise ValueError(f"a map of {len(flight.observed)} Gaussians with {len(flight.features)} feature rows")
-    return decompress(flight.codes[lo:hi], flight.centres).astype(np.float64)
+    return decompress(flight.codes[lo:hi], flight.centres).astype(dtype)
 
 
 def _evidence(flight: FlightMap, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -115,7 +121,7 @@ def change_score(map_a: FlightMap, map_b: FlightMap, rule: ChangeRule = ChangeRu
         here = np.flatnonzero(ok[lo:hi])
         if not len(here):
             continue
-        fa, fb = _rows(map_a, lo, hi)[here], _rows(map_b, lo, hi)[here]
+        fa, fb = feature_rows(map_a, lo, hi)[here], feature_rows(map_b, lo, hi)[here]
         norms = np.linalg.norm(fa, axis=1) * np.linalg.norm(fb, axis=1)
         distance = 1.0 - np.einsum("ij,ij->i", fa, fb) / np.maximum(norms, 1e-12)
         rows = lo + here

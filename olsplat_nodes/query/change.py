@@ -28,11 +28,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 
-from ..aggregate.codebook import decompress
+from ..aggregate.change import FlightFeatures, feature_rows
 from .heatmap import CANONICAL_NEGATIVES
 from .localize import Instance3D, _cluster_points, _touching_pairs, _voxelise, default_cluster_radius
 from .negatives import AERIAL_VOCABULARY, vocabulary_negatives
@@ -79,19 +79,6 @@ class ChangeInstance(Instance3D):
 
 # a text's changes: a move towards the text is evidence too, so its candidates may score lower
 TEXT_PARAMS = ChangeParams(candidate=0.4, object_score=1.5, min_gaussians=8)
-
-
-class FlightFeatures(Protocol):
-    """What ``text_moves`` reads of a flight's map (``storage.LanguageMap``)."""
-
-    @property
-    def features(self) -> np.ndarray: ...  # [N, D] rows (0 where unobserved), or [0, D] when kept as codes
-    @property
-    def observed(self) -> np.ndarray: ...  # [N] bool
-    @property
-    def codes(self) -> np.ndarray | None: ...  # [N] uint16 codebook form
-    @property
-    def centres(self) -> np.ndarray | None: ...  # [K, D]
 
 
 def cluster_labels(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
@@ -172,18 +159,11 @@ def text_moves(
     both = np.asarray(map_a.observed, bool) & np.asarray(map_b.observed, bool)
     for lo in range(0, n, _ROWS):
         hi = min(n, lo + _ROWS)
-        rise = sign * ((_rows(map_b, lo, hi) - _rows(map_a, lo, hi)) @ texts)  # [rows, Q]
+        rise = sign * (
+            (feature_rows(map_b, lo, hi, np.float32) - feature_rows(map_a, lo, hi, np.float32)) @ texts
+        )  # [rows, Q]
         moved[lo:hi] = (rise[:, 0] > 0) & (rise.argmax(1) == 0) & both[lo:hi]
     return moved
-
-
-def _rows(flight: FlightFeatures, lo: int, hi: int) -> np.ndarray:
-    """Rows lo..hi-1 of a map's features as float32 (from its codes if it keeps them)."""
-    if len(flight.features) == len(flight.observed):
-        return np.asarray(flight.features[lo:hi], np.float32)
-    if flight.codes is None or flight.centres is None:
-        raise ValueError(f"a map of {len(flight.observed)} Gaussians with {len(flight.features)} feature rows")
-    return decompress(flight.codes[lo:hi], flight.centres).astype(np.float32)
 
 
 def text_change(
