@@ -262,15 +262,7 @@ class QueryServerNode(Node):
             splats=request.splats,
         )
         if result.answer is None:
-            return QueryReply(
-                stamp_ns=time.time_ns(),
-                request_id=request.request_id,
-                status=result.status,
-                message=result.message,
-                text=request.text,
-                view=request.view,
-                map_version=result.version,
-            )
+            return _no_answer(request, result.status, result.message, result.version)
         reply = reply_for(result.answer, request, result.version, result.photo, 0.0, self.service.georef)
         if result.margin is not None:  # the page's colours, per splat of its decimation
             reply.splat_margin = result.margin.astype(np.float16)
@@ -287,16 +279,7 @@ class QueryServerNode(Node):
         )
         change = result.change
         if change is None:
-            return QueryReply(
-                stamp_ns=time.time_ns(),
-                request_id=request.request_id,
-                status=result.status,
-                message=result.message,
-                text=request.text,
-                view=request.view,
-                map_version=result.version,
-                since=request.since,
-            )
+            return _no_answer(request, result.status, result.message, result.version)
         heatmap = change.heatmap if request.heatmap else None
         as_query = QueryAnswer(
             change.text or "",
@@ -348,3 +331,18 @@ class QueryServerNode(Node):
             "age_s": 0.0,
         }
         return [own, *self.collector.nodes()]
+
+
+def _no_answer(request: QueryRequest, status: str, message: str, version: int) -> QueryReply:
+    """The reply to a request the map could not answer (``status`` other than "ok"): the request's
+    text, view and flight echoed, the reason in ``message``."""
+    return QueryReply(
+        stamp_ns=time.time_ns(),
+        request_id=request.request_id,
+        status=status,
+        message=message,
+        text=request.text,
+        view=request.view,
+        map_version=version,
+        since=request.since,
+    )
