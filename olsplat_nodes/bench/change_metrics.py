@@ -14,9 +14,9 @@ Definitions (docs/evaluation-protocol.md, "What changed since the last flight"):
 - **false alarms per km²**: the instances of two flights with no change between them, per km²
   of the town.
 
-Intervals over the held-out seeds: Student's t (``evaluate.statistics``) and a percentile
-bootstrap over the seeds (``BOOTSTRAP`` resamples, fixed generator); a paired comparison is a
-win only when both intervals of the per-seed difference lie on the better side of zero.
+Intervals over the held-out seeds: Student's t and a percentile bootstrap over the seeds (both
+``evaluate.statistics``); a paired comparison is a win only when both intervals of the per-seed
+difference lie on the better side of zero, over at least ``MIN_SEEDS`` paired seeds.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 MIN_PIXELS = 50  # a change the later flight shows on fewer pixels (all views together) is not counted
-BOOTSTRAP = 10_000  # resamples of the seeds
+MIN_SEEDS = 3  # paired seeds a verdict needs: two make a percentile bootstrap of two values
 OVERLAP = 0.5  # an instance's share of Gaussians in one true change that makes it a true positive
 
 
@@ -89,22 +89,10 @@ def per_km2(instances: int, area_m2: float) -> float:
     return instances / (area_m2 / 1e6)
 
 
-def bootstrap_interval(values: Sequence[float], resamples: int = BOOTSTRAP) -> tuple[float, float] | None:
-    """The percentile 95 % interval of the mean of ``values`` under resampling them with
-    replacement (generator seeded 0: the same figures every run); None for fewer than two."""
-    x = np.asarray(values, np.float64)
-    if len(x) < 2:
-        return None
-    picks = np.random.default_rng(0).integers(0, len(x), (resamples, len(x)))
-    means = x[picks].mean(1)
-    low, high = np.percentile(means, [2.5, 97.5])
-    return float(low), float(high)
-
-
 def summary(values: Sequence[float]) -> dict[str, Any]:
     """Mean and both 95 % intervals of a figure over seeds (NaN seeds left out: a precision
     without instances), and how many seeds it rests on."""
-    from ..evaluate.statistics import mean_ci
+    from ..evaluate.statistics import bootstrap_interval, mean_ci
 
     x = [float(v) for v in values if not math.isnan(v)]
     if not x:
@@ -117,7 +105,8 @@ def summary(values: Sequence[float]) -> dict[str, Any]:
 def paired(ours: Sequence[float], theirs: Sequence[float], lower_is_better: bool = False) -> dict[str, Any]:
     """Ours − theirs per seed (seeds where either is NaN left out): the mean difference, its t and
     bootstrap 95 % intervals, and the verdict: "win" when both intervals lie on ours' better
-    side of zero, "loss" when both lie on the other, "tie" otherwise, "n/a" under two seeds."""
+    side of zero, "loss" when both lie on the other, "tie" otherwise, "n/a" under ``MIN_SEEDS`` seeds."""
+    from ..evaluate.statistics import bootstrap_interval
     from ..evaluate.statistics import paired as t_paired
 
     pairs = [(a, b) for a, b in zip(ours, theirs, strict=True) if not (math.isnan(a) or math.isnan(b))]
@@ -127,7 +116,7 @@ def paired(ours: Sequence[float], theirs: Sequence[float], lower_is_better: bool
     mean, t_interval = t_paired(a, b)
     boot = bootstrap_interval([x - y for x, y in pairs])
     verdict = "n/a"
-    if t_interval is not None and boot is not None:
+    if t_interval is not None and boot is not None and len(pairs) >= MIN_SEEDS:
         above = t_interval[0] > 0 and boot[0] > 0
         below = t_interval[1] < 0 and boot[1] < 0
         better, worse = (below, above) if lower_is_better else (above, below)

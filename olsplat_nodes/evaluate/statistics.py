@@ -1,5 +1,6 @@
 """Spread over scenes: mean, standard deviation and a 95 % confidence interval of a figure, and
-of the paired per-scene difference between two methods (Student's t; scenes are the samples).
+of the paired per-scene difference between two methods (Student's t; scenes are the samples);
+and a percentile bootstrap interval of a mean over the scenes (``bootstrap_interval``).
 
 A method "wins" against another only when the 95 % interval of the paired difference excludes
 zero; with one scene there is no interval, so there is no win either (None).
@@ -56,3 +57,18 @@ def verdict(interval: tuple[float, float] | None) -> str:
         return "n/a"
     low, high = interval
     return "win" if low > 0 else "loss" if high < 0 else "tie"
+
+
+BOOTSTRAP = 10_000  # resamples of the scenes
+
+
+def bootstrap_interval(values, resamples: int = BOOTSTRAP) -> tuple[float, float] | None:
+    """The percentile 95 % interval of the mean of ``values`` under resampling them with
+    replacement (generator seeded 0: the same figures every run); None for fewer than two."""
+    x = np.asarray(values, np.float64)
+    if len(x) < 2:
+        return None
+    picks = np.random.default_rng(0).integers(0, len(x), (resamples, len(x)))
+    means = x[picks].mean(1)
+    low, high = np.percentile(means, [2.5, 97.5])
+    return float(low), float(high)

@@ -16,6 +16,7 @@ from olsplat_nodes.bench import change_metrics as metrics
 from olsplat_nodes.bench.change import Seed, prepare, score_seed
 from olsplat_nodes.bench.change_scores import best_view_difference, best_view_features, feature_difference
 from olsplat_nodes.cli import main
+from olsplat_nodes.evaluate.statistics import bootstrap_interval
 from olsplat_nodes.query.change import ChangeParams
 from olsplat_nodes.storage.store import ObservationStore
 
@@ -91,10 +92,13 @@ def test_paired_verdicts_need_both_intervals_on_one_side():
     fewer_alarms = metrics.paired([0, 0, 0, 100, 0], [300, 400, 200, 500, 300], lower_is_better=True)
     assert fewer_alarms["verdict"] == "win"
     assert metrics.paired([0.5], [0.3])["verdict"] == "n/a"  # one seed: no interval, no claim
+    two = metrics.paired([0.6, 0.7], [0.3, 0.31])  # two seeds: intervals, but no verdict
+    assert two["verdict"] == "n/a" and two["t95"] is not None and two["seeds"] == 2
     # a seed where either side is undefined (a precision without instances) is left out of the pairs
     assert metrics.paired([0.5, math.nan, 0.6], [0.4, 0.3, math.nan])["seeds"] == 1
-    assert metrics.bootstrap_interval([1.0, 2.0, 3.0]) == metrics.bootstrap_interval([1.0, 2.0, 3.0])
-    low, high = metrics.bootstrap_interval([1.0, 2.0, 3.0, 4.0, 5.0])
+    assert bootstrap_interval([1.0, 2.0, 3.0]) == bootstrap_interval([1.0, 2.0, 3.0])
+    assert bootstrap_interval([1.0]) is None
+    low, high = bootstrap_interval([1.0, 2.0, 3.0, 4.0, 5.0])
     assert 1.0 < low < 3.0 < high < 5.0
     s = metrics.summary([0.5, math.nan, 0.7])
     assert s["seeds"] == 2 and s["mean"] == pytest.approx(0.6) and s["t95"] is not None
