@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .changes import GROUND_CATEGORIES, ChangedTruth, ChangeRecord, ChangeSpec, inside_polygon
+from .change_spec import GROUND_CATEGORIES, ChangedTruth, ChangeRecord, ChangeSpec, inside_polygon
 from .layout import Layout
 
 

@@ -1,7 +1,7 @@
 """Changes between flights: the town of a later flight, after stated changes, and their truth.
 
-A ``ChangeSpec`` says how many of each kind (``ChangeSpec.parse("default" | "none" |
-"cars_added=3,trees_felled=2")``); ``apply_changes`` applies it to the TRUE scene with its own
+A ``ChangeSpec`` (change_spec.py) says how many of each kind (``ChangeSpec.parse("default" |
+"none" | "cars_added=3,trees_felled=2")``); ``apply_changes`` applies it to the TRUE scene with its own
 random stream (``changes_rng``) and returns the changed truth with one ``ChangeRecord`` per
 changed object. The prior map is made from the unchanged truth (make.py): a change shows up as
 new appearance on old geometry. What each kind does (world frame: ENU metres, ground z = 0):
@@ -22,8 +22,6 @@ change_truth.py turns the records into the per-Gaussian and per-view truth.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, fields
-from typing import Any
 
 import cv2
 import numpy as np
@@ -31,22 +29,20 @@ import numpy as np
 from olsplat_nodes.scene import Gaussians
 from olsplat_nodes.scene.gaussians import SH_C0
 
+from .change_spec import (
+    GROUND_CATEGORIES,
+    OBJECT_CATEGORY,
+    ChangedTruth,
+    ChangeRecord,
+    ChangeSpec,
+    inside_polygon,
+    polygon_area,
+)
 from .labels import CATEGORY, LABEL, LABELS, ROOF_COLORS, building_label
 from .layout import Car, Tree, _Builder, _shadows
 from .scene import GROUND_COLORS, TruthScene, _car, _Part, _part, _shade, _shapes, footprint_mask
 
-# The flight seed M's streams are children of SeedSequence(M, spawn_key=(4,)): flight, sensor and
-# pose (make._streams), the world's weather (world.FLIGHT_SEED_WORLD_KEY = (4, 3)); the changes
-# draw from the next one, so that every existing stream and byte stays as it was.
-CHANGES_KEY = (4, 4)
-OBJECT_CATEGORY = -1  # tents, containers, debris: no category of labels.CATEGORIES names them
-GROUND_CATEGORIES = [CATEGORY[c] for c in ("bare ground", "road", "lawn", "parking", "pavement")]
 Z_MARGIN = 0.5  # metres above and below an object's extent in its z range (the map's Gaussians sit off the surface)
-KINDS = ("car_moved", "car_added", "car_removed", "object_added", "roof_damaged", "roof_recoloured",
-         "tree_felled", "flooded", "burnt")  # fmt: skip
-# `--changes default` per 10,000 m^2 of town (the tiny preset's area), each count at least 1
-DEFAULT_PER_HECTARE = {"cars_moved": 2, "cars_added": 2, "cars_removed": 2, "objects_added": 3, "roofs_damaged": 1,
-                       "roofs_recoloured": 1, "trees_felled": 2, "flooded_m2": 150.0, "burnt_m2": 100.0}  # fmt: skip
 OBJECTS = {  # kind -> ((length range), (width range), (height range), colours); metres, linear rgb
     "tent": ((3.0, 6.0), (2.5, 4.5), (1.8, 2.8),
              [(0.9, 0.9, 0.88), (0.85, 0.45, 0.12), (0.25, 0.4, 0.22), (0.2, 0.35, 0.7)]),
@@ -57,122 +53,6 @@ OBJECTS = {  # kind -> ((length range), (width range), (height range), colours);
 DEBRIS_RGB = np.array([0.36, 0.28, 0.20])  # a damaged roof's brown debris
 WATER_RGB = np.array([0.33, 0.30, 0.21])  # muddy flood water
 CHARCOAL_RGB = np.array([0.10, 0.09, 0.085])
-
-
-@dataclass(frozen=True)
-class ChangeSpec:
-    """How many changes of each kind a later flight sees (counts; areas in m^2)."""
-
-    cars_moved: int = 0
-    cars_added: int = 0
-    cars_removed: int = 0
-    objects_added: int = 0  # tents, containers, debris (in turn)
-    roofs_damaged: int = 0
-    roofs_recoloured: int = 0
-    trees_felled: int = 0
-    flooded_m2: float = 0.0  # one flooded area of about this size (0: none)
-    burnt_m2: float = 0.0  # one burnt area of about this size (0: none)
-    # fewer cars moved or removed, trees felled and roofs changed where the town has fewer (default's
-    # mix); False: such a spec is refused
-    fit_town: bool = False
-
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @staticmethod
-    def default(size_m: float) -> ChangeSpec:
-        """``DEFAULT_PER_HECTARE`` scaled by the town's area (``size_m`` side, metres), counts >= 1."""
-        scale = size_m**2 / 10_000.0
-        values: dict[str, Any] = {
-            k: float(round(v * scale)) if isinstance(v, float) else max(1, round(v * scale))
-            for k, v in DEFAULT_PER_HECTARE.items()
-        }
-        return ChangeSpec(**values, fit_town=True)
-
-    @staticmethod
-    def parse(text: str, size_m: float) -> ChangeSpec:
-        """``default``, ``none`` or ``kind=N,...`` (optionally after ``default,`` or ``none,``): a spec
-        for a town of side ``size_m`` metres. Raises ValueError with one line naming the problem."""
-        items = [item.strip() for item in text.split(",")]
-        if not text.strip() or "" in items:
-            raise ValueError(f"--changes: expected default, none or kind=N,... (comma-separated), got {text!r}")
-        spec = ChangeSpec()
-        if items[0] in ("default", "none"):
-            spec = ChangeSpec.default(size_m) if items.pop(0) == "default" else spec
-        types = {f.name: f.type for f in fields(ChangeSpec) if f.name != "fit_town"}
-        values: dict[str, Any] = {}
-        for item in items:
-            key, sep, value = item.partition("=")
-            key = key.strip()
-            if not sep or key not in types:
-                raise ValueError(f"--changes: unknown item {item!r} (kinds: default, none, {', '.join(types)})")
-            try:
-                number = float(value) if types[key] == "float" else int(value)
-            except ValueError:
-                wanted = "a number" if types[key] == "float" else "an integer"
-                raise ValueError(f"--changes: {key} needs {wanted}, got {value.strip()!r}") from None
-            if not (np.isfinite(number) and number >= 0):
-                raise ValueError(f"--changes: {key} must be >= 0, got {value.strip()}")
-            values[key] = number
-        return dataclasses.replace(spec, **values)
-
-
-@dataclass(frozen=True)
-class ChangeRecord:
-    """One changed object. Polygons are (x, y) ENU metres, counter-clockwise."""
-
-    id: int  # index of the record; masks store id + 1
-    kind: str  # one of KINDS
-    instance: int | None  # the car, tree, building or object instance (ground_truth_labels.npz); None: ground
-    label_before: str | None  # LABELS name the place showed from above before, None: none
-    label_after: str | None
-    footprint: tuple[tuple[float, float], ...]  # where it is (for removed or felled: where it was)
-    z_range: tuple[float, float]  # metres, its extent +- Z_MARGIN
-    centre: tuple[float, float, float]
-    footprint_before: tuple[tuple[float, float], ...] | None = None  # car_moved: where it was
-
-    @property
-    def area_m2(self) -> float:
-        return polygon_area(np.asarray(self.footprint))
-
-    def to_json(self) -> dict:
-        doc = dataclasses.asdict(self)
-        doc["centre"] = [round(float(v), 3) for v in self.centre]
-        doc["z_range"] = [round(float(v), 3) for v in self.z_range]
-        doc["area_m2"] = round(self.area_m2, 3)
-        return doc
-
-
-@dataclass
-class ChangedTruth:
-    truth: TruthScene  # the scene of the later flight
-    records: list[ChangeRecord]
-    before_ids: np.ndarray  # [N before] int32: the record that removes or restyles each truth Gaussian, -1 none
-    after_ids: np.ndarray  # [N after] int32: the record behind each changed truth Gaussian, -1 none
-    shadow_owner: np.ndarray  # [R, R] int32 ground raster (layout.py): the record whose shadow changed a cell, -1 none
-
-
-def changes_rng(flight_seed: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence(flight_seed, spawn_key=CHANGES_KEY))
-
-
-def polygon_area(points: np.ndarray) -> float:
-    """Signed shoelace area of [P, 2] points (> 0 counter-clockwise)."""
-    x, y = points[:, 0], points[:, 1]
-    return float(0.5 * (x @ np.roll(y, -1) - y @ np.roll(x, -1)))
-
-
-def inside_polygon(xy: np.ndarray, polygon) -> np.ndarray:
-    """[M] bool: points [M, 2] inside the polygon [P, 2] (crossing number; edges count as either)."""
-    poly = np.asarray(polygon, float)
-    x, y = xy[:, 0], xy[:, 1]
-    inside = np.zeros(len(xy), bool)
-    for (x0, y0), (x1, y1) in zip(poly, np.roll(poly, -1, axis=0), strict=True):
-        crosses = (y0 > y) != (y1 > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            at = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
-        inside ^= crosses & (x < at)
-    return inside
 
 
 def _rect(cx: float, cy: float, hx: float, hy: float) -> tuple[tuple[float, float], ...]:
@@ -614,9 +494,3 @@ def apply_changes(truth: TruthScene, spec: ChangeSpec, rng: np.random.Generator)
     )
     before_ids = np.where(ed.removed >= 0, ed.removed, ed.modified).astype(np.int32)
     return ChangedTruth(after, ed.records, before_ids, after_ids.astype(np.int32), owner)
-
-
-def change_summary(spec: ChangeSpec, records: list[ChangeRecord]) -> dict:
-    """scene.json's ``changes``: the spec and the number of records per kind."""
-    return {"spec": dataclasses.asdict(spec), "records": len(records),
-            "per_kind": {kind: sum(r.kind == kind for r in records) for kind in KINDS}}  # fmt: skip

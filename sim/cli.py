@@ -162,7 +162,7 @@ def run_make(args: argparse.Namespace) -> int:
     preset = dataclasses.replace(preset, **changes)
     change_spec = None
     if args.changes is not None:
-        from .changes import ChangeSpec
+        from .change_spec import ChangeSpec
 
         if args.flight_seed is None:
             raise OlsplatInputError("--changes needs --flight-seed: changes happen between two flights of a town")

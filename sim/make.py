@@ -42,8 +42,9 @@ from olsplat_nodes.sources.rosbag_write import write_rosbag2
 from .annotate import annotate_view, label_maps
 from .appearance import sun_vector, with_view_dependence
 from .atmosphere import CloudField, apply_haze, shadow_light, surface_points
+from .change_spec import ChangeSpec, change_summary, changes_rng
 from .change_truth import change_mask, mark_map, write_changes, write_mask
-from .changes import ChangeSpec, apply_changes, change_summary, changes_rng
+from .changes import apply_changes
 from .flight import EPOCH_NS, FlightFrame, FlightSpec, plan_flight
 from .labels import CATEGORIES, LABELS, QUERIES
 from .presets import Preset

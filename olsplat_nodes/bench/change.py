@@ -98,7 +98,7 @@ def _command(preset: str, seed: int, flight: str) -> str:
 
 def _expected(preset, seed: int, flight: str) -> dict[str, Any]:
     """What scene.json says of the flight ``_command`` makes (JSON-normalised)."""
-    from olsplat_sim.changes import ChangeSpec
+    from olsplat_sim.change_spec import ChangeSpec
     from olsplat_sim.make import MakeOptions
 
     flight_seed, changes = FLIGHTS[flight]
@@ -144,7 +144,7 @@ def check_flights(work: Path, preset_name: str, views: int | None, seeds: list[i
 
 def _flights(work: Path, preset_name: str, views: int | None, seed: int) -> dict[str, Path]:
     """The seed's three flight folders, made unless reusable (``check_flights`` first)."""
-    from olsplat_sim.changes import ChangeSpec
+    from olsplat_sim.change_spec import ChangeSpec
     from olsplat_sim.make import make_dataset
 
     from ..outputs import empty_output_folder

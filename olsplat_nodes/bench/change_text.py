@@ -44,7 +44,7 @@ def arrival_truth(means: np.ndarray, change_id: np.ndarray, records: list[dict])
     """[N] int32: the record id of an added or moved car (``ARRIVALS``) when Gaussian i (centre
     ``means`` [N, 3], map metres) is one of its changed Gaussians (``change_id``) and lies inside
     its new footprint in x, y; -1 elsewhere (its old place included)."""
-    from olsplat_sim.changes import inside_polygon
+    from olsplat_sim.change_spec import inside_polygon
 
     out = np.full(len(means), -1, np.int32)
     xy = np.asarray(means, np.float64)[:, :2]

@@ -13,8 +13,9 @@ import pytest
 from olsplat_nodes.cli import main
 from olsplat_nodes.scene import read_colmap
 from olsplat_sim.annotate import rasterize_annotation
+from olsplat_sim.change_spec import KINDS, ChangeSpec, changes_rng, polygon_area
 from olsplat_sim.change_truth import mark_map
-from olsplat_sim.changes import KINDS, ChangeSpec, apply_changes, changes_rng, polygon_area
+from olsplat_sim.changes import apply_changes
 from olsplat_sim.labels import LABEL
 from olsplat_sim.make import make_dataset
 from olsplat_sim.presets import PRESETS
