@@ -77,6 +77,32 @@ def canvas_pixels(page, name: str) -> np.ndarray:
     return cv2.imread(str(path))[..., ::-1]
 
 
+def splats_drawn(pixels: np.ndarray) -> bool:
+    """Most of the 3D view is the map's colours, not viser's white background."""
+    return bool(pixels.std() > 10 and (pixels.min(axis=2) < 200).mean() > 0.2)
+
+
+def changed_share(after: np.ndarray, before: np.ndarray) -> float:
+    """The share of the view whose colour moved by more than 40 in some channel."""
+    return float((np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40).mean())
+
+
+def settled_canvas(page, name: str, ready, timeout_s: float = 60.0) -> np.ndarray:
+    """The 3D view once ``ready(pixels)`` holds and two screenshots 0.5 s apart agree (the
+    browser has drawn and sorted the splats): waits on the picture itself, not a fixed sleep."""
+    deadline = time.monotonic() + timeout_s
+    previous = canvas_pixels(page, name)
+    while True:
+        time.sleep(0.5)
+        pixels = canvas_pixels(page, name)
+        steady = np.abs(pixels.astype(int) - previous.astype(int)).mean() < 1.0
+        if steady and ready(pixels):
+            return pixels
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{name}: the 3D view did not settle on the expected picture in {timeout_s:.0f} s")
+        previous = pixels
+
+
 def map_version(page) -> int:
     return int(page.locator("#olsplat-status").get_attribute("data-map-version") or 0)
 
@@ -105,11 +131,7 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
             page.wait_for_function(
                 "() => Number(document.querySelector('#olsplat-status').dataset.mapVersion) >= 1", timeout=60_000
             )
-            time.sleep(5)  # the splats arrive and are sorted in the browser
-            before = canvas_pixels(page, "1_map")
-            assert before.std() > 10, "the 3D view is blank"
-            # splats drawn: most of the view is the map's colours, not viser's white background
-            assert (before.min(axis=2) < 200).mean() > 0.2, "no splats in the 3D view"
+            before = settled_canvas(page, "1_map", splats_drawn)  # the splats arrive and are sorted in the browser
 
             # the first negatives: the flight's labels (its queries.json lies beside the map's folder)
             assert field(page, "negatives").input_value() == ", ".join(label_texts(*load_queries(scene)))
@@ -118,10 +140,7 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
             page.get_by_role("button", name="Ask").click()
             page.get_by_text("Gaussians pick it").wait_for(timeout=60_000)
             page.get_by_role("button", name=f"#0 {LABELS[0]}").wait_for(timeout=30_000)
-            time.sleep(3)
-            after = canvas_pixels(page, "2_query")
-            changed = np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40
-            assert changed.mean() > 0.05, f"the splats' colours did not change ({changed.mean():.3f} of the view)"
+            settled_canvas(page, "2_query", lambda after: changed_share(after, before) > 0.05)  # the colours changed
 
             # bad input: a sentence on the page, the page keeps answering
             field(page, "query").fill("roof\u0007")
@@ -212,19 +231,14 @@ def test_the_page_follows_a_live_graph_over_the_curve_link_without_a_reload(tiny
             for node in ("accumulator", "refiner", "region_encoder"):
                 assert page.locator("#olsplat-status td", has_text=node).count() >= 1, f"{node} not in the status"
             assert page.locator("#olsplat-status", has_text="CURVE").count() == 1
-            time.sleep(3)
-            before = canvas_pixels(page, "4_live_final")
-            assert (before.min(axis=2) < 200).mean() > 0.2, "no splats in the 3D view"
+            before = settled_canvas(page, "4_live_final", splats_drawn)
 
             field(page, "negatives").fill(", ".join(LABELS[1:]))
             field(page, "query").fill(LABELS[0])
             page.get_by_role("button", name="Ask").click()
             page.get_by_text("Gaussians pick it").wait_for(timeout=60_000)
             page.get_by_role("button", name=f"#0 {LABELS[0]}").wait_for(timeout=30_000)
-            time.sleep(3)
-            after = canvas_pixels(page, "5_live_query")
-            changed = np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40
-            assert changed.mean() > 0.05, f"the splats' colours did not change ({changed.mean():.3f} of the view)"
+            settled_canvas(page, "5_live_query", lambda after: changed_share(after, before) > 0.05)
 
             supervisor.request_stop()  # the drone goes away: the page says so, and keeps its map
             graph.join(120)
