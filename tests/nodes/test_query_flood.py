@@ -122,10 +122,13 @@ def test_flooding_clients_are_told_busy_and_others_are_served(ctx, sockdir, tiny
         running.assert_running()
         rss_after = _rss_mb()
 
+    allowed = 10 + 5 * 11  # the server's burst + 5 queries/s over the flood's 10.5 s (and a second's slack)
     for seen in statuses:
-        assert len(seen) >= 300, len(seen)  # each flood did reach tens of queries per second
+        # a real flood: at least twice what the limit lets through, whatever this machine's speed
+        # (an idle one sends ~30 queries/s; the limit's share is then a small part of them)
+        assert len(seen) >= 2 * allowed, len(seen)
         busy = seen.count("busy")
-        assert busy >= 0.8 * len(seen) and seen.count("ok") <= 10 + 5 * 11, (busy, len(seen))
+        assert seen.count("ok") <= allowed and busy == len(seen) - seen.count("ok"), (busy, len(seen))
     p95_before, p95_during = np.percentile(before, 95), np.percentile(during, 95)
     print(  # the figures docs/architecture.md quotes (pytest -s)
         f"{flooders} flooder(s): "
