@@ -44,16 +44,26 @@ def make_socket(
     return sock
 
 
-def attach(sock: zmq.Socket, endpoints: list[str], bind: bool) -> list[str]:
+INPROC_REBIND_WAIT_S = 5.0  # how long a bind waits for a closed socket's inproc:// name to be freed
+
+
+def attach(
+    sock: zmq.Socket, endpoints: list[str], bind: bool, inproc_wait_s: float = INPROC_REBIND_WAIT_S
+) -> list[str]:
     """Bind or connect to every endpoint; returns the endpoints as libzmq resolved them (a bound
-    ``tcp://127.0.0.1:*`` becomes the chosen port). Creates the directory of an ``ipc://`` path."""
+    ``tcp://127.0.0.1:*`` becomes the chosen port). Creates the directory of an ``ipc://`` path.
+
+    An ``inproc://`` name stays taken after its socket's ``close`` returns, until libzmq's reaper
+    thread has destroyed the socket (sub-millisecond idle, longer under load). A node restarted in
+    the launcher's composed mode binds its name again at once, so a bind that finds the name in
+    use retries for up to ``inproc_wait_s`` before it reports the conflict."""
     resolved = []
     for endpoint in endpoints:
         try:
             if bind:
                 if endpoint.startswith("ipc://"):
                     Path(endpoint[len("ipc://") :]).parent.mkdir(parents=True, exist_ok=True)
-                sock.bind(endpoint)
+                _bind(sock, endpoint, inproc_wait_s)
                 resolved.append(sock.get_string(zmq.LAST_ENDPOINT))
             else:
                 sock.connect(endpoint)
@@ -62,6 +72,19 @@ def attach(sock: zmq.Socket, endpoints: list[str], bind: bool) -> list[str]:
             exc.add_note(f"while {'binding' if bind else 'connecting'} {endpoint}")
             raise
     return resolved
+
+
+def _bind(sock: zmq.Socket, endpoint: str, inproc_wait_s: float) -> None:
+    deadline = time.monotonic() + inproc_wait_s
+    while True:
+        try:
+            sock.bind(endpoint)
+            return
+        except zmq.ZMQError as exc:
+            in_use = exc.errno == zmq.EADDRINUSE and endpoint.startswith("inproc://")
+            if not in_use or time.monotonic() >= deadline:
+                raise
+            time.sleep(0.001)
 
 
 class Closable:
