@@ -48,6 +48,13 @@ def add_parser(subparsers) -> None:
         "--gone", action="store_true", help="with --since and TEXT: what matched TEXT before and no longer does"
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="with --since: write the change instances here")
+    parser.add_argument(
+        "--change-cuts",
+        metavar="C,O,N",
+        help="with --since: the change rule's candidate cut, object cut and fewest Gaussians of an instance "
+        "(defaults 1.4,1.8,10 without TEXT and 0.8,1.6,32 with it, chosen on 60-view flights; sparser maps and "
+        "shorter flights need fewer Gaussians: docs/method.md)",
+    )
     parser.add_argument("--view", help="view to render (name or index; default: the first)")
     parser.add_argument(
         "--negatives", help="comma-separated texts to beat (default: the scene's other queries, else canonical)"
@@ -94,8 +101,9 @@ def run(args: argparse.Namespace) -> int:
         from .query_change import run_change
 
         return run_change(args)
-    if args.gone or args.json:
-        raise OlsplatInputError(f"{'--gone' if args.gone else '--json'} needs --since (a change query)")
+    for given, option in ((args.gone, "--gone"), (args.json, "--json"), (args.change_cuts, "--change-cuts")):
+        if given:
+            raise OlsplatInputError(f"{option} needs --since (a change query)")
     text = (args.text or "").strip()
     if not text:
         raise OlsplatInputError("the query text is empty")

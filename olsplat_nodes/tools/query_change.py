@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import OlsplatInputError
 
 if TYPE_CHECKING:  # the method loads when a change query runs: olsplat --help stays fast
+    from ..query.change import ChangeParams
     from ..query.change_answer import ChangeAnswer
 
 
@@ -86,6 +87,8 @@ def run_change(args: argparse.Namespace) -> int:
     map_a, map_b = load_flight_pair(args.map, args.since, len(gaussians))
     georef = map_georef(scene.ply, args.map, needed=bool(args.geojson or args.kml))
     params = ChangeParams() if text is None else TEXT_PARAMS
+    if args.change_cuts is not None:
+        params = _with_cuts(params, args.change_cuts)
     if args.cluster_radius is not None or args.min_points is not None:
         if not ((args.cluster_radius is None or args.cluster_radius > 0) and (args.min_points or 1) >= 1):
             raise OlsplatInputError(
@@ -166,3 +169,21 @@ def write_change_pictures(folder: Path, camera, photo: np.ndarray, answer: Chang
     for path, picture in zip(paths, pictures, strict=True):
         write_png(path, picture)
     return paths
+
+
+def _with_cuts(params: ChangeParams, text: str) -> ChangeParams:
+    """``params`` with ``--change-cuts C,O,N`` (candidate cut, object cut, fewest Gaussians)."""
+    from ..query.change import ChangeParams
+
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        if len(parts) != 3:
+            raise ValueError("three values")
+        candidate, object_score, members = float(parts[0]), float(parts[1]), int(parts[2])
+        return ChangeParams(**{**asdict(params), "candidate": candidate, "object_score": object_score,
+                               "min_gaussians": members})  # fmt: skip
+    except ValueError:
+        raise OlsplatInputError(
+            f"--change-cuts {text}: expected CANDIDATE,OBJECT,GAUSSIANS with 0 <= candidate <= object and "
+            "an integer >= 1, e.g. 0.8,1.6,32"
+        ) from None
