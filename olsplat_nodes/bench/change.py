@@ -230,32 +230,53 @@ def score_seed(data: Seed, method: str, params) -> dict[str, Any]:
 
     found = change_instances(data.means, data.scores[method]["changed"], params)
     alarms = change_instances(data.means, data.scores[method]["unchanged"], params)
-    row = metrics.detections([inst.members for inst in found], data.change_id, data.visible)
-    row["unchanged_instances"] = len(alarms)
-    row["false_alarms_per_km2"] = metrics.per_km2(len(alarms), data.area_m2)
+    return _figures(data, [inst.members for inst in found], len(alarms))
+
+
+def _figures(data: Seed, found: list[np.ndarray], alarms: int) -> dict[str, Any]:
+    row = metrics.detections(found, data.change_id, data.visible)
+    row["unchanged_instances"] = alarms
+    row["false_alarms_per_km2"] = metrics.per_km2(alarms, data.area_m2)
     return row
 
 
-def _params(candidate: float, object_score: float):
+def _params(candidate: float, object_score: float, min_area_m2: float = 0.0):
     from ..query.change import ChangeParams
 
-    return ChangeParams(candidate=candidate, object_score=object_score)
+    return ChangeParams(candidate=candidate, object_score=object_score, min_area_m2=min_area_m2)
 
 
 def tune(train: list[Seed]) -> dict[str, Any]:
     """Each method's cuts by the protocol's rule (``change_metrics.choose``) over the grid of
-    ``QUANTILES`` x ``RATIOS``: {method: {"rows": [...], "chosen": row}}."""
+    ``QUANTILES`` x ``RATIOS`` x ``AREAS``: {method: {"rows": [...], "chosen": row}}. The
+    clusters depend only on the candidate cut, so they are made once per cut and pair and
+    filtered for each object cut and size: the instances ``change_instances`` gives for each
+    setting (tests/bench/test_bench_change.py holds the two equal)."""
+    from ..query.change import change_clusters, changes_among
+
     out = {}
     for method in METHODS:
         cuts = metrics.candidate_cuts([d.scores[method]["unchanged"] for d in train])
         rows = []
         for quantile, cut in cuts.items():
-            for ratio in metrics.RATIOS:
-                figures = [score_seed(d, method, _params(cut, cut * ratio)) for d in train]
-                rows.append({"quantile": quantile, "ratio": ratio, "candidate": cut, "object_score": cut * ratio,
-                             "alarms": sum(f["unchanged_instances"] for f in figures),
-                             "f1": _mean([f["f1"] for f in figures]),
-                             "instances": sum(f["instances"] for f in figures)})  # fmt: skip
+            clusters = []
+            for d in train:
+                params = _params(cut, cut)
+                clusters.append({pair: change_clusters(d.means, d.scores[method][pair], cut, params.radius(d.means),
+                                                       params.min_points)
+                                 for pair in ("changed", "unchanged")})  # fmt: skip
+            for area in metrics.AREAS:
+                for ratio in metrics.RATIOS:
+                    figures = []
+                    for d, made in zip(train, clusters, strict=True):
+                        fewest = _params(cut, cut * ratio, area).min_members(d.means)
+                        found = changes_among(d.means, made["changed"], cut * ratio, fewest)
+                        alarms = changes_among(d.means, made["unchanged"], cut * ratio, fewest)
+                        figures.append(_figures(d, [inst.members for inst in found], len(alarms)))
+                    rows.append({"quantile": quantile, "ratio": ratio, "candidate": cut, "object_score": cut * ratio,
+                                 "min_area_m2": area, "alarms": sum(f["unchanged_instances"] for f in figures),
+                                 "f1": _mean([f["f1"] for f in figures]),
+                                 "instances": sum(f["instances"] for f in figures)})  # fmt: skip
         out[method] = {"rows": rows, "chosen": metrics.choose(rows)}
     return out
 
@@ -295,7 +316,7 @@ def tables(per_seed: dict[str, dict[str, dict]], tuned: dict[str, Any], seeds: l
         c, figure = tuned[m], summaries[m]
         cuts = f"{c['candidate']:.3g} / {c['object_score']:.3g}" + (
             f", {c['members']} members" if "members" in c else ""
-        )
+        ) + (f", ≥ {c['min_area_m2']:g} m²" if c.get("min_area_m2") else "")
         cells = [_cell(figure[k], 2) for k in ("precision", "recall", "f1")]
         lines.append(f"| {m} | {cuts} | {' | '.join(cells)} | {_cell(figure['false_alarms_per_km2'], 0)} |")
     lines += ["", "Paired differences, ours − baseline, per held-out seed (win: both 95 % intervals on ours' better "
@@ -353,13 +374,15 @@ def run(args: argparse.Namespace) -> int:
     for m in METHODS:
         c = tuned[m]
         print(f"  {m}: candidate {c['candidate']:.4g} (q {c['quantile']}), object {c['object_score']:.4g} "
-              f"(x{c['ratio']}): training F1 {c['f1']:.3f}, no-change instances {c['alarms']}")  # fmt: skip
+              f"(x{c['ratio']}), at least {c['min_area_m2']:g} m²: training F1 {c['f1']:.3f}, no-change instances "
+              f"{c['alarms']}")  # fmt: skip
     c = tuned[TEXT_ROWS[0]]
     print(f'  "{TEXT}" appeared (ours): candidate {c["candidate"]:.3g}, object {c["object_score"]:.3g}, '
           f"{c['members']} members: training F1 {c['f1']:.3f}, no-change instances {c['alarms']}")  # fmt: skip
 
     defaults, ceiling = ChangeParams(), ChangeParams(candidate=0.5, object_score=0.5)
-    tuned[DEFAULTS] = {"candidate": defaults.candidate, "object_score": defaults.object_score}
+    tuned[DEFAULTS] = {"candidate": defaults.candidate, "object_score": defaults.object_score,
+                       "min_area_m2": defaults.min_area_m2}  # fmt: skip
     tuned[CEILING] = {"candidate": ceiling.candidate, "object_score": ceiling.object_score}
     tuned[TEXT_ROWS[1]] = {"candidate": TEXT_PARAMS.candidate, "object_score": TEXT_PARAMS.object_score,
                            "members": TEXT_PARAMS.min_gaussians}  # fmt: skip
@@ -370,7 +393,9 @@ def run(args: argparse.Namespace) -> int:
     for s in seeds:
         data = prepare(args.work, args.preset, args.views, s)
         for m in METHODS:
-            per_seed[m][str(s)] = score_seed(data, m, _params(tuned[m]["candidate"], tuned[m]["object_score"]))
+            chosen = tuned[m]
+            per_seed[m][str(s)] = score_seed(data, m, _params(chosen["candidate"], chosen["object_score"],
+                                                              chosen["min_area_m2"]))  # fmt: skip
         per_seed[DEFAULTS][str(s)] = score_seed(data, "ours", defaults)
         per_seed[CEILING][str(s)] = score_seed(data, CEILING, ceiling)
         for row, params in text_params.items():

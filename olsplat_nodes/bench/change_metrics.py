@@ -133,6 +133,9 @@ def _list(interval: tuple[float, float] | None) -> list[float] | None:
 
 QUANTILES = (0.95, 0.98, 0.99, 0.995, 0.998, 0.999)  # candidate cut: this quantile of the method's no-change scores
 RATIOS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0)  # object cut: candidate cut x this
+# an instance's fewest members as ground area at the map's density (ChangeParams.min_area_m2), m²;
+# 0: ChangeParams' fixed count alone (the rule before 2026-11-28's amendment)
+AREAS = (0.0, 0.5, 1.0, 2.0)
 
 
 def candidate_cuts(no_change_scores: Sequence[np.ndarray]) -> dict[float, float]:
@@ -148,10 +151,11 @@ def choose(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The protocol's choice among a method's settings scored on the training seeds (each row:
     "alarms", the instances of all their no-change pairs, and "f1", the mean F1 of their changed
     pairs): the fewest alarms (zero when any setting gives none), then the highest F1, then the
-    higher cuts (fewer instances)."""
+    higher cuts (fewer instances), then the larger least size (``min_area_m2``, when rows have one)."""
     if not rows:
         raise ValueError("no setting to choose from")
-    return min(rows, key=lambda r: (r["alarms"], -_finite(r["f1"]), -r["candidate"], -r["object_score"]))
+    return min(rows, key=lambda r: (r["alarms"], -_finite(r["f1"]), -r["candidate"], -r["object_score"],
+                                    -r.get("min_area_m2", 0.0)))  # fmt: skip
 
 
 def _finite(value: float) -> float:

@@ -9,7 +9,10 @@ its Gaussians together, so (``change_instances``):
 2. clusters: the candidates' centres clustered exactly as an ordinary query's chosen Gaussians
    (``localize``'s voxel DBSCAN, radius ``cluster_radius``, ``min_points``);
 3. a cluster is a change when its members' median score is above ``ChangeParams.object_score``
-   and it has at least ``min_gaussians`` members;
+   and it is large enough: at least ``min_gaussians`` members and at least ``min_area_m2`` of
+   ground's worth of them at the map's density (``ChangeParams.min_members``; a count alone is a
+   different size on every map: 10 Gaussians are ~4 m² of the tiny preset's map, 0.4 m² of the
+   small one's);
 4. ranked by median score x members (a large, clear change first).
 
 A text's change (``text_change``) asks the same of the Gaussians whose feature moved towards
@@ -26,6 +29,7 @@ count. The defaults were chosen on training seeds
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
@@ -34,7 +38,7 @@ import numpy as np
 
 from ..aggregate.change import FlightFeatures, feature_rows
 from .heatmap import CANONICAL_NEGATIVES
-from .localize import Instance3D, _cluster_points, _touching_pairs, _voxelise, default_cluster_radius
+from .localize import Instance3D, _cluster_points, _touching_pairs, _voxelise, default_cluster_radius, ground_density
 from .negatives import AERIAL_VOCABULARY, vocabulary_negatives
 
 _ROWS = 32_768  # Gaussians per chunk of ``text_moves``: [rows, D] float32 differences, a few MB
@@ -52,16 +56,26 @@ class ChangeParams:
     min_gaussians: int = 10  # ... and it has at least this many members
     cluster_radius: float = 0.0  # DBSCAN radius, metres; 0: the ordinary query's, from the map's density
     min_points: int = 5  # DBSCAN: candidates within the radius (itself included) that make a core point
+    min_area_m2: float = 0.0  # ... and at least this much ground's worth of Gaussians (``min_members``)
 
     def __post_init__(self) -> None:
         if not (self.candidate >= 0.0 and self.object_score >= self.candidate):
             raise ValueError(f"need 0 <= candidate <= object_score, got {self}")
         if self.min_gaussians < 1 or self.min_points < 1 or not self.cluster_radius >= 0.0:
             raise ValueError(f"need min_gaussians >= 1, min_points >= 1 and cluster_radius >= 0, got {self}")
+        if not (0.0 <= self.min_area_m2 < math.inf):
+            raise ValueError(f"need a finite min_area_m2 >= 0 (square metres), got {self.min_area_m2}")
 
     def radius(self, means: np.ndarray) -> float:
         """The clustering radius in metres for a map with centres ``means`` [N, 3]."""
         return self.cluster_radius or default_cluster_radius(means)
+
+    def min_members(self, means: np.ndarray) -> int:
+        """The fewest members a change instance of a map with centres ``means`` [N, 3] may have:
+        ``min_gaussians``, or ``min_area_m2`` times the map's Gaussians per m² of ground
+        (``localize.ground_density``) rounded up, whichever is more."""
+        by_area = math.ceil(self.min_area_m2 * ground_density(means)) if self.min_area_m2 > 0 else 0
+        return max(self.min_gaussians, by_area)
 
 
 @dataclass
@@ -109,26 +123,56 @@ def change_instances(
     """The change instances (``ChangeInstance``, ranked by median score x members) of a map with
     centres ``means`` [N, 3] (map metres) and change scores ``score`` [N] (NaN: unknown, never a
     candidate). ``among`` ([N] bool): only these Gaussians may be candidates (``text_change``)."""
+    fewest = params.min_members(np.asarray(means))
+    clusters = change_clusters(means, score, params.candidate, params.radius(np.asarray(means)), params.min_points,
+                               among, fewest)  # fmt: skip
+    return changes_among(means, clusters, params.object_score, fewest)
+
+
+def change_clusters(
+    means: np.ndarray,
+    score: np.ndarray,
+    candidate: float,
+    radius: float,
+    min_points: int,
+    among: np.ndarray | None = None,
+    fewest: int = 1,
+) -> list[tuple[np.ndarray, float]]:
+    """Steps 1-2 of ``change_instances``: the clusters (DBSCAN ``radius`` metres, ``min_points``)
+    of the Gaussians scoring above ``candidate`` (and in ``among`` when given), each as (member
+    ids [M] int64, the members' median score). None when fewer than ``fewest`` Gaussians are
+    candidates (no cluster could be kept). means [N, 3] map metres, score [N] (NaN: unknown)."""
     means = np.asarray(means)
     score = np.asarray(score, np.float32)
     if means.ndim != 2 or means.shape[1] != 3 or score.shape != (len(means),):
         raise ValueError(f"need means [N, 3] and score [N], got {means.shape} and {score.shape}")
     with np.errstate(invalid="ignore"):
-        candidate = score > params.candidate  # NaN compares False: unknown is never a candidate
-    candidate &= np.isfinite(means).all(1)
+        chosen = score > candidate  # NaN compares False: unknown is never a candidate
+    chosen &= np.isfinite(means).all(1)
     if among is not None:
-        candidate &= np.asarray(among, bool)
-    ids = np.flatnonzero(candidate)
-    if len(ids) < params.min_gaussians:
+        chosen &= np.asarray(among, bool)
+    ids = np.flatnonzero(chosen)
+    if len(ids) < fewest:
         return []
-    labels = cluster_labels(means[ids], params.radius(means), params.min_points)
-    found: list[ChangeInstance] = []
+    labels = cluster_labels(means[ids], radius, min_points)
+    clusters = []
     for label in np.unique(labels[labels >= 0]):
         members = ids[labels == label]
-        median = float(np.median(score[members]))
-        if len(members) < params.min_gaussians or not median > params.object_score:
+        clusters.append((members, float(np.median(score[members]))))
+    return clusters
+
+
+def changes_among(
+    means: np.ndarray, clusters: Sequence[tuple[np.ndarray, float]], object_score: float, fewest: int
+) -> list[ChangeInstance]:
+    """Steps 3-4 of ``change_instances``: the clusters (``change_clusters``) whose median score
+    is above ``object_score`` and that have at least ``fewest`` members, as instances ranked by
+    median score x members."""
+    found: list[ChangeInstance] = []
+    for members, median in clusters:
+        if len(members) < fewest or not median > object_score:
             continue
-        points = means[members].astype(np.float64)
+        points = np.asarray(means)[members].astype(np.float64)
         found.append(
             ChangeInstance(
                 _xyz(points.min(0)), _xyz(points.max(0)), _xyz(points.mean(0)), len(members), median, members

@@ -100,13 +100,24 @@ def default_cluster_radius(means: np.ndarray, min_points: int = 20) -> float:
     of x and y); a disc of radius r holds ~min_points Gaussians when r = spacing * sqrt(min_points
     / pi), and twice that leaves room for thinner objects. Never below 1.5 m. The small preset
     (390k Gaussians over 150 m) gets 1.5 m; the tiny one (26k), ~3 m."""
+    density = ground_density(means)
+    if not density > 0:
+        return 1.5
+    spacing = math.sqrt(1.0 / density)
+    return max(1.5, 2.0 * spacing * math.sqrt(min_points / math.pi))
+
+
+def ground_density(means: np.ndarray) -> float:
+    """A map's Gaussians per square metre of ground: its finite centres (``means`` [N, 3], map
+    metres) over the area of the box between the 1st and 99th percentiles of x and y (a few
+    far-flung Gaussians do not dilute it). 0 for fewer than two centres. The small preset: ~23 per
+    m²; the tiny one: ~2.6."""
     xy = np.asarray(means, np.float64)[:, :2]
     xy = xy[np.isfinite(xy).all(1)]
     if len(xy) < 2:
-        return 1.5
+        return 0.0
     low, high = np.percentile(xy, 1, axis=0), np.percentile(xy, 99, axis=0)
-    spacing = math.sqrt(max(float(np.prod(high - low)), 1e-6) / len(xy))
-    return max(1.5, 2.0 * spacing * math.sqrt(min_points / math.pi))
+    return len(xy) / max(float(np.prod(high - low)), 1e-6)
 
 
 @dataclass(frozen=True)

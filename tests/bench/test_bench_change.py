@@ -13,7 +13,7 @@ import pytest
 
 from olsplat_nodes.aggregate.observe import ViewObservations
 from olsplat_nodes.bench import change_metrics as metrics
-from olsplat_nodes.bench.change import Seed, prepare, score_seed
+from olsplat_nodes.bench.change import Seed, prepare, score_seed, tune
 from olsplat_nodes.bench.change_scores import best_view_difference, best_view_features, feature_difference
 from olsplat_nodes.cli import main
 from olsplat_nodes.evaluate.statistics import bootstrap_interval
@@ -221,6 +221,17 @@ def test_bench_change_end_to_end_on_the_tiny_preset(tmp_path, capsys):
                   {"ours": {"changed": ten, "unchanged": np.zeros_like(ten)}})  # fmt: skip
     row = score_seed(oracle, "ours", ChangeParams(candidate=5.0, object_score=5.0))
     assert {k: row[k] for k in ceiling} == ceiling
+
+    # the tuning clusters once per candidate cut and filters: each setting's figures are those of
+    # change_instances with that setting (every fifth setting of ours, checked)
+    training = prepare(work, "tiny", 3, 1001)
+    rows = tune([training])["ours"]["rows"]
+    assert len(rows) == len(metrics.QUANTILES) * len(metrics.RATIOS) * len(metrics.AREAS)
+    for r in rows[::5]:
+        params = ChangeParams(candidate=r["candidate"], object_score=r["object_score"], min_area_m2=r["min_area_m2"])
+        figures = score_seed(training, "ours", params)
+        assert (r["alarms"], r["instances"]) == (figures["unchanged_instances"], figures["instances"])
+        assert r["f1"] == pytest.approx(figures["f1"], nan_ok=True)
 
     scene = json.loads((work / "tiny0" / "c" / "scene.json").read_text())
     (work / "tiny0" / "c" / "scene.json").write_text(json.dumps({**scene, "flight_seed": 5}))

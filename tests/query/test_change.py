@@ -3,6 +3,8 @@ ranking, a text's moves against a dense numpy oracle, the change negatives, the 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -17,7 +19,7 @@ from olsplat_nodes.query.change import (
     text_change,
     text_moves,
 )
-from olsplat_nodes.query.localize import instances_in_3d
+from olsplat_nodes.query.localize import ground_density, instances_in_3d
 from olsplat_nodes.storage import LanguageMap
 from tests.conftest import camera_for, random_gaussians
 
@@ -76,11 +78,29 @@ def test_change_instances_keep_the_clear_clusters_ranked():
     assert [round(i.centre[0]) for i in change_instances(means, score, params, among)] == [30]
 
 
+def test_the_least_size_is_ground_area_at_the_map_s_density():
+    """min_area_m2 counts in square metres of the map's ground (its Gaussians per m² between the
+    1st and 99th percentiles of x and y): the same area is more Gaussians on a denser map."""
+    means, score = _town()
+    width = np.percentile(means[:, :2], 99, axis=0) - np.percentile(means[:, :2], 1, axis=0)
+    density = len(means) / float(np.prod(width))
+    assert ground_density(means) == pytest.approx(density) and 0.6 < density < 0.7
+    assert ground_density(means[:1]) == 0.0
+    assert ChangeParams(min_area_m2=100.0).min_members(means) == math.ceil(100.0 * density)  # ~64
+    assert ChangeParams(min_area_m2=1.0).min_members(means) == 10  # the fixed count is the floor
+    assert ChangeParams(min_area_m2=100.0).min_members(np.concatenate([means, means])) > 120  # twice as dense
+    # the car (60 Gaussians) is under 100 m² of this sparse ground, the shed (120) is not
+    params = ChangeParams(1.2, 1.8, 10, 3.0, 5, min_area_m2=100.0)
+    assert [round(i.centre[0]) for i in change_instances(means, score, params)] == [70]
+
+
 def test_change_params_are_checked():
     with pytest.raises(ValueError, match="candidate <= object_score"):
         ChangeParams(candidate=2.0, object_score=1.0)
     with pytest.raises(ValueError, match="min_gaussians >= 1"):
         ChangeParams(min_gaussians=0)
+    with pytest.raises(ValueError, match="min_area_m2"):
+        ChangeParams(min_area_m2=-1.0)
     with pytest.raises(ValueError, match=r"need means \[N, 3\] and score \[N\]"):
         change_instances(np.zeros((5, 3)), np.zeros(4, np.float32))
 
