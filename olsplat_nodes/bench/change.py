@@ -314,9 +314,11 @@ def tables(per_seed: dict[str, dict[str, dict]], tuned: dict[str, Any], seeds: l
               "| --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for m in names:
         c, figure = tuned[m], summaries[m]
-        cuts = f"{c['candidate']:.3g} / {c['object_score']:.3g}" + (
-            f", {c['members']} members" if "members" in c else ""
-        ) + (f", ≥ {c['min_area_m2']:g} m²" if c.get("min_area_m2") else "")
+        cuts = (
+            f"{c['candidate']:.3g} / {c['object_score']:.3g}"
+            + (f", {c['members']} members" if "members" in c else "")
+            + (f", ≥ {c['min_area_m2']:g} m²" if c.get("min_area_m2") else "")
+        )
         cells = [_cell(figure[k], 2) for k in ("precision", "recall", "f1")]
         lines.append(f"| {m} | {cuts} | {' | '.join(cells)} | {_cell(figure['false_alarms_per_km2'], 0)} |")
     lines += ["", "Paired differences, ours − baseline, per held-out seed (win: both 95 % intervals on ours' better "

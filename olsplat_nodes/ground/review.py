@@ -117,7 +117,14 @@ def answer_geojson(answer: WebAnswer) -> str | None:
 class RunReview:
     """A run folder (``map/``, ``views/``) and its prior map, as the page reads them."""
 
-    def __init__(self, run_dir: str | Path, prior_map: str | Path, max_splats: int, heatmap_cache_mb: int = 320):
+    def __init__(
+        self,
+        run_dir: str | Path,
+        prior_map: str | Path,
+        max_splats: int,
+        heatmap_cache_mb: int = 320,
+        change_cuts: str = "",  # "since flight" answers' rule, "C,O,N[,A]" (ChangeParams.with_cuts); "": defaults
+    ):
         self.run_dir, self.prior_map = Path(run_dir), Path(prior_map)
         if not self.run_dir.is_dir():
             raise OlsplatInputError(f"{self.run_dir}: no such run folder")
@@ -127,6 +134,7 @@ class RunReview:
             self.run_dir / "views",
             heatmap_cache_mb=heatmap_cache_mb,
             flights_dir=self.run_dir / "flights",  # an aggregate's per-flight maps, when it has them
+            change_cuts=change_cuts,
             name="ground",
         )
         self.max_splats = max_splats

@@ -96,6 +96,11 @@ class QueryServerNode(Node):
         # an aggregate's per-flight maps (OUT/flights of olsplat aggregate --per-flight): a request
         # naming `since` (an earlier flight) is answered against the newest one; "" = none
         flights: str = ""
+        # the change rule's cuts for such a request, "C,O,N[,A]" as `olsplat query --change-cuts`
+        # (candidate cut, object cut, fewest Gaussians, least m²): "" = the defaults, chosen on
+        # 60-view flights; shorter flights and sparser maps need looser ones (docs/method.md)
+        change_cuts: str = ""  # what changed (no text)
+        text_change_cuts: str = ""  # a text's changes ("new vehicles")
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -108,6 +113,14 @@ class QueryServerNode(Node):
             raise ParameterError(
                 f"{where}: heatmap_max_side must be >= 0 (0: the view's size), got {params.heatmap_max_side}"
             )
+        from ..query.change import TEXT_PARAMS, ChangeParams
+
+        for name, base in (("change_cuts", ChangeParams()), ("text_change_cuts", TEXT_PARAMS)):
+            if getattr(params, name):
+                try:
+                    base.with_cuts(getattr(params, name))
+                except ValueError as exc:
+                    raise ParameterError(f"{where}: {name}: {exc}") from exc
         if params.server_secret:
             try:
                 curve.check_secret(params.server_secret)
@@ -164,6 +177,8 @@ class QueryServerNode(Node):
             max_reply_mb=p.max_reply_mb,
             heatmap_max_side=p.heatmap_max_side,
             flights_dir=p.flights,
+            change_cuts=p.change_cuts,
+            text_change_cuts=p.text_change_cuts,
             name=self.name,
         )
 

@@ -209,6 +209,8 @@ class MapService:
         max_reply_mb: float = math.inf,
         heatmap_max_side: int = 0,
         flights_dir: str | Path = "",
+        change_cuts: str = "",
+        text_change_cuts: str = "",
         name: str = "map",
     ):
         from ..scene import read_ply
@@ -217,6 +219,11 @@ class MapService:
 
         self.map_dir, self.views_dir, self.name = Path(map_dir), Path(views_dir), name
         self.flights_dir = Path(flights_dir) if flights_dir else None
+        from .change import TEXT_PARAMS, ChangeParams
+
+        # a change request's rule: "C,O,N[,A]" (ChangeParams.with_cuts) or "" for the defaults
+        self.change_params = ChangeParams().with_cuts(change_cuts) if change_cuts else ChangeParams()
+        self.text_change_params = TEXT_PARAMS.with_cuts(text_change_cuts) if text_change_cuts else TEXT_PARAMS
         self._flight_maps: dict[tuple[str, float], LanguageMap] = {}  # (path, mtime) -> map: the last pair
         self.cluster_min_points, self.negatives = cluster_min_points, tuple(negatives)
         self.max_text_chars, self.max_negatives = max_text_chars, max_negatives
@@ -449,7 +456,6 @@ class MapService:
         aerial vocabulary's. With ``view``, that view's change heatmap (score, NaN: not scored),
         its mask (score > the candidate cut) and 2D regions. Refusals come back as a status."""
         from ..scene import select_view
-        from .change import TEXT_PARAMS, ChangeParams
         from .change_answer import answer_change
         from .localize import regions_in_view
         from .negatives import AERIAL_VOCABULARY
@@ -477,7 +483,7 @@ class MapService:
                 saved = views[[v.camera for v in views].index(camera)]
                 camera = self._reply_camera(camera)
                 photo = self._photo(saved, camera)
-            params = TEXT_PARAMS if text else ChangeParams()
+            params = self.text_change_params if text else self.change_params
             vocabulary = tuple(self.negatives) or AERIAL_VOCABULARY
             change = answer_change(
                 map_a, map_b, self.gaussians, text or None, gone, list(negatives) or None, vocabulary, params, camera

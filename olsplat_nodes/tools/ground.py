@@ -89,6 +89,12 @@ def add_parser(subparsers) -> None:
         "flight's labels when its queries.json lies beside the map's folder, as the demo's; else the query "
         "server's: object, things, stuff, texture)",
     )
+    web.add_argument(
+        "--change-cuts",
+        metavar="C,O,N[,A]",
+        help="with --run: the 'since flight' answers' change rule, as olsplat query --change-cuts (default: the "
+        "cuts chosen on 60-view flights; shorter flights need looser ones, docs/method.md)",
+    )
     web.add_argument("--seconds", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     web.set_defaults(run=run_web)
 
@@ -107,6 +113,8 @@ def run_web(args: argparse.Namespace) -> int:
         )
     negatives = args.negatives
     if args.connect:
+        if args.change_cuts:
+            raise OlsplatInputError("--change-cuts goes with --run: a live drone's cuts are its query server's")
         source, where = _link_source(args), args.connect
     else:
         source, where = _run_source(args), str(args.run_dir)
@@ -129,7 +137,14 @@ def _run_source(args: argparse.Namespace):
     prior = args.map or _recorded_prior_map(args.run_dir)
     if not prior.exists():
         raise OlsplatInputError(f"{prior}: prior map not found: give the PLY the run was made with (--map)")
-    return RunReview(args.run_dir, prior, args.max_splats)
+    if args.change_cuts:
+        from ..query.change import ChangeParams
+
+        try:
+            ChangeParams().with_cuts(args.change_cuts)
+        except ValueError as exc:
+            raise OlsplatInputError(f"--change-cuts {exc}") from None
+    return RunReview(args.run_dir, prior, args.max_splats, change_cuts=args.change_cuts or "")
 
 
 def _recorded_prior_map(run_dir: Path) -> Path:

@@ -50,10 +50,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--json", type=Path, metavar="FILE", help="with --since: write the change instances here")
     parser.add_argument(
         "--change-cuts",
-        metavar="C,O,N",
-        help="with --since: the change rule's candidate cut, object cut and fewest Gaussians of an instance "
-        "(defaults 1.4,1.8,10 without TEXT and 0.8,1.6,32 with it, chosen on 60-view flights; sparser maps and "
-        "shorter flights need fewer Gaussians: docs/method.md)",
+        metavar="C,O,N[,A]",
+        help="with --since: the change rule's candidate cut, object cut, fewest Gaussians and least ground area "
+        "(m², 0 when left out) of an instance (defaults 1.654,2.48,10,2 without TEXT and 0.8,1.6,32 with it, "
+        "chosen on 60-view flights; shorter flights need looser cuts, e.g. 1.4,1.8,10: docs/method.md)",
     )
     parser.add_argument("--view", help="view to render (name or index; default: the first)")
     parser.add_argument(

@@ -172,20 +172,8 @@ def write_change_pictures(folder: Path, camera, photo: np.ndarray, answer: Chang
 
 
 def _with_cuts(params: ChangeParams, text: str) -> ChangeParams:
-    """``params`` with ``--change-cuts C,O,N[,A]`` (candidate cut, object cut, fewest Gaussians,
-    least ground area in m², 0 when left out: the given values are the whole size rule)."""
-    from ..query.change import ChangeParams
-
-    parts = [p.strip() for p in text.split(",")]
+    """``params`` with ``--change-cuts C,O,N[,A]`` (``ChangeParams.with_cuts``)."""
     try:
-        if len(parts) not in (3, 4):
-            raise ValueError("three or four values")
-        candidate, object_score, members = float(parts[0]), float(parts[1]), int(parts[2])
-        area = float(parts[3]) if len(parts) == 4 else 0.0
-        return ChangeParams(**{**asdict(params), "candidate": candidate, "object_score": object_score,
-                               "min_gaussians": members, "min_area_m2": area})  # fmt: skip
-    except ValueError:
-        raise OlsplatInputError(
-            f"--change-cuts {text}: expected CANDIDATE,OBJECT,GAUSSIANS[,AREA_M2] with 0 <= candidate <= object, "
-            "an integer >= 1 and an area >= 0, e.g. 0.8,1.6,32 or 1.1,2.3,10,1"
-        ) from None
+        return params.with_cuts(text)
+    except ValueError as exc:
+        raise OlsplatInputError(f"--change-cuts {exc}") from None

@@ -13,6 +13,7 @@ import pytest
 
 from olsplat_nodes.cli import main
 from olsplat_nodes.ground.review import RunReview
+from tests.query.test_change_flights import TINY_CUTS
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -29,7 +30,8 @@ def run(change_flights):
 
 
 def test_since_flight_gives_the_change_of_olsplat_query_since(run, tmp_path):
-    review = RunReview(run / "out", run / "N" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
+    ply = run / "N" / "map" / "point_cloud.ply"
+    review = RunReview(run / "out", ply, max_splats=5000, heatmap_cache_mb=0, change_cuts=TINY_CUTS)
     try:
         assert review.flights() == ["f0", "f1"]
         view = review.cameras()[2].name
@@ -38,7 +40,10 @@ def test_since_flight_gives_the_change_of_olsplat_query_since(run, tmp_path):
             answer.status == "ok" and answer.since == "f1" and "what changed since flight f1 (now f2)" in answer.message
         )
         args = ["query", "--map", str(run / "out" / "flights" / "f2"), "--since", str(run / "out" / "flights" / "f1")]
-        assert main([*args, "--scene", str(run / "N"), "--json", str(tmp_path / "q.json")]) == 0
+        assert (
+            main([*args, "--scene", str(run / "N"), "--json", str(tmp_path / "q.json"), "--change-cuts", TINY_CUTS])
+            == 0
+        )
         expected = json.loads((tmp_path / "q.json").read_text())["instances"]
         assert len(expected) >= 1
         assert [list(i.centre) for i in answer.instances] == [i["centre"] for i in expected]
@@ -58,7 +63,7 @@ def test_since_flight_gives_the_change_of_olsplat_query_since(run, tmp_path):
 def test_the_page_shows_the_selector_and_asks_the_change(run):
     from olsplat_nodes.ground.page import GroundPage
 
-    review = RunReview(run / "out", run / "N" / "map" / "point_cloud.ply", max_splats=5000, heatmap_cache_mb=0)
+    review = RunReview(run / "out", run / "N" / "map" / "point_cloud.ply", 5000, 0, change_cuts=TINY_CUTS)
     page = GroundPage(review, port=0)
     try:
         assert page.since_choice.visible and tuple(page.since_choice.options) == ("none", "f0", "f1")
