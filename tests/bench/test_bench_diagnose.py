@@ -61,13 +61,22 @@ def test_diagnose_real_photos(shared_data, tmp_path):
     assert "encoders" not in source  # no labels on real photos: no accuracy
     assert 0.8 < source["flight"]["relative_tilt_deg"] < 2.5  # 1.59 degrees between frames (EXIF focal length)
     assert 0.2 < source["patches"]["colour_change_global"] < 0.35  # 0.28 (docs/world.md)
-    loose = tmp_path / "loose.json"  # the first gate (docs/world.md, "The colour floor"): NCC >= 0.6 alone
-    argv = ["bench", "diagnose", "--photos", str(shared_data / "caliterra"), "--min-ncc", "0.6", "--max-shift", "0"]
-    assert main([*argv, "--json", str(loose)]) == 0
-    document = json.loads(loose.read_text())
-    assert document["patch_gate"] == {"min_ncc": 0.6, "max_shift_px": 0}
-    looser = document["sources"]["caliterra"]["patches"]
-    assert looser["pairs"] > source["patches"]["pairs"] and 0.2 < looser["colour_change_global"] < 0.35
+    # the first gate (docs/world.md, "The colour floor"): NCC >= 0.6 alone keeps more pairs; on
+    # the first eight photos (seven frame pairs) against the default gate on the same eight
+    photos = tmp_path / "eight"
+    photos.mkdir()
+    for path in sorted(p for p in (shared_data / "caliterra").iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))[:8]:
+        (photos / path.name).symlink_to(path)
+    figures = {}
+    for name, gate in (("default", []), ("loose", ["--min-ncc", "0.6", "--max-shift", "0"])):
+        assert (
+            main(["bench", "diagnose", "--photos", str(photos), *gate, "--json", str(tmp_path / f"{name}.json")]) == 0
+        )
+        figures[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    assert figures["loose"]["patch_gate"] == {"min_ncc": 0.6, "max_shift_px": 0}
+    default, looser = (figures[n]["sources"]["eight"]["patches"] for n in ("default", "loose"))
+    assert default["frame_pairs"] == looser["frame_pairs"] == 7
+    assert looser["pairs"] > default["pairs"] > 0 and 0.2 < looser["colour_change_global"] < 0.35
 
 
 def test_diagnose_refuses_bad_input_in_one_line(tmp_path, capsys):

@@ -231,20 +231,21 @@ def test_the_page_follows_a_live_graph_over_the_curve_link_without_a_reload(tiny
             for node in ("accumulator", "refiner", "region_encoder"):
                 assert page.locator("#olsplat-status td", has_text=node).count() >= 1, f"{node} not in the status"
             assert page.locator("#olsplat-status", has_text="CURVE").count() == 1
-            before = settled_canvas(page, "4_live_final", splats_drawn)
 
+            # a query over the link answers on the page (that the answer recolours the splats is the
+            # run-folder test's: the same page code, and each settled screenshot costs 5-25 s of
+            # software WebGL here)
             field(page, "negatives").fill(", ".join(LABELS[1:]))
             field(page, "query").fill(LABELS[0])
             page.get_by_role("button", name="Ask").click()
             page.get_by_text("Gaussians pick it").wait_for(timeout=60_000)
             page.get_by_role("button", name=f"#0 {LABELS[0]}").wait_for(timeout=30_000)
-            settled_canvas(page, "5_live_query", lambda after: changed_share(after, before) > 0.05)
 
             supervisor.request_stop()  # the drone goes away: the page says so, and keeps its map
             graph.join(120)
             page.get_by_text("link lost - retrying").first.wait_for(timeout=30_000)
             page.get_by_text("last heard").first.wait_for(timeout=10_000)
-            canvas_pixels(page, "6_link_lost")
+            assert splats_drawn(canvas_pixels(page, "6_link_lost"))  # the drone went away: the map stays
     finally:
         supervisor.request_stop()
         if graph.is_alive():
