@@ -85,7 +85,8 @@ def score_text(means: np.ndarray, scores: dict[str, np.ndarray], truth: TextTrut
 def params_of(candidate: float, object_score: float, members: int):
     from ..query.change import ChangeParams
 
-    return ChangeParams(candidate=candidate, object_score=object_score, min_gaussians=members)
+    # the text's size rule is the member count alone (its grid's third axis), not ChangeParams' area
+    return ChangeParams(candidate=candidate, object_score=object_score, min_gaussians=members, min_area_m2=0.0)
 
 
 def tune_text(train: list[tuple[np.ndarray, dict[str, np.ndarray], TextTruth]]) -> dict[str, Any]:

@@ -113,8 +113,9 @@ class ChangeInstance(Instance3D):
 
 # a text's changes: a move towards the text is evidence too, so its candidates may score lower.
 # Chosen by `olsplat bench change --preset small` on training seeds 1001-1003 (its tune.json;
-# docs/evaluation-protocol.md, "A text change query"): 60-view flights over 390,678 Gaussians
-TEXT_PARAMS = ChangeParams(candidate=0.8, object_score=1.6, min_gaussians=32)
+# docs/evaluation-protocol.md, "A text change query"): 60-view flights over 390,678 Gaussians; its
+# size rule is the count alone (the least area came later, for "what changed" only)
+TEXT_PARAMS = ChangeParams(candidate=0.8, object_score=1.6, min_gaussians=32, min_area_m2=0.0)
 
 
 def cluster_labels(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:

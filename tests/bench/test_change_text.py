@@ -56,3 +56,14 @@ def test_a_detector_that_knows_the_arrivals_finds_both_and_nothing_else():
     tuned = tune_text([(means, scores, truth)])
     assert tuned["chosen"]["alarms"] == 0 and tuned["chosen"]["f1"] == 1.0 and tuned["chosen"]["members"] == 32
     assert len(tuned["rows"]) == len(GRID)
+
+
+def test_the_text_rule_counts_members_and_asks_no_area():
+    """The text's size rule is its member count alone (its tuning grid's third axis and the
+    shipped TEXT_PARAMS): the least area of "what changed" must not raise it on a dense map."""
+    from olsplat_nodes.bench.change_text import params_of
+    from olsplat_nodes.query.change import TEXT_PARAMS
+
+    dense = np.random.default_rng(0).uniform(0, 10, (10_000, 3))  # 100 Gaussians per m²
+    assert params_of(0.8, 1.6, 8).min_members(dense) == 8
+    assert TEXT_PARAMS.min_members(dense) == TEXT_PARAMS.min_gaussians == 32

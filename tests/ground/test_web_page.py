@@ -82,25 +82,24 @@ def splats_drawn(pixels: np.ndarray) -> bool:
     return bool(pixels.std() > 10 and (pixels.min(axis=2) < 200).mean() > 0.2)
 
 
-def changed_share(after: np.ndarray, before: np.ndarray) -> float:
-    """The share of the view whose colour moved by more than 40 in some channel."""
-    return float((np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40).mean())
+def relevance_coloured(pixels: np.ndarray) -> bool:
+    """The splats wear the relevance ramp (navy to yellow; a query's answer): a fifth of the view
+    or more is the ramp's blue (0.3-0.4 after a query here, under 0.01 in the map's own colours)."""
+    r, g, b = (pixels[..., k].astype(int) for k in range(3))
+    return bool(((b > r + 40) & (b > g + 20)).mean() > 0.2)
 
 
-def settled_canvas(page, name: str, ready, timeout_s: float = 60.0) -> np.ndarray:
-    """The 3D view once ``ready(pixels)`` holds and two screenshots 0.5 s apart agree (the
-    browser has drawn and sorted the splats): waits on the picture itself, not a fixed sleep."""
+def drawn_canvas(page, name: str, ready, timeout_s: float = 60.0) -> np.ndarray:
+    """The 3D view once ``ready(pixels)`` holds: waits on the picture itself, not a fixed sleep
+    (a screenshot of software WebGL takes 5-25 s here, so the first one that shows it is taken)."""
     deadline = time.monotonic() + timeout_s
-    previous = canvas_pixels(page, name)
     while True:
-        time.sleep(0.5)
         pixels = canvas_pixels(page, name)
-        steady = np.abs(pixels.astype(int) - previous.astype(int)).mean() < 1.0
-        if steady and ready(pixels):
+        if ready(pixels):
             return pixels
         if time.monotonic() > deadline:
-            raise AssertionError(f"{name}: the 3D view did not settle on the expected picture in {timeout_s:.0f} s")
-        previous = pixels
+            raise AssertionError(f"{name}: the 3D view did not show the expected picture in {timeout_s:.0f} s")
+        time.sleep(0.5)
 
 
 def map_version(page) -> int:
@@ -131,7 +130,8 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
             page.wait_for_function(
                 "() => Number(document.querySelector('#olsplat-status').dataset.mapVersion) >= 1", timeout=60_000
             )
-            before = settled_canvas(page, "1_map", splats_drawn)  # the splats arrive and are sorted in the browser
+            before = drawn_canvas(page, "1_map", splats_drawn)  # the splats arrive in the browser
+            assert not relevance_coloured(before)  # in the map's own colours
 
             # the first negatives: the flight's labels (its queries.json lies beside the map's folder)
             assert field(page, "negatives").input_value() == ", ".join(label_texts(*load_queries(scene)))
@@ -140,7 +140,7 @@ def test_the_page_shows_the_map_answers_a_query_and_shows_a_views_heatmap(finish
             page.get_by_role("button", name="Ask").click()
             page.get_by_text("Gaussians pick it").wait_for(timeout=60_000)
             page.get_by_role("button", name=f"#0 {LABELS[0]}").wait_for(timeout=30_000)
-            settled_canvas(page, "2_query", lambda after: changed_share(after, before) > 0.05)  # the colours changed
+            drawn_canvas(page, "2_query", relevance_coloured)  # the splats take the answer's colours
 
             # bad input: a sentence on the page, the page keeps answering
             field(page, "query").fill("roof\u0007")
