@@ -51,8 +51,13 @@ demo: setup
 	$(VENV)/bin/olsplat doctor
 	$(VENV)/bin/olsplat demo --out out
 
+# Two passes: the tests that need no process of their own on two workers, then the serial ones
+# (graphs, servers, a browser, timing; marked in tests/conftest.py) one at a time. Both always
+# run; the target fails if either failed.
 test: setup
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 -m "not serial"; first=$$?; \
+	$(PY) -m pytest -m serial; second=$$?; \
+	exit $$(( first || second ))
 
 # ruff (lint rules and formatting) and mypy, configured in pyproject.toml. mypy sees msgs/ and
 # sim/ by their import names (olsplat_msgs, olsplat_sim) through links under build/mypy.

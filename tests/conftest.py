@@ -15,6 +15,20 @@ from .promised import skip_unless_ci
 
 SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
+# Tests that start processes, graphs, servers, Ray or a browser, or that measure time: `make test`
+# runs them alone, one at a time, after the others ran on two workers (pytest -n 2 -m "not serial").
+# Two graphs of five processes on two cores would slow each other past what their waits allow.
+SERIAL_FOLDERS = {"nodes", "launcher", "ground", "cluster", "bench", "transport", "sources", "doctor"}
+SERIAL_FILES = {"test_wheel.py", "test_demo.py", "test_promised.py", "test_memory.py"}
+
+
+def pytest_collection_modifyitems(config, items):
+    tests = Path(__file__).resolve().parent
+    for item in items:
+        where = Path(str(item.fspath)).resolve().relative_to(tests)
+        if where.parts[0] in SERIAL_FOLDERS or where.name in SERIAL_FILES:
+            item.add_marker(pytest.mark.serial)
+
 
 def random_gaussians(n: int, sh_degree: int = 3, seed: int = 0, spread: float = 1.0) -> Gaussians:
     """n Gaussians in a slab around the origin (|x|, |y| <= spread, |z| <= 0.3 spread)."""
