@@ -18,15 +18,23 @@ SHARED_DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 # Tests that start processes, graphs, servers, Ray or a browser, or that measure time: `make test`
 # runs them alone, one at a time, after the others ran on two workers (pytest -n 2 -m "not serial").
 # Two graphs of five processes on two cores would slow each other past what their waits allow.
-SERIAL_FOLDERS = {"nodes", "launcher", "ground", "cluster", "bench", "transport", "sources", "doctor"}
-SERIAL_FILES = {"test_wheel.py", "test_demo.py", "test_promised.py", "test_memory.py"}
+SERIAL_FOLDERS = {"nodes", "launcher", "ground", "cluster", "transport", "doctor"}
+SERIAL_FILES = {
+    "test_wheel.py",
+    "test_demo.py",
+    "test_promised.py",
+    "test_memory.py",
+    "bench/test_bench_graph.py",  # launches graphs and times them
+    "sources/test_depthai.py",  # timed camera loops
+    "sources/test_replay_log.py",  # paced replay
+}
 
 
 def pytest_collection_modifyitems(config, items):
     tests = Path(__file__).resolve().parent
     for item in items:
         where = Path(str(item.fspath)).resolve().relative_to(tests)
-        if where.parts[0] in SERIAL_FOLDERS or where.name in SERIAL_FILES:
+        if where.parts[0] in SERIAL_FOLDERS or where.as_posix() in SERIAL_FILES:
             item.add_marker(pytest.mark.serial)
 
 
