@@ -253,23 +253,25 @@ def tune(train: list[Seed]) -> dict[str, Any]:
     filtered for each object cut and size: the instances ``change_instances`` gives for each
     setting (tests/bench/test_bench_change.py holds the two equal)."""
     from ..query.change import change_clusters, changes_among
+    from ..query.localize import ground_density
 
+    density = [ground_density(d.means) for d in train]  # once per seed: the map does not change
     out = {}
     for method in METHODS:
         cuts = metrics.candidate_cuts([d.scores[method]["unchanged"] for d in train])
         rows = []
         for quantile, cut in cuts.items():
             clusters = []
-            for d in train:
-                params = _params(cut, cut)
-                clusters.append({pair: change_clusters(d.means, d.scores[method][pair], cut, params.radius(d.means),
-                                                       params.min_points)
+            for d, g in zip(train, density, strict=True):
+                rule = _params(cut, cut).for_density(g)
+                clusters.append({pair: change_clusters(d.means, d.scores[method][pair], cut, rule.cluster_radius,
+                                                       rule.min_points)
                                  for pair in ("changed", "unchanged")})  # fmt: skip
             for area in metrics.AREAS:
                 for ratio in metrics.RATIOS:
                     figures = []
-                    for d, made in zip(train, clusters, strict=True):
-                        fewest = _params(cut, cut * ratio, area).min_members(d.means)
+                    for d, made, g in zip(train, clusters, density, strict=True):
+                        fewest = _params(cut, cut * ratio, area).for_density(g).min_gaussians
                         found = changes_among(d.means, made["changed"], cut * ratio, fewest)
                         alarms = changes_among(d.means, made["unchanged"], cut * ratio, fewest)
                         figures.append(_figures(d, [inst.members for inst in found], len(alarms)))

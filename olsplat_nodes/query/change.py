@@ -31,14 +31,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 
 from ..aggregate.change import FlightFeatures, feature_rows
 from .heatmap import CANONICAL_NEGATIVES
-from .localize import Instance3D, _cluster_points, _touching_pairs, _voxelise, default_cluster_radius, ground_density
+from .localize import Instance3D, _cluster_points, _touching_pairs, _voxelise, ground_density, radius_for_density
 from .negatives import AERIAL_VOCABULARY, vocabulary_negatives
 
 _ROWS = 32_768  # Gaussians per chunk of ``text_moves``: [rows, D] float32 differences, a few MB
@@ -86,16 +86,32 @@ class ChangeParams:
                 ">= 1 and an area >= 0, e.g. 0.8,1.6,32 or 1.4,1.8,10,0"
             ) from None
 
-    def radius(self, means: np.ndarray) -> float:
-        """The clustering radius in metres for a map with centres ``means`` [N, 3]."""
-        return self.cluster_radius or default_cluster_radius(means)
-
     def min_members(self, means: np.ndarray) -> int:
         """The fewest members a change instance of a map with centres ``means`` [N, 3] may have:
         ``min_gaussians``, or ``min_area_m2`` times the map's Gaussians per m² of ground
         (``localize.ground_density``) rounded up, whichever is more."""
-        by_area = math.ceil(self.min_area_m2 * ground_density(means)) if self.min_area_m2 > 0 else 0
-        return max(self.min_gaussians, by_area)
+        return self.for_map(means).min_gaussians
+
+    def for_map(self, means: np.ndarray) -> ChangeParams:
+        """These params resolved for a map with centres ``means`` [N, 3] (map metres): the
+        clustering radius (``cluster_radius`` or the ordinary query's, ``localize.
+        default_cluster_radius``) and the least area as a member count (``min_gaussians`` becomes
+        the larger of itself and ``min_area_m2`` x the ground density, rounded up; the area 0).
+        The density is computed once, and not at all when nothing needs it; resolving twice changes
+        nothing. A query server resolves its rule once for its prior map, not per request."""
+        if self.cluster_radius > 0 and self.min_area_m2 == 0:
+            return self
+        return self.for_density(ground_density(np.asarray(means)))
+
+    def for_density(self, density: float) -> ChangeParams:
+        """``for_map`` of a map with ``density`` Gaussians per m² of ground (``ground_density``)."""
+        by_area = math.ceil(self.min_area_m2 * density) if self.min_area_m2 > 0 else 0
+        return replace(
+            self,
+            cluster_radius=self.cluster_radius or radius_for_density(density),
+            min_gaussians=max(self.min_gaussians, by_area),
+            min_area_m2=0.0,
+        )
 
 
 @dataclass
@@ -144,10 +160,10 @@ def change_instances(
     """The change instances (``ChangeInstance``, ranked by median score x members) of a map with
     centres ``means`` [N, 3] (map metres) and change scores ``score`` [N] (NaN: unknown, never a
     candidate). ``among`` ([N] bool): only these Gaussians may be candidates (``text_change``)."""
-    fewest = params.min_members(np.asarray(means))
-    clusters = change_clusters(means, score, params.candidate, params.radius(np.asarray(means)), params.min_points,
-                               among, fewest)  # fmt: skip
-    return changes_among(means, clusters, params.object_score, fewest)
+    rule = params.for_map(means)
+    clusters = change_clusters(means, score, rule.candidate, rule.cluster_radius, rule.min_points, among,
+                               rule.min_gaussians)  # fmt: skip
+    return changes_among(means, clusters, rule.object_score, rule.min_gaussians)
 
 
 def change_clusters(

@@ -100,7 +100,12 @@ def default_cluster_radius(means: np.ndarray, min_points: int = 20) -> float:
     of x and y); a disc of radius r holds ~min_points Gaussians when r = spacing * sqrt(min_points
     / pi), and twice that leaves room for thinner objects. Never below 1.5 m. The small preset
     (390k Gaussians over 150 m) gets 1.5 m; the tiny one (26k), ~3 m."""
-    density = ground_density(means)
+    return radius_for_density(ground_density(means), min_points)
+
+
+def radius_for_density(density: float, min_points: int = 20) -> float:
+    """``default_cluster_radius`` (metres) of a map with ``density`` Gaussians per m² of ground
+    (``ground_density``), for callers that need the density for something else too."""
     if not density > 0:
         return 1.5
     spacing = math.sqrt(1.0 / density)

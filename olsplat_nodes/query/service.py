@@ -221,9 +221,10 @@ class MapService:
         self.flights_dir = Path(flights_dir) if flights_dir else None
         from .change import TEXT_PARAMS, ChangeParams
 
-        # a change request's rule: "C,O,N[,A]" (ChangeParams.with_cuts) or "" for the defaults
-        self.change_params = ChangeParams().with_cuts(change_cuts) if change_cuts else ChangeParams()
-        self.text_change_params = TEXT_PARAMS.with_cuts(text_change_cuts) if text_change_cuts else TEXT_PARAMS
+        # a change request's rule: "C,O,N[,A]" (ChangeParams.with_cuts) or "" for the defaults;
+        # resolved for the prior map below (radius and least area from its density, once)
+        change_rule = ChangeParams().with_cuts(change_cuts) if change_cuts else ChangeParams()
+        text_change_rule = TEXT_PARAMS.with_cuts(text_change_cuts) if text_change_cuts else TEXT_PARAMS
         self._flight_maps: dict[tuple[str, float], LanguageMap] = {}  # (path, mtime) -> map: the last pair
         self.cluster_min_points, self.negatives = cluster_min_points, tuple(negatives)
         self.max_text_chars, self.max_negatives = max_text_chars, max_negatives
@@ -235,6 +236,8 @@ class MapService:
         self._find_georef()
         # from the prior map's density once (~30 ms for 390k Gaussians): not again for every query
         self.cluster_radius = cluster_radius or default_cluster_radius(self.gaussians.means, cluster_min_points)
+        self.change_params = change_rule.for_map(self.gaussians.means)
+        self.text_change_params = text_change_rule.for_map(self.gaussians.means)
         # the map's centres sorted by voxel once (~1.5 s for 5M, in the warm-up thread, not delaying
         # start-up): a query's clustering then skips its own sort; until then it sorts
         self.voxel_index: VoxelIndex | None = None

@@ -94,6 +94,28 @@ def test_the_least_size_is_ground_area_at_the_map_s_density():
     assert [round(i.centre[0]) for i in change_instances(means, score, params)] == [70]
 
 
+def test_params_resolved_for_a_map_give_the_same_instances(monkeypatch):
+    """``for_map`` turns the least area into a member count and fills in the radius from one
+    density: the instances are the unresolved params', resolving again computes nothing, and a
+    query server resolves its rules once at start-up (not on every change request)."""
+    from olsplat_nodes.query import change
+    from olsplat_nodes.query.localize import default_cluster_radius
+
+    means, score = _town()
+    params = ChangeParams(1.2, 1.8, 10, 0.0, 5, min_area_m2=100.0)
+    rule = params.for_map(means)
+    assert rule.min_gaussians == params.min_members(means) == math.ceil(100.0 * ground_density(means))
+    assert rule.cluster_radius == default_cluster_radius(means) and rule.min_area_m2 == 0.0
+    assert rule.candidate == params.candidate and rule.object_score == params.object_score
+    expected = [(i.gaussians, i.centre) for i in change_instances(means, score, params)]
+    calls = []
+    monkeypatch.setattr(change, "ground_density", lambda m: calls.append(1) or ground_density(m))
+    assert rule.for_map(means) is rule and not calls  # resolved: no density pass
+    assert [(i.gaussians, i.centre) for i in change_instances(means, score, rule)] == expected and not calls
+    change_instances(means, score, params)
+    assert len(calls) == 1  # unresolved: one pass for both the radius and the least size
+
+
 def test_change_params_are_checked():
     with pytest.raises(ValueError, match="candidate <= object_score"):
         ChangeParams(candidate=2.0, object_score=1.0)
