@@ -111,6 +111,10 @@ class RefinerNode(Node):
             )
         self.exit_at: float | None = None
         self.write_error = ""  # why the last snapshot could not be written ("" once one is)
+        from ..method.live import warm_up
+
+        # the refinement kernels now, while the accumulator compiles its own: not in the first pass
+        log.info("refinement kernels ready in %.1f s", warm_up())
 
     def spin(self) -> int | None:
         p = self.params

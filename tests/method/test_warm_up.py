@@ -84,6 +84,37 @@ def test_the_region_encoder_warm_up_compiles_what_a_frame_needs():
     assert result["after"] == result["before"]
 
 
+def test_the_refiner_warm_up_compiles_what_a_pass_needs(tmp_path):
+    result = _run(
+        f"""
+        from olsplat_nodes.method import add_view, named_method
+        from olsplat_nodes.method.live import LiveMap, warm_up
+        from olsplat_nodes.storage import LanguageMap, ObservationStore, write_snapshot
+        from tests.conftest import camera_for, random_gaussians
+        from tests.method.test_view_step import _regions
+
+        warm_up()
+        before = compiled()
+        method = named_method("outlangsplat")
+        gaussians = random_gaussians(3000, 3, seed=4)
+        store = ObservationStore("{tmp_path}/store", len(gaussians), writer=True)
+        live = LiveMap(store)
+        camera = camera_for("PINHOLE_CENTRED", 160, 120)
+        for view in range(3):  # a first exact pass, a fold, the final exact pass
+            add_view(gaussians, camera, *_regions(camera.height, camera.width, dim=64), method, store)
+            live.update(method.aggregation, exact=view != 1)
+        write_snapshot(__import__("pathlib").Path("{tmp_path}/map"), 1,
+                       LanguageMap(live.features, live.observed, "e"), {{}}, None)
+        after = {{k: v for k, v in compiled().items() if k.startswith(("olsplat_nodes.aggregate.refine",
+                                                                       "olsplat_nodes.storage"))}}
+        print(json.dumps({{"before": before, "after": after, "observed": int(live.observed.sum())}}))
+        """
+    )
+    assert result["observed"] > 100
+    assert result["before"].get("olsplat_nodes.aggregate.refine._consistency") == 1
+    assert len(result["after"]) >= 3 and all(result["before"].get(k) == n for k, n in result["after"].items()), result
+
+
 def test_olsplat_warm_up_runs_every_node_stage(tmp_path):
     from olsplat_nodes.tools.warm_up import warm_up_all
 
