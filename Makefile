@@ -53,11 +53,13 @@ demo: setup
 
 # Two passes: the tests that need no process of their own on two workers, then the serial ones
 # (graphs, servers, a browser, timing; marked in tests/conftest.py) one at a time. Both always
-# run; the target fails if either failed.
+# run; the target fails if either failed. The session's simulated flights are made once for both
+# passes, in a folder removed at the end ($OLSPLAT_TEST_SHARED: tests/conftest.py, made_once).
 test: setup
+	shared=$$(mktemp -d); export OLSPLAT_TEST_SHARED=$$shared; \
 	$(PY) -m pytest -n 2 -m "not serial"; first=$$?; \
 	$(PY) -m pytest -m serial; second=$$?; \
-	exit $$(( first || second ))
+	rm -rf "$$shared"; exit $$(( first || second ))
 
 # ruff (lint rules and formatting) and mypy, configured in pyproject.toml. mypy sees msgs/ and
 # sim/ by their import names (olsplat_msgs, olsplat_sim) through links under build/mypy.

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import fcntl
+import json
+import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -75,28 +80,55 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+# `make test` runs pytest three times at once or in turn (two workers, then the serial pass), and
+# each would make the session's flights again (~40 s of CPU). With OLSPLAT_TEST_SHARED (the
+# Makefile gives each run a fresh folder) the first process that needs one makes it there, under
+# a lock, and every process copies it into its own temporary folder: tests may write into theirs.
+SHARED_FIXTURES = "OLSPLAT_TEST_SHARED"
+
+
+def made_once(name: str, out: Path, make: Callable[[Path], None]) -> None:
+    """``make(out)``, or with $OLSPLAT_TEST_SHARED a copy of what ``make`` made there once."""
+    shared = os.environ.get(SHARED_FIXTURES)
+    if not shared:
+        make(out)
+        return
+    root = Path(shared)
+    root.mkdir(parents=True, exist_ok=True)
+    made = root / name
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
+        if not (root / f"{name}.made").exists():
+            shutil.rmtree(made, ignore_errors=True)  # a process that died half-way
+            make(made)
+            (root / f"{name}.made").touch()
+    shutil.copytree(made, out, symlinks=True)
+
+
 @pytest.fixture(scope="session")
 def tiny(tmp_path_factory):
     """The tiny simulator preset, generated once per test session (a few seconds)."""
     out = tmp_path_factory.mktemp("tiny") / "scene"
-    summary = make_dataset(PRESETS["tiny"], 0, out, log=lambda *_: None)
-    return out, summary
+    made_once("tiny", out, lambda folder: make_dataset(PRESETS["tiny"], 0, folder, log=lambda *_: None))
+    return out, json.loads((out / "scene.json").read_text())  # make_dataset's summary, as JSON keeps it
 
 
 @pytest.fixture(scope="session")
 def tiny_map(tiny, tmp_path_factory) -> Path:
     """The tiny flight aggregated offline (``olsplat aggregate``, the default method and the shipped
     encoders): the path of its language_map.npz, made once per test session."""
-    import shutil
-
     from olsplat_nodes.encoders.spec import encoder_from_spec
     from olsplat_nodes.method import named_method
     from olsplat_nodes.pipeline import Scene, aggregate_scene
 
     work = tmp_path_factory.mktemp("tiny_map")
-    shutil.copytree(tiny[0], work / "scene")
-    aggregate_scene(Scene.open(work / "scene"), named_method("outlangsplat"), encoder_from_spec(), work / "out")
-    return work / "out" / "language_map.npz"
+
+    def make(folder: Path) -> None:
+        shutil.copytree(tiny[0], folder / "scene")
+        aggregate_scene(Scene.open(folder / "scene"), named_method("outlangsplat"), encoder_from_spec(), folder / "out")
+
+    made_once("tiny_map", work / "made", make)
+    return work / "made" / "out" / "language_map.npz"
 
 
 @pytest.fixture(scope="session")
@@ -106,11 +138,15 @@ def change_flights(tmp_path_factory) -> Path:
     ``out/`` holds the aggregate and ``out/flights/`` the per-flight maps. Made once per session."""
     from olsplat_nodes.cli import main
 
-    root = tmp_path_factory.mktemp("change_flights")
-    make = ["sim", "make", "--preset", "tiny", "--seed", "1005"]
-    assert main([*make, "--out", str(root / "A")]) == 0
-    assert main([*make, "--flight-seed", "1", "--changes", "default", "--out", str(root / "B")]) == 0
-    assert main([*make, "--flight-seed", "1", "--changes", "none", "--out", str(root / "N")]) == 0
-    scenes = [arg for name in "ABN" for arg in ("--scene", str(root / name))]
-    assert main(["aggregate", *scenes, "--out", str(root / "out"), "--per-flight"]) == 0
+    root = tmp_path_factory.mktemp("change_flights") / "made"
+
+    def make(folder: Path) -> None:
+        sim = ["sim", "make", "--preset", "tiny", "--seed", "1005"]
+        assert main([*sim, "--out", str(folder / "A")]) == 0
+        assert main([*sim, "--flight-seed", "1", "--changes", "default", "--out", str(folder / "B")]) == 0
+        assert main([*sim, "--flight-seed", "1", "--changes", "none", "--out", str(folder / "N")]) == 0
+        scenes = [arg for name in "ABN" for arg in ("--scene", str(folder / name))]
+        assert main(["aggregate", *scenes, "--out", str(folder / "out"), "--per-flight"]) == 0
+
+    made_once("change_flights", root, make)
     return root
