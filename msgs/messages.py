@@ -153,6 +153,7 @@ class QueryRequest:
     splats: int = 0  # 0 = no splat_margin; else the max_splats of the client's SplatsReply
     since: str = ""  # a change query's earlier flight ("f0"); "" = an ordinary query
     gone: bool = False  # with since and a text: what moved away from it
+    preview: bool = False  # a quick first answer on a view: <= 320 px, no 3D instances
 
 
 @dataclass
@@ -176,6 +177,7 @@ class QueryReply:
     now: str = ""  # a change query's later flight
     change_scores: np.ndarray | None = None  # [K] float32 median change score per 3D instance
     seconds: float = 0.0
+    preview: bool = False  # a preview's reply (request.preview): no 3D instances
 
 
 @dataclass

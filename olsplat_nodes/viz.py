@@ -142,8 +142,10 @@ def write_query_pictures(
     regions,
     map_version: int | None = None,
     threshold: float | None = None,
+    kind: str = "",
 ) -> list:
-    """Write VIEW_TEXT_heatmap.png and VIEW_TEXT_mask.png into ``folder``; returns their paths.
+    """Write VIEW_TEXT_heatmap.png and VIEW_TEXT_mask.png into ``folder`` (with ``kind``, e.g.
+    "preview": VIEW_TEXT_preview_heatmap.png ...); returns their paths.
     ``regions``: objects with a ``box`` or plain (x0, y0, x1, y1) tuples. The legend says the
     query text, the view, the map version (when known) and the mask's rule: the heatmap above
     ``threshold``, or (None / NaN) beating every negative text."""
@@ -158,6 +160,7 @@ def write_query_pictures(
     caption = f'"{text}" on {Path(view).name}{version}; mask: {rule}'
     heat, masked = query_pictures(image_rgb, heatmap, alpha > 0.5, mask.astype(bool), boxes, caption)
     stem = f"{safe_name(Path(view).stem)}_{safe_name(text)}"  # both come from the server's reply
+    stem += f"_{kind}" if kind else ""
     paths = [folder / f"{stem}_heatmap.png", folder / f"{stem}_mask.png"]
     write_png(paths[0], heat)
     write_png(paths[1], masked)

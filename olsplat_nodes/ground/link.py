@@ -128,23 +128,27 @@ class LinkSource:
     def cameras(self) -> list[Camera]:
         return list(self._cameras)
 
-    def ask(self, text: str, negatives: list[str], view: str = "") -> WebAnswer:
+    def ask(self, text: str, negatives: list[str], view: str = "", preview: bool = False) -> WebAnswer:
         """The drone's answer as the page shows it; bad input, no map, a silent link and a
-        refusal come back as a status with a sentence."""
+        refusal come back as a status with a sentence. ``preview`` (with a view): the view's
+        pictures alone, small (``QueryRequest.preview``)."""
         start = time.perf_counter()
         text, negatives, problem = prepared_query(text, negatives)
         if problem:
             return WebAnswer("bad_request", problem, text)
         if self.splats is None:
             return WebAnswer("no_map", "the prior map has not come from the drone yet", text)
-        request = QueryRequest(text=text, view=view, heatmap=bool(view), negatives=negatives, splats=self.max_splats)
+        preview = preview and bool(view)
+        request = QueryRequest(
+            text=text, view=view, heatmap=bool(view), negatives=negatives, splats=self.max_splats, preview=preview
+        )
         reply = self._request(request, QueryReply)
         if reply is None:
             return WebAnswer("timeout", f"no answer: {self.link_problem}", text)
         if reply.status != "ok":
             return WebAnswer(reply.status, reply.message, text, reply.map_version)
         margin = None if reply.splat_margin is None else np.asarray(reply.splat_margin, np.float32)
-        if margin is None or len(margin) != len(self.splats.centers):
+        if not preview and (margin is None or len(margin) != len(self.splats.centers)):
             return WebAnswer("error", "the drone's splats differ from the page's: reload the page", text)
         instances = [
             Instance3D(tuple(i["box_min"]), tuple(i["box_max"]), tuple(i["centroid"]), int(i["n_gaussians"]))
@@ -153,13 +157,14 @@ class LinkSource:
         ]
         result = WebAnswer(
             "ok",
-            f"{reply.message}; {len(instances)} instances in 3D",
+            reply.message if preview else f"{reply.message}; {len(instances)} instances in 3D",
             text,
             reply.map_version,
             margin,
             instances,
             located=from_records(reply.instances),
             height_ref=reply.height_ref,
+            preview=preview,
         )
         if view and reply.heatmap is not None and reply.mask is not None and reply.image is not None:
             boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]

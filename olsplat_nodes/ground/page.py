@@ -57,6 +57,7 @@ class GroundPage:
         self.server.gui.set_panel_label(title)
         self.last_query: tuple[str, list[str]] | None = None
         self.coloured: tuple | None = None  # (text, negatives, map version) the splats show
+        self.previews_shown = 0  # previews drawn before their full answers (tests read it)
         self.shown_views = 0
         self.instance_buttons: list = []
         self.answer: WebAnswer | None = None
@@ -206,6 +207,8 @@ class GroundPage:
             if since:  # a run folder's source only (the dropdown is shown for it alone)
                 answer = self.source.ask(text, negatives, view, since=since, gone=self.gone_box.value)
             else:
+                if view:  # the view's pictures at once, small; the full answer replaces them
+                    self._show_preview(self.source.ask(text, negatives, view, preview=True))
                 answer = self.source.ask(text, negatives, view)
             self.query_message.content = f"**{answer.status}**: {_escape(answer.message)}" + (
                 f" ({answer.seconds * 1000:.0f} ms, map v{answer.map_version})" if answer.status == "ok" else ""
@@ -227,6 +230,16 @@ class GroundPage:
                 self.colour_bar.visible = True
                 self._draw_instances(answer)
                 self.coloured = question
+
+    def _show_preview(self, preview: WebAnswer) -> None:
+        """Show a preview's pictures (``ask(preview=True)``) until the full answer replaces them."""
+        if preview.status != "ok" or preview.heatmap_picture is None or preview.mask_picture is None:
+            return  # the full answer says why
+        self.heatmap_image.image = preview.heatmap_picture
+        self.mask_image.image = preview.mask_picture
+        self.heatmap_image.visible = self.mask_image.visible = True
+        self.query_message.content = f"*{_escape(preview.message)}* ({preview.seconds * 1000:.0f} ms) ..."
+        self.previews_shown += 1
 
     def _draw_instances(self, answer: WebAnswer) -> None:
         for handle in self.instance_buttons:

@@ -92,6 +92,7 @@ class WebAnswer:
     mask_picture: np.ndarray | None = None  # [H', W, 3] uint8 RGB: photo + mask + legend
     seconds: float = 0.0
     since: str = ""  # a change query's earlier flight; "" an ordinary query
+    preview: bool = False  # the view's pictures alone, small (``ask(preview=True)``): the full answer follows
 
 
 def change_margin(change, ids: np.ndarray, span: float = 0.2) -> np.ndarray:
@@ -168,11 +169,20 @@ class RunReview:
         --per-flight; the newest one is "now"); [] without per-flight maps."""
         return self.service.flights()[:-1]
 
-    def ask(self, text: str, negatives: list[str], view: str = "", since: str = "", gone: bool = False) -> WebAnswer:
+    def ask(
+        self,
+        text: str,
+        negatives: list[str],
+        view: str = "",
+        since: str = "",
+        gone: bool = False,
+        preview: bool = False,
+    ) -> WebAnswer:
         """The query's relevance on the browser splats, its 3D instances and, with ``view`` (a
         view's exact name; another is ignored), the view's heatmap and mask pictures; with
-        ``since`` (a flight of ``flights()``) what changed since it instead (``ask_change``). Bad
-        input and a missing map come back as a status."""
+        ``since`` (a flight of ``flights()``) what changed since it instead (``ask_change``);
+        with ``preview`` (and a view) the view's pictures alone, small (``MapService.answer``).
+        Bad input and a missing map come back as a status."""
         if since:
             return self.ask_change(text, negatives, view, since, gone)
         start = time.perf_counter()
@@ -180,7 +190,9 @@ class RunReview:
         if problem:
             return WebAnswer("bad_request", problem, text)
         view = view if view in {c.name for c in self.cameras()} else ""
-        result = self.service.answer(text, negatives, view, heatmap=bool(view), splats=self.max_splats)
+        result = self.service.answer(
+            text, negatives, view, heatmap=bool(view), splats=self.max_splats, preview=preview and bool(view)
+        )
         answer = result.answer
         if answer is None:
             return WebAnswer(result.status, result.message, text)
@@ -192,7 +204,11 @@ class RunReview:
             result.version,
             result.margin,
             answer.instances,
+            preview=answer.chosen_count < 0,
         )
+        if outcome.preview:
+            assert result.camera is not None
+            outcome.message = f"preview at {result.camera.width}x{result.camera.height}; the full answer follows"
         georef = self.service.georef
         outcome.located, outcome.height_ref = locate(answer.instances, georef), georef.height_ref if georef else ""
         if result.photo is not None and answer.heatmap is not None and answer.mask is not None:

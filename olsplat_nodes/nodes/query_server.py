@@ -266,6 +266,9 @@ class QueryServerNode(Node):
         )
 
     def _query(self, request: QueryRequest) -> QueryReply:
+        if request.since and request.preview:
+            return _no_answer(request, "bad_request", "a change query has no preview: ask without it",
+                              self.service.version)  # fmt: skip
         if request.since:
             return self._change_query(request)
         result: MapAnswer = self.service.answer(
@@ -275,10 +278,18 @@ class QueryServerNode(Node):
             threshold=request.threshold,  # NaN: beat the negatives
             heatmap=request.heatmap,
             splats=request.splats,
+            preview=request.preview,
         )
         if result.answer is None:
             return _no_answer(request, result.status, result.message, result.version)
         reply = reply_for(result.answer, request, result.version, result.photo, 0.0, self.service.georef)
+        if request.preview:
+            assert result.camera is not None
+            reply.preview = True
+            reply.message = (
+                f"preview of view {result.camera.name} at {result.camera.width}x{result.camera.height}: "
+                "the 3D instances come with the full answer"
+            )
         if result.margin is not None:  # the page's colours, per splat of its decimation
             reply.splat_margin = result.margin.astype(np.float16)
         return reply

@@ -179,6 +179,7 @@ def answer_query(
     min_points: int = 20,
     features: QueryFeatures | None = None,
     voxel_index: VoxelIndex | None = None,
+    locate: bool = True,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
@@ -187,8 +188,10 @@ def answer_query(
     DBSCAN of the chosen Gaussians' centres with radius ``cluster_radius`` (metres; None: from
     the map's density, ``localize.default_cluster_radius``) and ``min_points``. ``features``:
     the map's ``QueryFeatures``, made once by a caller that asks many queries; ``voxel_index``:
-    the map's ``localize.VoxelIndex`` for the cluster radius, likewise. Raises
-    OlsplatInputError on an empty text or a map that does not match the Gaussians."""
+    the map's ``localize.VoxelIndex`` for the cluster radius, likewise. ``locate`` False skips
+    the Gaussians' choice and the 3D instances (a preview's heatmap: chosen_count -1, no
+    instances). Raises OlsplatInputError on an empty text or a map that does not match the
+    Gaussians."""
     text = text.strip()
     if not text:
         raise OlsplatInputError("the query text is empty")
@@ -203,21 +206,11 @@ def answer_query(
     embeddings = encoder.encode_text([text, *negatives])  # [1 + negatives, D] unit rows
     features = features if features is not None else QueryFeatures.of(language_map)
     chosen_of = partial(features.winners, embeddings, language_map.observed)
-    radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
-    in_order = None
-    if voxel_index is not None and voxel_index.eps == float(radius):
-        in_order = features.winners_in_order(embeddings, voxel_index)  # observed: rows -1 otherwise
-    if in_order is not None:  # a codebook map with its index: no [N] mask unless asked for
-        count = features.count_winners(embeddings)
-        assert count is not None
-        answer = QueryAnswer(text, negatives, count, [], chosen_of=chosen_of)
-        selected = None
-    else:
-        selected = chosen_of()
-        answer = QueryAnswer(text, negatives, int(np.count_nonzero(selected)), [], _chosen=selected)
-    answer.instances = instances_in_3d(
-        gaussians.means, selected, radius, min_points, index=voxel_index, in_order=in_order
-    )
+    if locate:
+        radius = cluster_radius if cluster_radius is not None else default_cluster_radius(gaussians.means, min_points)
+        answer = _located(text, negatives, gaussians, features, embeddings, chosen_of, radius, min_points, voxel_index)
+    else:  # a preview: the view's pictures only
+        answer = QueryAnswer(text, negatives, -1, [], chosen_of=chosen_of)
     answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:
         table, rows = features.table, features.rows
@@ -231,4 +224,21 @@ def answer_query(
         else:
             answer.mask = threshold_mask(maps[0], threshold, alpha)
         answer.regions = regions_in_view(answer.mask)
+    return answer
+
+
+def _located(text, negatives, gaussians, features, embeddings, chosen_of, radius, min_points, voxel_index):
+    """``answer_query``'s choice of Gaussians and their 3D instances (DBSCAN, ``radius`` metres)."""
+    if voxel_index is not None and voxel_index.eps == float(radius):
+        in_order = features.winners_in_order(embeddings, voxel_index)  # observed: rows -1 otherwise
+        if in_order is not None:  # a codebook map with its index: no [N] mask unless asked for
+            count = features.count_winners(embeddings)
+            assert count is not None
+            answer = QueryAnswer(text, negatives, count, [], chosen_of=chosen_of)
+            answer.instances = instances_in_3d(gaussians.means, None, radius, min_points, index=voxel_index,
+                                               in_order=in_order)  # fmt: skip
+            return answer
+    selected = chosen_of()
+    answer = QueryAnswer(text, negatives, int(np.count_nonzero(selected)), [], _chosen=selected)
+    answer.instances = instances_in_3d(gaussians.means, selected, radius, min_points, index=voxel_index)
     return answer

@@ -51,6 +51,9 @@ MAX_TEXT_CHARS = 200  # per text, the query's and each negative's (the query ser
 MAX_NEGATIVES = 32  # each costs a text embedding and a cosine per Gaussian and pixel
 CLUSTER_MIN_POINTS = 20  # a 3D instance has at least this many Gaussians
 REPLY_BYTES_PER_PIXEL = 8  # a heatmap reply: float32 heatmap, uint8 mask, RGB photo
+# a preview's longer side, pixels: a 1280x960 view's heatmap in 1/16 of its pixels, what a ground
+# station shows at once while the full answer (and its 3D instances) is computed
+PREVIEW_MAX_SIDE = 320
 NO_MAP = "no map yet: no view has been aggregated and refined"
 
 
@@ -372,6 +375,7 @@ class MapService:
         threshold: float | None = None,
         heatmap: bool = True,
         splats: int = 0,
+        preview: bool = False,
     ) -> MapAnswer:
         """``query.answer.answer_query`` on the loaded map: relevance, 3D instances and, with
         ``view`` (a saved view's name, file name, stem or index: ``scene.select_view``), that
@@ -381,6 +385,8 @@ class MapService:
         instead of beating the negatives (None or NaN: beat them). ``heatmap``: False drops the
         heatmap and mask from the answer (the 2D regions stay) and reads no photo. ``splats``:
         M > 0 adds the relevance margin of the first M-splat browser decimation (``margin``).
+        ``preview``: the view's pictures alone, at most ``PREVIEW_MAX_SIDE`` on the longer side
+        (no 3D instances, no margin): what a ground station shows while the full answer comes.
         Refusals (texts, splats out of 0..MAX_SPLATS, an unknown view, a reply over
         ``max_reply_mb``, no map yet) come back as a status, never raised."""
         from ..scene import select_view
@@ -398,6 +404,8 @@ class MapService:
             return refuse("bad_request", problem.message)
         if not 0 <= splats <= MAX_SPLATS:
             return refuse("bad_request", f"splats must be 0..{MAX_SPLATS:,}, got {splats:,}")
+        if preview and not (view and heatmap):
+            return refuse("bad_request", "a preview is a view's heatmap: give a view (and ask for its heatmap)")
         if loaded is None:
             return refuse("no_map", NO_MAP)
         text = text.strip()
@@ -407,7 +415,7 @@ class MapService:
             camera = select_view([v.camera for v in views], view) if view else None
             if camera is not None:
                 saved = views[[v.camera for v in views].index(camera)]
-                camera = self._reply_camera(camera)
+                camera = self._reply_camera(camera, PREVIEW_MAX_SIDE if preview else 0)
                 if heatmap:
                     reply_mb = camera.width * camera.height * REPLY_BYTES_PER_PIXEL / 2**20
                     if reply_mb > self.max_reply_mb:
@@ -434,13 +442,14 @@ class MapService:
                 min_points=self.cluster_min_points,
                 features=loaded.features,
                 voxel_index=self.voxel_index,
+                locate=not preview,
             )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))
         if not heatmap:
             answer.heatmap = answer.mask = None
         result = MapAnswer("ok", "", loaded.version, answer, camera, photo, loaded=loaded, encoder=encoder)
-        if splats:  # the page's colours: per splat of its decimation, in its order
+        if splats and not preview:  # the page's colours: per splat of its decimation, in its order
             result.margin = self.margin(result, self.splats(splats))
         return result
 
@@ -537,12 +546,13 @@ class MapService:
             self._splats_max = max_splats
         return self._splats
 
-    def _reply_camera(self, camera: Camera) -> Camera:
-        """The view's camera scaled down to ``heatmap_max_side`` on its longer side, or as it is."""
-        side = self.heatmap_max_side
-        if side <= 0 or max(camera.width, camera.height) <= side:
+    def _reply_camera(self, camera: Camera, max_side: int = 0) -> Camera:
+        """The view's camera scaled down to ``heatmap_max_side`` (and ``max_side`` when > 0) on its
+        longer side, or as it is."""
+        limits = [side for side in (self.heatmap_max_side, max_side) if side > 0]
+        if not limits or max(camera.width, camera.height) <= min(limits):
             return camera
-        return camera.scaled(side / max(camera.width, camera.height))
+        return camera.scaled(min(limits) / max(camera.width, camera.height))
 
     @staticmethod
     def _photo(saved: SavedView, camera: Camera) -> np.ndarray:

@@ -9,6 +9,7 @@ import json
 import math
 import sys
 import uuid
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -27,7 +28,12 @@ def add_parser(subparsers) -> None:
     )
     query.add_argument("--gone", action="store_true", help="with --since and a text: what went away instead")
     query.add_argument("--view", default="", help="answer with a heatmap and mask over this view (name or index)")
-    query.add_argument("--out", type=Path, help="write the heatmap and mask PNGs here (needs --view)")
+    query.add_argument(
+        "--out",
+        type=Path,
+        help="write the heatmap and mask PNGs here (needs --view): first the preview's (VIEW_TEXT_preview_*.png, "
+        "at most 320 px, asked first and written as soon as it comes), then the full answer's",
+    )
     query.add_argument("--negatives", help="comma-separated texts to beat (default: the server's)")
     query.add_argument(
         "--threshold",
@@ -231,18 +237,21 @@ def run(args: argparse.Namespace) -> int:
         if args.out and not args.view:
             raise OlsplatInputError("--out writes pictures over a view: give --view too")
         negatives = [t.strip() for t in args.negatives.split(",") if t.strip()] if args.negatives else []
-        reply = client.request(
-            QueryRequest(
-                request_id=request_id,
-                text=args.text,
-                view=args.view,
-                heatmap=bool(args.view),
-                threshold=args.threshold,
-                negatives=negatives,
-                since=args.since,
-                gone=args.gone,
-            )
+        request = QueryRequest(
+            request_id=request_id,
+            text=args.text,
+            view=args.view,
+            heatmap=bool(args.view),
+            threshold=args.threshold,
+            negatives=negatives,
+            since=args.since,
+            gone=args.gone,
         )
+        if args.out and not args.since:  # the view's pictures at once, small, then the full answer's
+            preview = client.request(replace(request, request_id=f"{request_id}-preview", preview=True))
+            if preview.status == "ok":
+                _write_pictures(preview, args.out, args.threshold, args.json, "preview")
+        reply = client.request(request)
         code = print_answer(reply, args.json, args.out, args.threshold)
         if reply.status == "ok" and (args.geojson or args.kml):
             write_reply_geo_files(reply, args.geojson, args.kml, as_json=args.json)
@@ -334,26 +343,35 @@ def print_answer(reply, as_json: bool, out: Path | None, threshold: float = math
             print(f"view {reply.view}: {len(found2d)} regions")
             for inst in found2d[:20]:
                 print(f"  2D #{inst['id']}: box {tuple(inst['box2d'])}, {inst['area_px']} px")
-    if out is not None and reply.heatmap is not None and reply.image is not None:
-        from ..viz import write_query_pictures
-
-        alpha = (reply.heatmap != 0).astype("float32")  # the server sends 0 where nothing was rendered
-        boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]
-        paths = write_query_pictures(
-            out,
-            reply.view,
-            reply.text,
-            reply.image,
-            reply.heatmap,
-            alpha,
-            reply.mask,
-            boxes,
-            map_version=reply.map_version,
-            threshold=threshold,
-        )
-        if not as_json:
-            print(f"pictures -> {', '.join(str(p) for p in paths)}")
+    if out is not None:
+        _write_pictures(reply, out, threshold, as_json)
     return 0
+
+
+def _write_pictures(reply, out: Path, threshold: float, as_json: bool, kind: str = "") -> None:
+    """A reply's heatmap and mask pictures into ``out`` (``viz.write_query_pictures``), if it has them."""
+    from ..viz import write_query_pictures
+
+    if reply.heatmap is None or reply.image is None or reply.mask is None:
+        return
+    alpha = (reply.heatmap != 0).astype("float32")  # the server sends 0 where nothing was rendered
+    boxes = [tuple(i["box2d"]) for i in reply.instances if i["kind"] == "2d"]
+    paths = write_query_pictures(
+        out,
+        reply.view,
+        reply.text,
+        reply.image,
+        reply.heatmap,
+        alpha,
+        reply.mask,
+        boxes,
+        map_version=reply.map_version,
+        threshold=threshold,
+        kind=kind,
+    )
+    if not as_json:
+        label = f"{kind} pictures" if kind else "pictures"
+        print(f"{label} -> {', '.join(str(p) for p in paths)}")
 
 
 def _scored(reply) -> list[dict]:

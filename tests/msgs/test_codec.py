@@ -55,7 +55,7 @@ def test_header_layout():
     msg = next(m for n, m in SAMPLES if n == "reply-none-arrays")
     header = msgpack.unpackb(encode(msg, "query")[1])
     assert list(header) == ["schema", "version", "stamp_ns", "seq", "frame_id", "fields", "arrays"]
-    assert header["schema"] == "olsplat_msgs/QueryReply" and header["version"] == 4
+    assert header["schema"] == "olsplat_msgs/QueryReply" and header["version"] == 5
     assert "heatmap" not in header["fields"] and header["fields"]["status"] == "no_map"
     assert header["arrays"][0] == {"name": "heatmap", "dtype": None, "shape": None}
 

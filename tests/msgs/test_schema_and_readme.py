@@ -50,7 +50,7 @@ def test_class_fields_match_schema_field_by_field(name):
 
 
 def test_schema_basics():
-    assert SCHEMA.version == 4 == olsplat_msgs.VERSION
+    assert SCHEMA.version == 5 == olsplat_msgs.VERSION
     assert set(SCHEMA.dtypes.values()) == {"|u1", "<u2", "<i4", "<i8", "<f2", "<f4", "<f8"}
     for name, text in SCHEMA.dtypes.items():
         assert np.dtype(name).newbyteorder("<").str == text

@@ -85,7 +85,12 @@ def test_status_and_query_print_json(ctx, sockdir, tiny, tiny_run, capsys):
         assert code == 0 and out.startswith("map version 1") and "query_server" in out
 
 
-def test_query_over_a_view_writes_heatmap_and_mask_pngs(ctx, sockdir, tiny, tiny_run, tmp_path, capsys):
+def test_query_over_a_view_writes_the_preview_then_the_full_pngs(
+    ctx, sockdir, tiny, tiny_run, tmp_path, capsys, monkeypatch
+):
+    from olsplat_nodes.query import service
+
+    monkeypatch.setattr(service, "PREVIEW_MAX_SIDE", 160)  # the tiny views are 320 px wide: previews of half
     out_dir = tmp_path / "pictures"
     with query_server(ctx, sockdir, tiny, tiny_run / "map", tiny_run / "views") as endpoint:
         wait_until_up(capsys, endpoint)
@@ -105,11 +110,14 @@ def test_query_over_a_view_writes_heatmap_and_mask_pngs(ctx, sockdir, tiny, tiny
     assert code == 0, err
     stem = f"{ENCODE_VIEW.rsplit('.', 1)[0]}_red_roof_buildings"
     pictures = sorted(out_dir.iterdir())
-    assert [p.name for p in pictures] == [f"{stem}_heatmap.png", f"{stem}_mask.png"]
+    kinds = ("heatmap", "mask", "preview_heatmap", "preview_mask")
+    assert [p.name for p in pictures] == [f"{stem}_{kind}.png" for kind in kinds]
     for picture in pictures:
         assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-        assert cv2.imread(str(picture)).shape == (240 + LEGEND_H, 320, 3)  # the view, then its legend
+        size = (120, 160) if "preview" in picture.name else (240, 320)
+        assert cv2.imread(str(picture)).shape == (size[0] + LEGEND_H, size[1], 3)  # the view, then its legend
     assert f"view {ENCODE_VIEW}" in out and "pictures ->" in out
+    assert out.index("preview pictures ->") < out.index(f"view {ENCODE_VIEW}")  # the preview came first
 
 
 def test_query_before_any_map_says_so(ctx, sockdir, tiny, tmp_path, capsys):

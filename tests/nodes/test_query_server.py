@@ -76,6 +76,20 @@ def test_no_map_yet_is_answered_at_once_and_status_works(ctx, sockdir, tiny, tin
                 QueryRequest(request_id="q", text="red roof buildings", view=ENCODE_VIEW, heatmap=True)
             )
             assert reply.status == "ok" and reply.map_version == 1 and reply.heatmap.shape == (240, 320)
+            assert not reply.preview and "Gaussians pick it" in reply.message
+            # a preview (request.preview): the view's pictures at most PREVIEW_MAX_SIDE px, no 3D
+            # instances, no splat margin; refused without a view and on a change query
+            node.service.heatmap_max_side = 200  # the server's own limit binds when it is smaller
+            preview = client.request(
+                QueryRequest(request_id="p", text="red roof buildings", view=ENCODE_VIEW, preview=True, splats=1000)
+            )
+            assert preview.status == "ok" and preview.preview and preview.request_id == "p"
+            assert preview.heatmap.shape == preview.mask.shape == (150, 200) and preview.image.shape == (150, 200, 3)
+            assert [i["kind"] for i in preview.instances] == ["2d"] * len(preview.instances)
+            assert preview.splat_margin is None and "preview of view" in preview.message
+            for bad in (QueryRequest(text="roads", preview=True), QueryRequest(text="", since="f0", preview=True)):
+                refused = client.request(bad)
+                assert refused.status == "bad_request" and not refused.preview, refused.message
             running.assert_running()
     finally:
         maps.close()
