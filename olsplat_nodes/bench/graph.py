@@ -50,8 +50,12 @@ over the views it added), ``query_relevance_p95_ms`` (round trip) and
 ``query_relevance_server_p95_ms`` (the query server's own time), ``query_heatmap_p95_ms`` (all
 heatmap queries), ``query_heatmap_first_p95_ms`` and ``query_heatmap_repeat_p95_ms`` (first and
 later queries on a view), ``query_heatmap_first_server_p95_ms`` (the server's own time for the
-first ones), ``heatmap_views`` (the views the heatmap queries asked for), ``memory_series``
-{node: [[views stored, resident MB, private MB], ...]} and
+first ones), ``query_heatmap_preview_p95_ms`` and ``query_heatmap_preview_first_p95_ms`` (each
+heatmap query's preview, asked first as the ground station page asks it: all, and the first on
+each view), ``refine_pass_s_per_view_added`` ({first_third, last_third, ratio}: the fold
+passes' seconds per view added, over the passes that ended in the first and the last third of
+the flight; see pass_growth below), ``heatmap_views`` (the views the heatmap queries asked
+for), ``memory_series`` {node: [[views stored, resident MB, private MB], ...]} and
 ``nodes.<name>.{busy_ms, latency_ms, drops, handled}`` (means over the flight's heartbeats; the
 accumulator's latency_ms is the frame-to-store latency).
 
@@ -272,6 +276,9 @@ def run(args: argparse.Namespace) -> int:
         figures["refine_s_per_added_view"] = [
             round(s / max(int(a), 1), 3) for s, a in zip(refine_pass_s, added, strict=True)
         ]
+        figures["refine_pass_s_per_view_added"] = pass_growth(
+            refine_pass_s, figures["refine_pass_views"], figures["refine_pass_exact"], views
+        )
         how = (
             f"lossless ({resent} sent again for want of an acknowledgement)" if args.lossless else f"at {args.rate:g}/s"
         )
@@ -332,6 +339,11 @@ def run(args: argparse.Namespace) -> int:
             + ", ".join(f"{s:.1f} ({v}{'*' if exact else ''})" for s, v, exact in marked)
         )
         print("  per view added by the pass (s): " + ", ".join(f"{s:.2f}" for s in figures["refine_s_per_added_view"]))
+        growth = figures["refine_pass_s_per_view_added"]
+        print(
+            f"  folds, s per view added: first third {growth['first_third']}, last third {growth['last_third']} "
+            f"(x{growth['ratio']})"
+        )
         report_queries(times, figures)
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -358,3 +370,19 @@ def memory_figures(watch, views: int, figures: dict) -> None:
     figures["memory_series"] = {
         name: [[v, round(r), round(p)] for v, r, p in ser] for name, ser in sorted(watch.series.items())
     }
+
+
+def pass_growth(pass_s: list[float], pass_views: list[int], exact: list[bool], views: int) -> dict:
+    """Whether live passes grow with the flight: the mean seconds per view added of the fold
+    passes (``exact`` False; the first and the final pass are exact by design) that ended with
+    at most a third of the flight's ``views`` in the map, and of those that ended in its last
+    third; ``ratio`` = last / first. None where a third has no fold pass. ``pass_s`` [P] seconds,
+    ``pass_views`` [P] views in the map after each pass, in pass order."""
+    added = np.diff([0, *pass_views])
+    per_view = [(v, s / a) for s, v, a, e in zip(pass_s, pass_views, added, exact, strict=True) if not e and a > 0]
+    first = [x for v, x in per_view if v <= views / 3]
+    last = [x for v, x in per_view if v > 2 * views / 3]
+    first_mean = round(float(np.mean(first)), 3) if first else None
+    last_mean = round(float(np.mean(last)), 3) if last else None
+    ratio = round(last_mean / first_mean, 2) if first_mean and last_mean is not None else None
+    return {"first_third": first_mean, "last_third": last_mean, "ratio": ratio}

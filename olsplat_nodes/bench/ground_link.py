@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 import uuid
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,9 @@ QUERY_KINDS = {
     "heatmap_first": "heatmap, first query on its view",
     "heatmap_repeat": "heatmap, next queries on the view",
     "heatmap_first_server": "heatmap, first query on its view",
+    # each heatmap query is preceded by its preview (QueryRequest.preview), as the page asks them
+    "heatmap_preview": "preview heatmap (<= 320 px)",
+    "heatmap_preview_first": "preview, first query on its view",
 }
 
 
@@ -90,7 +94,8 @@ def time_queries(
     client, scene: Path, run_dir: Path, relevance: int, heatmaps: int, heatmap_views: int, spread: bool = False
 ) -> dict[str, list]:
     """Round-trip seconds per kind (``QUERY_KINDS``) of ``relevance`` queries without a view and
-    ``heatmaps`` queries spread over ``heatmap_views`` views of the run (``pick_views``), each text
+    ``heatmaps`` queries spread over ``heatmap_views`` views of the run (``pick_views``), each
+    asked as the ground station page asks it: its preview first, then the full answer; each text
     one of the scene's labels with the others as negatives, and under ``"heatmap_views"`` the
     names of the views asked for. Raises RunFailed on a refusal.
     Waits first (up to 60 s) until the query server has loaded the run's newest map: the
@@ -121,17 +126,25 @@ def time_queries(
     times["heatmap_views"] = views
     for kind, view, i in plan:
         text = texts[i % len(texts)]
-        start = time.perf_counter()
-        reply = client.request(
-            QueryRequest(
-                request_id=uuid.uuid4().hex[:8],
-                text=text,
-                view=view,
-                heatmap=bool(view),
-                threshold=float("nan"),
-                negatives=[t for t in texts if t != text],
-            )
+        request = QueryRequest(
+            request_id=uuid.uuid4().hex[:8],
+            text=text,
+            view=view,
+            heatmap=bool(view),
+            threshold=float("nan"),
+            negatives=[t for t in texts if t != text],
         )
+        if kind == "heatmap":
+            start = time.perf_counter()
+            preview = client.request(replace(request, request_id=f"{request.request_id}p", preview=True))
+            seconds = time.perf_counter() - start
+            if preview.status != "ok" or not preview.preview:
+                raise RunFailed(f"preview {text!r}: {preview.status}: {preview.message}")
+            times["heatmap_preview"].append(seconds)
+            if i == 0:
+                times["heatmap_preview_first"].append(seconds)
+        start = time.perf_counter()
+        reply = client.request(request)
         seconds = time.perf_counter() - start
         if reply.status != "ok":
             raise RunFailed(f"query {text!r}: {reply.status}: {reply.message}")

@@ -79,6 +79,8 @@ def check_common(figures: dict, frames: int = 12) -> None:
     for key in ("query_relevance_p95_ms", "query_heatmap_p95_ms", "query_heatmap_first_p95_ms"):
         assert figures[key] > 0
     assert figures["query_heatmap_repeat_p95_ms"] > 0
+    assert figures["query_heatmap_preview_p95_ms"] > 0 and figures["query_heatmap_preview_first_p95_ms"] > 0
+    assert set(figures["refine_pass_s_per_view_added"]) == {"first_third", "last_third", "ratio"}
     # the server's own time is part of the round trip
     assert 0 < figures["query_relevance_server_p95_ms"] <= figures["query_relevance_p95_ms"]
     assert 0 < figures["query_heatmap_first_server_p95_ms"] <= figures["query_heatmap_first_p95_ms"]
@@ -232,6 +234,17 @@ def test_a_stream_that_aggregates_no_view_is_one_error_not_a_hang(tiny, tmp_path
     logs = Path(err[0].rsplit("see ", 1)[1])
     assert "all 0 frames delivered" in (logs / "ingest.log").read_text()
     shutil.rmtree(logs.parent)  # the bench's own temporary run folder, kept for the message
+
+
+def test_pass_growth_compares_the_folds_of_the_first_and_last_thirds():
+    # passes after 1 (exact), 3, 5, 10, 14 (folds) and 15 views (the final exact pass)
+    seconds = [9.0, 2.0, 2.0, 10.0, 8.0, 30.0]
+    growth = graph.pass_growth(seconds, [1, 3, 5, 10, 14, 15], [True, False, False, False, False, True], 15)
+    # first third (<= 5 views): 2/2 and 2/2 s per view added; last third (> 10): 8/4
+    assert growth == {"first_third": 1.0, "last_third": 2.0, "ratio": 2.0}
+    assert graph.pass_growth([9.0, 1.0], [1, 12], [True, True], 12) == {
+        "first_third": None, "last_third": None, "ratio": None
+    }  # fmt: skip
 
 
 def test_heatmap_views_are_the_first_ones_or_spread_over_the_flight():
