@@ -4,7 +4,11 @@ Two figures, p50/p95 over ``--repeats`` queries (texts cycled from the scene's q
 - relevance: text -> embedding (the encoders' text towers) -> cosine with every Gaussian's feature;
 - heatmap: the same plus rendering the feature map of one view and its cosine heatmap;
 - answer: what the query server computes without a view (relevance against the scene's other
-  queries as negatives, the Gaussians that pick the query, and their 3D instances).
+  queries as negatives, the Gaussians that pick the query, and their 3D instances);
+- preview: a view at the preview's size (``query.service.PREVIEW_MAX_SIDE``) drawn from the
+  map's ``PREVIEW_MAX_GAUSSIANS`` most opaque and largest Gaussians, against the same view drawn
+  from all of them: the render's milliseconds of each and the IoU of their masks (the query
+  against the scene's other queries), over ``--preview-views`` views spread over the flight.
 The map's features are converted to float32 once, at load, as the query server does.
 """
 
@@ -23,6 +27,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--scene", required=True, type=Path, help="a scene folder")
     parser.add_argument("--repeats", type=int, default=100, help="relevance queries timed")
     parser.add_argument("--heatmap-repeats", type=int, default=20, help="heatmap queries timed")
+    parser.add_argument("--preview-views", type=int, default=6, help="views the preview is compared on")
     parser.set_defaults(run=run)
 
 
@@ -76,4 +81,36 @@ def run(args: argparse.Namespace) -> int:
     print(_line("relevance", relevance))
     print(_line("heatmap", heat))
     print(_line("answer 3D", answers))
+    picked = [scene.cameras[round(k * (len(scene.cameras) - 1) / max(args.preview_views - 1, 1))]
+              for k in range(min(args.preview_views, len(scene.cameras)))]  # fmt: skip
+    exact, drawn, ious = preview_figures(gaussians, features, encoder.encode_text(texts), picked)
+    print(_line("preview, all Gaussians", exact))
+    print(_line("preview, decimated", drawn))
+    print(f"  preview masks, decimated vs all: IoU {', '.join(f'{x:.2f}' for x in ious)} over {len(picked)} views")
     return 0
+
+
+def preview_figures(gaussians, features: np.ndarray, texts: np.ndarray, cameras) -> tuple[list, list, list]:
+    """(seconds of each view's preview render from all Gaussians, the same from the preview's
+    decimated map, IoU of the two masks, 1 when both are empty) per camera; features [N, D], texts [Q, D] unit rows (the
+    query first, the negatives after)."""
+    from ..query.heatmap import relevancy_mask, render_heatmaps
+    from ..query.service import PREVIEW_MAX_GAUSSIANS, PREVIEW_MAX_SIDE
+    from ..query.splats import decimate
+
+    ids = decimate(gaussians, PREVIEW_MAX_GAUSSIANS)
+    subset, rows = gaussians.subset(ids), features[ids]
+    exact, drawn, ious = [], [], []
+    for camera in cameras:
+        side = max(camera.width, camera.height)
+        camera = camera.scaled(PREVIEW_MAX_SIDE / side) if side > PREVIEW_MAX_SIDE else camera
+        masks = []
+        for source, rows_of, seconds in ((gaussians, features, exact), (subset, rows, drawn)):
+            render_heatmaps(source, rows_of, texts, camera)  # compiled and culled once, then timed
+            t0 = time.perf_counter()
+            maps, alpha = render_heatmaps(source, rows_of, texts, camera)
+            seconds.append(time.perf_counter() - t0)
+            masks.append(relevancy_mask(maps[0], maps[1:], alpha))
+        union = (masks[0] | masks[1]).sum()
+        ious.append(float((masks[0] & masks[1]).sum() / union) if union else 1.0)  # both empty: they agree
+    return exact, drawn, ious

@@ -180,6 +180,7 @@ def answer_query(
     features: QueryFeatures | None = None,
     voxel_index: VoxelIndex | None = None,
     locate: bool = True,
+    drawn: tuple[Gaussians, np.ndarray] | None = None,
 ) -> QueryAnswer:
     """Relevance of every Gaussian to ``text``, 3D instances, and with ``camera`` the heatmap,
     mask and 2D regions of that view. The mask is where the query beats every negative, or,
@@ -190,8 +191,9 @@ def answer_query(
     the map's ``QueryFeatures``, made once by a caller that asks many queries; ``voxel_index``:
     the map's ``localize.VoxelIndex`` for the cluster radius, likewise. ``locate`` False skips
     the Gaussians' choice and the 3D instances (a preview's heatmap: chosen_count -1, no
-    instances). Raises OlsplatInputError on an empty text or a map that does not match the
-    Gaussians."""
+    instances). ``drawn`` = (Gaussians, their ids [M] int64 in the map): the view is rendered
+    from these alone (a preview's decimated map), with their features. Raises
+    OlsplatInputError on an empty text or a map that does not match the Gaussians."""
     text = text.strip()
     if not text:
         raise OlsplatInputError("the query text is empty")
@@ -213,11 +215,14 @@ def answer_query(
         answer = QueryAnswer(text, negatives, -1, [], chosen_of=chosen_of)
     answer.unknown_words = list(getattr(encoder, "unknown_words", lambda _t: [])(text))
     if camera is not None:
-        table, rows = features.table, features.rows
+        table, rows, source = features.table, features.rows, gaussians
+        if drawn is not None:  # a subset of the map: its rows of the table (its ids, for a per-Gaussian table)
+            source, ids = drawn
+            rows = ids if rows is None else rows[ids]
         if images is not None:
-            maps, alpha = images.heatmaps(image_key, gaussians, table, embeddings, camera, rows=rows)
+            maps, alpha = images.heatmaps(image_key, source, table, embeddings, camera, rows=rows)
         else:
-            maps, alpha = render_heatmaps(gaussians, table, embeddings, camera, rows=rows)
+            maps, alpha = render_heatmaps(source, table, embeddings, camera, rows=rows)
         answer.heatmap, answer.negative_heatmaps, answer.alpha = maps[0], maps[1:], alpha
         if threshold is None:
             answer.mask = relevancy_mask(maps[0], maps[1:], alpha)

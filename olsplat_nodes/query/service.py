@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import OlsplatInputError
 
 if TYPE_CHECKING:  # the heavy modules load at run time: a node class is imported by the launcher
-    from ..scene import Camera
+    from ..scene import Camera, Gaussians
     from ..scene.geodesy import Georeference
     from ..storage import LanguageMap, SavedView
     from .answer import CachedTexts, QueryAnswer, QueryFeatures
@@ -54,6 +54,13 @@ REPLY_BYTES_PER_PIXEL = 8  # a heatmap reply: float32 heatmap, uint8 mask, RGB p
 # a preview's longer side, pixels: a 1280x960 view's heatmap in 1/16 of its pixels, what a ground
 # station shows at once while the full answer (and its 3D instances) is computed
 PREVIEW_MAX_SIDE = 320
+# ... drawn from at most this many of the map's Gaussians, the most opaque and largest (the
+# browser's decimation, ``splats.decimate``): a far view of the 5.2M-Gaussian map projects
+# millions of them, 1.3-1.5 s at 320 px; the top 500,000 take 0.06-0.17 s and their mask covers
+# 0.86-0.89 of the exact one's (IoU) over the six views of `olsplat sim make --preset large
+# --views 6` (docs/benchmarks.md, "Scale"). The full answer stays exact.
+PREVIEW_MAX_GAUSSIANS = 500_000
+PREVIEW_CACHE_MB = 64  # previews' own feature images: a preview must not evict a full view's
 NO_MAP = "no map yet: no view has been aggregated and refined"
 
 
@@ -250,7 +257,10 @@ class MapService:
         self.encoders: dict[str, CachedTexts] = {}  # encoder spec -> loaded encoder
         self.encoder_lock = threading.Lock()  # a query and the warm query may ask for the encoder at once
         self.feature_images = FeatureImages(int(heatmap_cache_mb * 2**20))
+        self.preview_images = FeatureImages(PREVIEW_CACHE_MB * 2**20)
         self.heatmap_cache = heatmap_cache_mb > 0
+        self._preview_map: tuple[Gaussians, np.ndarray] | None = None  # made at the first preview
+        self._preview_lock = threading.Lock()
         self._views: list[SavedView] = []
         self._splats: BrowserSplats | None = None  # the last decimation asked for ...
         self._splats_max = 0  # ... and its max_splats
@@ -435,7 +445,7 @@ class MapService:
                 negatives,
                 camera,
                 threshold if threshold is not None and math.isfinite(threshold) else None,
-                images=self.feature_images if self.heatmap_cache else None,
+                images=(self.preview_images if preview else self.feature_images) if self.heatmap_cache else None,
                 # the width too: a view rendered at another size is another image
                 image_key=(loaded.version, camera.name, camera.width) if camera is not None else None,
                 cluster_radius=self.cluster_radius,
@@ -443,6 +453,7 @@ class MapService:
                 features=loaded.features,
                 voxel_index=self.voxel_index,
                 locate=not preview,
+                drawn=self.preview_map() if preview else None,
             )
         except OlsplatInputError as exc:
             return refuse("bad_request", str(exc))
@@ -546,6 +557,26 @@ class MapService:
             self._splats_max = max_splats
         return self._splats
 
+    def preview_map(self) -> tuple[Gaussians, np.ndarray] | None:
+        """The Gaussians a preview is drawn from and their ids [M] in the map: the map's
+        ``PREVIEW_MAX_GAUSSIANS`` most opaque and largest (``splats.decimate``), made once (~1 s
+        for 5.2M, in the warm-up) and kept without their colours (~25 MB for 500,000); None for
+        a map no larger (a preview draws all of it)."""
+        from ..scene import Gaussians
+        from .splats import decimate
+
+        g = self.gaussians
+        if len(g) <= PREVIEW_MAX_GAUSSIANS:
+            return None
+        with self._preview_lock:
+            if self._preview_map is None:
+                ids = decimate(g, PREVIEW_MAX_GAUSSIANS)
+                kept = Gaussians(  # no colours: a preview renders features
+                    g.means[ids], g.quats[ids], g.log_scales[ids], g.opacity_logits[ids], g.sh[ids, :1], {}
+                )
+                self._preview_map = (kept, ids)
+            return self._preview_map
+
     def _reply_camera(self, camera: Camera, max_side: int = 0) -> Camera:
         """The view's camera scaled down to ``heatmap_max_side`` (and ``max_side`` when > 0) on its
         longer side, or as it is."""
@@ -629,7 +660,10 @@ class MapService:
                 self.gaussians.means, np.arange(min(1000, len(self.gaussians))), self.cluster_radius, index=index
             )
             self.voxel_index = index
-            log.info("query kernels and the voxel index ready in %.1f s", time.perf_counter() - start)
+            drawn = self.preview_map()  # and its culling index, by a render
+            if drawn is not None:
+                render_feature_map(drawn[0], np.zeros((len(drawn[0]), 1), np.float32), self._warm_up_camera())
+            log.info("query kernels, the voxel index and the preview map ready in %.1f s", time.perf_counter() - start)
         except Exception:  # a warm-up failure must not take the caller down; the query will say more
             log.exception("warm-up failed")
 

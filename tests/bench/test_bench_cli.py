@@ -36,6 +36,8 @@ def test_aggregation_query_and_compression_benchmarks_print_their_figures(tiny, 
                 "5",
                 "--heatmap-repeats",
                 "2",
+                "--preview-views",
+                "2",
             ]
         )
         == 0
@@ -43,6 +45,9 @@ def test_aggregation_query_and_compression_benchmarks_print_their_figures(tiny, 
     out = capsys.readouterr().out
     assert re.search(r"relevance\s+p50\s+\d+\.\d ms\s+p95\s+\d+\.\d ms\s+\(5 queries\)", out), out
     assert re.search(r"heatmap\s+p50\s+\d+\.\d ms", out)
+    assert re.search(r"preview, decimated\s+p50\s+\d+\.\d ms\s+p95\s+\d+\.\d ms\s+\(2 queries\)", out), out
+    # the tiny map is under the preview's decimation: the same Gaussians, the same masks
+    assert "preview masks, decimated vs all: IoU 1.00, 1.00 over 2 views" in out
 
     assert (
         main(["bench", "compression", "--scene", str(scene), "--aggregated", str(tmp_path / "m"), "--codebooks", "16"])

@@ -139,6 +139,54 @@ def test_an_answer_with_a_view_is_answer_querys_on_the_same_inputs(tiny, served)
     np.testing.assert_array_equal(nan.mask, got.mask)
 
 
+def test_a_preview_is_the_view_small_drawn_from_the_decimated_map(tiny, tiny_run, monkeypatch):
+    """A preview: the view scaled to PREVIEW_MAX_SIDE, no 3D answer and no margin, its heatmap
+    rendered from the map's PREVIEW_MAX_GAUSSIANS most opaque and largest Gaussians (equal to
+    rendering that subset as a map of its own with its features), its pictures in a cache of
+    their own (a full view's stays); refused without a view."""
+    from olsplat_nodes.query import service as module
+    from olsplat_nodes.query.answer import encoder_for_map
+    from olsplat_nodes.query.heatmap import relevancy_mask, render_heatmaps
+    from olsplat_nodes.query.splats import decimate
+
+    monkeypatch.setattr(module, "PREVIEW_MAX_SIDE", 160)  # the tiny views are 320 px wide
+    monkeypatch.setattr(module, "PREVIEW_MAX_GAUSSIANS", 8000)  # of the tiny map's ~26,000
+    scene, _ = tiny
+    service = service_over(scene, tiny_run / "map", tiny_run / "views", "svc-preview", heatmap_cache_mb=64)
+    try:
+        assert service.refresh() is True
+        service.warm_up.join()
+        full = service.answer("parking lot", NEGATIVES, view=ENCODE_VIEW, splats=1000)
+        preview = service.answer("parking lot", NEGATIVES, view=ENCODE_VIEW, splats=1000, preview=True)
+        assert preview.status == "ok" and (preview.camera.width, preview.camera.height) == (160, 120)
+        got = preview.answer
+        assert got.chosen_count == -1 and got.instances == [] and preview.margin is None
+        assert got.heatmap.shape == got.mask.shape == preview.photo.shape[:2] == (120, 160)
+        assert full.answer.instances and full.margin is not None and full.answer.heatmap.shape == (240, 320)
+
+        drawn, ids = service.preview_map()
+        np.testing.assert_array_equal(ids, decimate(service.gaussians, 8000))
+        assert len(drawn) == 8000 and drawn.sh.shape[1] == 1  # no colours kept
+        features = service.loaded.features
+        assert features.rows is None  # a float16 map: row g is Gaussian g's feature
+        texts = encoder_for_map(service.language_map).encode_text(["parking lot", *NEGATIVES])
+        # the subset as a map of its own, with its own rows of features
+        own = np.asarray(features.table, np.float32)[ids]
+        maps, alpha = render_heatmaps(service.gaussians.subset(ids), own, texts, preview.camera)
+        np.testing.assert_allclose(got.heatmap, maps[0], atol=2e-5)
+        np.testing.assert_array_equal(got.mask, relevancy_mask(maps[0], maps[1:], alpha))
+        # the full view's features stay cached: the preview went to a cache of its own
+        assert service.feature_images.misses == 1 and service.preview_images.misses == 1
+        service.answer("road", NEGATIVES, view=ENCODE_VIEW)
+        service.answer("road", NEGATIVES, view=ENCODE_VIEW, preview=True)
+        assert service.feature_images.hits == 1 and service.preview_images.hits == 1
+
+        refused = service.answer("parking lot", NEGATIVES, preview=True)
+        assert refused.status == "bad_request" and "give a view" in refused.message
+    finally:
+        service.close()
+
+
 def test_the_splats_margin_is_relevance_margin(served):
     from olsplat_nodes.query.answer import QueryFeatures
     from olsplat_nodes.query.splats import browser_splats, relevance_margin
