@@ -52,7 +52,9 @@ heatmap queries), ``query_heatmap_first_p95_ms`` and ``query_heatmap_repeat_p95_
 later queries on a view), ``query_heatmap_first_server_p95_ms`` (the server's own time for the
 first ones), ``query_heatmap_preview_p95_ms`` and ``query_heatmap_preview_first_p95_ms`` (each
 heatmap query's preview, asked first as the ground station page asks it: all, and the first on
-each view), ``refine_pass_s_per_view_added`` ({first_third, last_third, ratio}: the fold
+each view), ``refine_pass_observations`` (the store's observations after each pass),
+``refine_pass_s_per_view_added`` ({first_third, last_third, ratio, and the same per million
+observations added: first_third_per_m_obs, last_third_per_m_obs, ratio_obs}: the fold
 passes' seconds per view added, over the passes that ended in the first and the last third of
 the flight; see pass_growth below), ``heatmap_views`` (the views the heatmap queries asked
 for), ``memory_series`` {node: [[views stored, resident MB, private MB], ...]} and
@@ -276,9 +278,11 @@ def run(args: argparse.Namespace) -> int:
         figures["refine_s_per_added_view"] = [
             round(s / max(int(a), 1), 3) for s, a in zip(refine_pass_s, added, strict=True)
         ]
+        figures["refine_pass_observations"] = [int(p.get("observations", 0)) for p in ordered]
         figures["refine_pass_s_per_view_added"] = pass_growth(
-            refine_pass_s, figures["refine_pass_views"], figures["refine_pass_exact"], views
-        )
+            refine_pass_s, figures["refine_pass_views"], figures["refine_pass_exact"], views,
+            figures["refine_pass_observations"],
+        )  # fmt: skip
         how = (
             f"lossless ({resent} sent again for want of an acknowledgement)" if args.lossless else f"at {args.rate:g}/s"
         )
@@ -342,7 +346,8 @@ def run(args: argparse.Namespace) -> int:
         growth = figures["refine_pass_s_per_view_added"]
         print(
             f"  folds, s per view added: first third {growth['first_third']}, last third {growth['last_third']} "
-            f"(x{growth['ratio']})"
+            f"(x{growth['ratio']}); s per million observations added: first third "
+            f"{growth['first_third_per_m_obs']}, last third {growth['last_third_per_m_obs']} (x{growth['ratio_obs']})"
         )
         report_queries(times, figures)
         if args.json:
@@ -372,17 +377,29 @@ def memory_figures(watch, views: int, figures: dict) -> None:
     }
 
 
-def pass_growth(pass_s: list[float], pass_views: list[int], exact: list[bool], views: int) -> dict:
+def pass_growth(
+    pass_s: list[float], pass_views: list[int], exact: list[bool], views: int, observations: list[int] | None = None
+) -> dict:
     """Whether live passes grow with the flight: the mean seconds per view added of the fold
     passes (``exact`` False; the first and the final pass are exact by design) that ended with
     at most a third of the flight's ``views`` in the map, and of those that ended in its last
-    third; ``ratio`` = last / first. None where a third has no fold pass. ``pass_s`` [P] seconds,
-    ``pass_views`` [P] views in the map after each pass, in pass order."""
-    added = np.diff([0, *pass_views])
-    per_view = [(v, s / a) for s, v, a, e in zip(pass_s, pass_views, added, exact, strict=True) if not e and a > 0]
-    first = [x for v, x in per_view if v <= views / 3]
-    last = [x for v, x in per_view if v > 2 * views / 3]
-    first_mean = round(float(np.mean(first)), 3) if first else None
-    last_mean = round(float(np.mean(last)), 3) if last else None
-    ratio = round(last_mean / first_mean, 2) if first_mean and last_mean is not None else None
-    return {"first_third": first_mean, "last_third": last_mean, "ratio": ratio}
+    third; ``ratio`` = last / first. With ``observations`` [P] (the store's after each pass) the
+    same per million observations added (``*_per_m_obs``, ``ratio_obs``): what a fold's cost
+    follows (a view that sees more of the map adds more). None where a third has no fold pass.
+    ``pass_s`` [P] seconds, ``pass_views`` [P] views in the map after each pass, in pass order."""
+    out: dict = {}
+    units = {"": np.diff([0, *pass_views]).astype(float)}
+    if observations is not None and any(observations):
+        units["_per_m_obs"] = np.diff([0, *observations]) / 1e6
+    for suffix, added in units.items():
+        rate = [(v, s / a) for s, v, a, e in zip(pass_s, pass_views, added, exact, strict=True) if not e and a > 0]
+        first = [x for v, x in rate if v <= views / 3]
+        last = [x for v, x in rate if v > 2 * views / 3]
+        first_mean = round(float(np.mean(first)), 3) if first else None
+        last_mean = round(float(np.mean(last)), 3) if last else None
+        out[f"first_third{suffix}"], out[f"last_third{suffix}"] = first_mean, last_mean
+        ratio = round(last_mean / first_mean, 2) if first_mean and last_mean is not None else None
+        out["ratio" + ("_obs" if suffix else "")] = ratio
+    if "_per_m_obs" not in units:
+        out.update(first_third_per_m_obs=None, last_third_per_m_obs=None, ratio_obs=None)
+    return out

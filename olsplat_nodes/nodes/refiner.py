@@ -220,6 +220,9 @@ class RefinerNode(Node):
             "final": final,
             "refine_s": round(time.perf_counter() - start, 3),  # this pass, before the snapshot's write
             "exact": exact or changed is None,  # False: a fold of the new views
+            # the store's observations (one per Gaussian per view) once the pass ended: a fold's
+            # cost follows the observations it adds, which a view of more of the map has more of
+            "observations": int(self.store.observation_counts().sum()),
         }
         try:
             self.record = write_snapshot(self.map_dir, self.version, language_map, record, None)

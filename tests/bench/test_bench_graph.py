@@ -80,7 +80,11 @@ def check_common(figures: dict, frames: int = 12) -> None:
         assert figures[key] > 0
     assert figures["query_heatmap_repeat_p95_ms"] > 0
     assert figures["query_heatmap_preview_p95_ms"] > 0 and figures["query_heatmap_preview_first_p95_ms"] > 0
-    assert set(figures["refine_pass_s_per_view_added"]) == {"first_third", "last_third", "ratio"}
+    growth = figures["refine_pass_s_per_view_added"]
+    assert set(growth) == {"first_third", "last_third", "ratio", "first_third_per_m_obs", "last_third_per_m_obs",
+                           "ratio_obs"}  # fmt: skip
+    observations = figures["refine_pass_observations"]
+    assert len(observations) == len(passes) and observations == sorted(observations) and observations[0] > 0
     # the server's own time is part of the round trip
     assert 0 < figures["query_relevance_server_p95_ms"] <= figures["query_relevance_p95_ms"]
     assert 0 < figures["query_heatmap_first_server_p95_ms"] <= figures["query_heatmap_first_p95_ms"]
@@ -241,9 +245,15 @@ def test_pass_growth_compares_the_folds_of_the_first_and_last_thirds():
     seconds = [9.0, 2.0, 2.0, 10.0, 8.0, 30.0]
     growth = graph.pass_growth(seconds, [1, 3, 5, 10, 14, 15], [True, False, False, False, False, True], 15)
     # first third (<= 5 views): 2/2 and 2/2 s per view added; last third (> 10): 8/4
-    assert growth == {"first_third": 1.0, "last_third": 2.0, "ratio": 2.0}
+    nothing = {"first_third_per_m_obs": None, "last_third_per_m_obs": None, "ratio_obs": None}
+    assert growth == {"first_third": 1.0, "last_third": 2.0, "ratio": 2.0, **nothing}
+    # the later views see more of the map: per million observations added the folds are flat
+    observations = [1_000_000, 3_000_000, 5_000_000, 15_000_000, 23_000_000, 25_000_000]
+    growth = graph.pass_growth(seconds, [1, 3, 5, 10, 14, 15], [True, False, False, False, False, True], 15,
+                               observations)  # fmt: skip
+    assert (growth["first_third_per_m_obs"], growth["last_third_per_m_obs"], growth["ratio_obs"]) == (1.0, 1.0, 1.0)
     assert graph.pass_growth([9.0, 1.0], [1, 12], [True, True], 12) == {
-        "first_third": None, "last_third": None, "ratio": None
+        "first_third": None, "last_third": None, "ratio": None, **nothing
     }  # fmt: skip
 
 
