@@ -100,7 +100,9 @@ def preview_figures(gaussians, features: np.ndarray, texts: np.ndarray, cameras)
 
     ids = decimate(gaussians, PREVIEW_MAX_GAUSSIANS)
     subset, rows = gaussians.subset(ids), features[ids]
-    exact, drawn, ious = [], [], []
+    exact: list[float] = []
+    drawn: list[float] = []
+    ious: list[float] = []
     for camera in cameras:
         side = max(camera.width, camera.height)
         camera = camera.scaled(PREVIEW_MAX_SIDE / side) if side > PREVIEW_MAX_SIDE else camera
