@@ -55,10 +55,10 @@ REPLY_BYTES_PER_PIXEL = 8  # a heatmap reply: float32 heatmap, uint8 mask, RGB p
 # station shows at once while the full answer (and its 3D instances) is computed
 PREVIEW_MAX_SIDE = 320
 # ... drawn from at most this many of the map's Gaussians, the most opaque and largest (the
-# browser's decimation, ``splats.decimate``): a far view of the 5.2M-Gaussian map projects
-# millions of them, 1.3-1.5 s at 320 px; the top 500,000 take 0.06-0.17 s and their mask covers
-# 0.86-0.89 of the exact one's (IoU) over the six views of `olsplat sim make --preset large
-# --views 6` (docs/benchmarks.md, "Scale"). The full answer stays exact.
+# browser's decimation, ``splats.decimate``): at 320 px the cost is the Gaussians projected, and
+# a far view of the 5.2M-Gaussian map projects millions (p95 1.36 s); the top 500,000 take p95
+# 0.16 s and their mask covers 0.88-0.93 of the exact one's (IoU; `olsplat bench query
+# --preview-views 6`, docs/benchmarks.md "Scale"). The full answer stays exact.
 PREVIEW_MAX_GAUSSIANS = 500_000
 PREVIEW_CACHE_MB = 64  # previews' own feature images: a preview must not evict a full view's
 NO_MAP = "no map yet: no view has been aggregated and refined"
@@ -259,7 +259,7 @@ class MapService:
         self.feature_images = FeatureImages(int(heatmap_cache_mb * 2**20))
         self.preview_images = FeatureImages(PREVIEW_CACHE_MB * 2**20)
         self.heatmap_cache = heatmap_cache_mb > 0
-        self._preview_map: tuple[Gaussians, np.ndarray] | None = None  # made at the first preview
+        self._preview_map: tuple[Gaussians, np.ndarray] | None = None  # made by the warm-up (or a preview)
         self._preview_lock = threading.Lock()
         self._views: list[SavedView] = []
         self._splats: BrowserSplats | None = None  # the last decimation asked for ...
