@@ -387,19 +387,20 @@ def pass_growth(
     same per million observations added (``*_per_m_obs``, ``ratio_obs``): what a fold's cost
     follows (a view that sees more of the map adds more). None where a third has no fold pass.
     ``pass_s`` [P] seconds, ``pass_views`` [P] views in the map after each pass, in pass order."""
-    out: dict = {}
-    units = {"": np.diff([0, *pass_views]).astype(float)}
+    per_view = _thirds(pass_s, pass_views, np.diff([0, *pass_views]), exact, views)
+    per_m_obs = (None, None, None)
     if observations is not None and any(observations):
-        units["_per_m_obs"] = np.diff([0, *observations]) / 1e6
-    for suffix, added in units.items():
-        rate = [(v, s / a) for s, v, a, e in zip(pass_s, pass_views, added, exact, strict=True) if not e and a > 0]
-        first = [x for v, x in rate if v <= views / 3]
-        last = [x for v, x in rate if v > 2 * views / 3]
-        first_mean = round(float(np.mean(first)), 3) if first else None
-        last_mean = round(float(np.mean(last)), 3) if last else None
-        out[f"first_third{suffix}"], out[f"last_third{suffix}"] = first_mean, last_mean
-        ratio = round(last_mean / first_mean, 2) if first_mean and last_mean is not None else None
-        out["ratio" + ("_obs" if suffix else "")] = ratio
-    if "_per_m_obs" not in units:
-        out.update(first_third_per_m_obs=None, last_third_per_m_obs=None, ratio_obs=None)
-    return out
+        per_m_obs = _thirds(pass_s, pass_views, np.diff([0, *observations]) / 1e6, exact, views)
+    keys = ("first_third", "last_third", "ratio", "first_third_per_m_obs", "last_third_per_m_obs", "ratio_obs")
+    return dict(zip(keys, (*per_view, *per_m_obs), strict=True))
+
+
+def _thirds(pass_s, pass_views, added, exact, views: int) -> tuple:
+    """(first third's mean, last third's mean, last / first) of the fold passes' seconds per unit
+    ``added`` [P] (views or observations added by each pass); None where a third has no fold."""
+    rate = [(v, s / a) for s, v, a, e in zip(pass_s, pass_views, added, exact, strict=True) if not e and a > 0]
+    first = [x for v, x in rate if v <= views / 3]
+    last = [x for v, x in rate if v > 2 * views / 3]
+    first_mean = round(float(np.mean(first)), 3) if first else None
+    last_mean = round(float(np.mean(last)), 3) if last else None
+    return first_mean, last_mean, round(last_mean / first_mean, 2) if first_mean and last_mean is not None else None

@@ -190,9 +190,8 @@ class RunReview:
         if problem:
             return WebAnswer("bad_request", problem, text)
         view = view if view in {c.name for c in self.cameras()} else ""
-        result = self.service.answer(
-            text, negatives, view, heatmap=bool(view), splats=self.max_splats, preview=preview and bool(view)
-        )
+        preview = preview and bool(view)
+        result = self.service.answer(text, negatives, view, heatmap=bool(view), splats=self.max_splats, preview=preview)
         answer = result.answer
         if answer is None:
             return WebAnswer(result.status, result.message, text)
@@ -204,9 +203,9 @@ class RunReview:
             result.version,
             result.margin,
             answer.instances,
-            preview=answer.chosen_count < 0,
+            preview=preview,
         )
-        if outcome.preview:
+        if preview:
             assert result.camera is not None
             outcome.message = f"preview at {result.camera.width}x{result.camera.height}; the full answer follows"
         georef = self.service.georef
