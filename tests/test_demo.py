@@ -27,7 +27,7 @@ def test_the_demo_on_the_tiny_preset(tmp_path, capsys):
     assert all(v == 0 for v in summary["drops"].values()) and all(v == 0 for v in summary["bad_messages"].values())
     final = [q for q in summary["queries"] if q["phase"] == "final"]
     assert [q["text"] for q in final] == list(DEMO_QUERIES)
-    assert all(q["status"] == "ok" and q["map_version"] == summary["map_version"] and q["view"] for q in final)
+    assert all(q["status"] == "ok" and q["map_version"] == summary["map_version"] and q["view"] for q in final), final
     assert sum(q["instances_3d"] for q in final) >= 3  # roofs, road, trees and cars are in the tiny town
     pictures = sorted(p.name for p in (out / "ground").rglob("*.png"))
     assert len(pictures) >= 2 * len(DEMO_QUERIES), pictures  # a heatmap and a mask per query at least

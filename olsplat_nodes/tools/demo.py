@@ -95,6 +95,7 @@ class Ground:
                 "text": text,
                 "view": view,
                 "status": reply.status,
+                "message": reply.message,
                 "map_version": reply.map_version,
                 "instances_3d": len(found),
                 "regions_2d": len(reply.instances) - len(found),
@@ -115,6 +116,22 @@ class Ground:
         from olsplat_msgs import StatusRequest
 
         return self.client.request(StatusRequest(request_id=uuid.uuid4().hex[:12]))
+
+    def wait_for_version(self, version: int, timeout_s: float) -> None:
+        """Block until the query server answers from map ``version`` (or newer); an error naming
+        the version it still serves after ``timeout_s``."""
+        from ..errors import OlsplatInputError
+
+        deadline = time.monotonic() + timeout_s
+        served = self.status().map_version
+        while served < version:
+            if time.monotonic() > deadline:
+                raise OlsplatInputError(
+                    f"the query server still serves map version {served} {timeout_s:.0f} s after version {version} "
+                    "was written"
+                )
+            time.sleep(0.2)
+            served = self.status().map_version
 
     def sample_status(self) -> None:
         """Keep each node's reported mean latency while the flight streams (its window is the
@@ -188,6 +205,9 @@ def run(args: argparse.Namespace) -> int:
             f"final map: version {record['version']}, {record['views']} views, {record['observed_gaussians']:,} "
             "Gaussians observed"
         )
+        # the final snapshot is on disk before the query server has loaded it (it loads on the
+        # refiner's announcement or its 2 s check): the final queries wait for it to say so
+        ground.wait_for_version(record["version"], timeout_s=60.0)
         view = sorted((flight / "annotations").glob("*.json"))[0].stem  # an annotated view
         pictures = out / "ground"
         for text in DEMO_QUERIES:
