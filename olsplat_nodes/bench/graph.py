@@ -56,7 +56,10 @@ each view), ``refine_pass_observations`` (the store's observations after each pa
 ``refine_pass_s_per_view_added`` ({first_third, last_third, ratio, and the same per million
 observations added: first_third_per_m_obs, last_third_per_m_obs, ratio_obs}: the fold
 passes' seconds per view added, over the passes that ended in the first and the last third of
-the flight; see pass_growth below), ``heatmap_views`` (the views the heatmap queries asked
+the flight; see pass_growth below), with ``--lossless`` on an annotated flight
+``live_drift_miou`` (the exact map's mIoU minus the last live version's, both over the views
+that version held: how far the folds let a live map drift; ``live_drift`` has both scores,
+Loc@50, the version and its views; ``live.graph_drift``), ``heatmap_views`` (the views the heatmap queries asked
 for), ``memory_series`` {node: [[views stored, resident MB, private MB], ...]} and
 ``nodes.<name>.{busy_ms, latency_ms, drops, handled}`` (means over the flight's heartbeats; the
 accumulator's latency_ms is the frame-to-store latency).
@@ -151,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
     from ..storage.snapshot import latest_map
     from ..transport import QueryClient
     from .ground_link import final_map, report_queries, sample_status, time_queries
+    from .live import graph_drift
     from .node_watch import NODES, MemoryWatch, node_ready_s
 
     feed = feed_overrides(args.lossless, args.rate)
@@ -350,6 +354,16 @@ def run(args: argparse.Namespace) -> int:
             f"{growth['first_third_per_m_obs']}, last third {growth['last_third_per_m_obs']} (x{growth['ratio_obs']})"
         )
         report_queries(times, figures)
+        if args.lossless:  # live-paced runs drop views: their exact map would not be the same views
+            drift = graph_drift(scene, run_dir, passes)
+            if drift is not None:
+                figures["live_drift_miou"] = drift["drift_miou"]
+                figures["live_drift"] = drift
+                print(
+                    f"  drift of the last live version (v{drift['version']}, a fold at {drift['views']} views) from "
+                    f"the exact map of the same views: {drift['drift_miou']:+.2f} mIoU ({drift['live_mIoU']:.2f} "
+                    f"against {drift['exact_mIoU']:.2f}), {drift['drift_loc50']:+.2f} Loc@50"
+                )
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(figures, indent=1))

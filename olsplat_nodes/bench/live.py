@@ -62,6 +62,55 @@ def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 
     return {"figures": figures, "fold": live["fold"], "exact": live["exact"]}
 
 
+def graph_drift(scene_folder: Path, run_dir: Path, passes: dict[int, dict]) -> dict | None:
+    """How far a graph run's last live version (a fold) lies from the exact map of the same
+    views: both scored on the scene's annotations (``evaluate_map``, the version as the
+    refiner wrote it, so a codebook snapshot is scored as a codebook). ``passes`` are the
+    refiner's records by version (``latest.json`` as the run went); the exact map is one exact
+    pass over the store's first ``views`` segments, linked into a temporary store (nothing
+    copied), with the aggregation of the store's manifest. None when the scene has no
+    annotations, the run wrote no fold or the refiner no longer keeps its snapshot. The
+    figures: version, views, live and exact mIoU / Loc@50, ``drift_miou`` = exact - live."""
+    from ..encoders.spec import encoder_from_spec
+    from ..evaluate.scene_eval import evaluate_map
+    from ..method import read_manifest
+    from ..method.live import LiveMap
+    from ..pipeline import Scene
+    from ..storage import ObservationStore
+    from ..storage.snapshot import LanguageMap
+
+    if not any((scene_folder / "annotations").glob("*.json")):
+        return None
+    folds = [r for v, r in sorted(passes.items()) if not r.get("exact", True) and not r.get("final")]
+    snapshot = run_dir / "map" / folds[-1]["file"] if folds else None
+    manifest = read_manifest(run_dir / "store")
+    if snapshot is None or not snapshot.is_file() or manifest is None or manifest.encoder is None:
+        return None
+    record = folds[-1]
+    live = LanguageMap.load(snapshot)
+    n, views = len(live), int(record["views"])
+    segments = ObservationStore(run_dir / "store", n).segments()[:views]
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp) / "store"
+        (work / "views").mkdir(parents=True)
+        for segment in segments:
+            (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
+        exact = LiveMap(ObservationStore(work, n))
+        exact.update(manifest.method.aggregation, exact=True)
+    assert exact.features is not None and exact.observed is not None
+    scene = Scene.open(scene_folder)
+    encoder = encoder_from_spec(manifest.encoder)
+    scores = {
+        "live": evaluate_map(scene, live, encoder),
+        "exact": evaluate_map(scene, LanguageMap(exact.features, exact.observed, live.encoder), encoder),
+    }
+    figures = {"version": int(record["version"]), "views": views}
+    figures.update({f"{k}_{m}": round(scores[k][m], 2) for k in scores for m in ("mIoU", "loc50")})
+    figures["drift_miou"] = round(scores["exact"]["mIoU"] - scores["live"]["mIoU"], 2)
+    figures["drift_loc50"] = round(scores["exact"]["loc50"] - scores["live"]["loc50"], 2)
+    return figures
+
+
 def _map_size(store_folder: Path) -> int:
     """The Gaussians of the map the store was made for: from the language map beside it."""
     from ..storage.snapshot import LanguageMap

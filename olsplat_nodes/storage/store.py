@@ -376,8 +376,9 @@ class ObservationStore:
         max_gaussians: int = 262_144,
         state: tuple[np.ndarray, np.ndarray] | None = None,
         views: tuple[int, int] | None = None,
-        gaussians: tuple[int, int] | None = None,
+        gaussians: tuple[int, int] | np.ndarray | None = None,
         evidence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        stop: int | None = None,
     ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
@@ -397,12 +398,15 @@ class ObservationStore:
         left alone): it costs those views' observations, not the flight's; Gaussians first seen
         in them are computed exactly, the others are approximated (the consistency update weighs
         the new views against the current F, without re-weighing the earlier ones). With
-        ``gaussians`` = (lo, hi) the pass recomputes exactly the Gaussians lo <= g < hi that any
-        view observed (a live map's refresh of one slice), and leaves ``touched`` alone too.
+        ``gaussians`` = (lo, hi), or an [N] bool mask, the pass recomputes exactly the Gaussians
+        lo <= g < hi (or where the mask is True) that any view observed (a live map's refresh),
+        and leaves ``touched`` alone too. With ``stop`` only segments 0..stop-1 are read: a live
+        map's views, so that a segment written while the pass runs is not taken in twice (now,
+        and by the next fold of the views after ``stop``).
         ``evidence`` = (strength sum [N], effective views [N], spread [N]) float64 gets, for
         every Gaussian computed, its sum of d_iv, its effective number of views and the spread
         of its views about its feature (``refine_mixed``)."""
-        segments = self.segments()
+        segments = self.segments()[:stop]
         if views is not None:
             if F is None or state is None or evidence is not None:
                 raise ValueError("folding views in needs the current features and their state (and gives no evidence)")
@@ -410,7 +414,11 @@ class ObservationStore:
             selected = counts > 0
         else:
             counts = self.observation_counts(segments)
-            if gaussians is not None:
+            if isinstance(gaussians, np.ndarray):
+                if gaussians.shape != (self.n_gaussians,) or gaussians.dtype != np.bool_:
+                    raise ValueError(f"gaussians must be (lo, hi) or an [N={self.n_gaussians}] bool mask")
+                selected = gaussians & (counts > 0)
+            elif gaussians is not None:
                 selected = np.zeros(self.n_gaussians, bool)
                 selected[slice(*gaussians)] = counts[slice(*gaussians)] > 0
             elif only_touched and F is not None:
@@ -427,7 +435,7 @@ class ObservationStore:
         observed = np.zeros(self.n_gaussians, bool)
         out = F
         cumulative = np.cumsum(counts * selected)
-        first, end = gaussians or (0, self.n_gaussians)
+        first, end = gaussians if isinstance(gaussians, tuple) else (0, self.n_gaussians)
         while first < end:
             done_before = cumulative[first - 1] if first else 0
             stop = max(int(np.searchsorted(cumulative, done_before + max_observations, side="right")), first + 1)
@@ -468,6 +476,11 @@ class ObservationStore:
         if views is None and gaussians is None:
             self.touched[:] = False
         return out, observed
+
+    def counts_in(self, first: int, stop: int) -> np.ndarray:
+        """[N] int64: in how many of the usable segments first..stop-1 each Gaussian has a kept
+        observation (a live map's count of the views it has taken in)."""
+        return self._counts_in(self.segments(), first, stop)
 
     def _counts_in(self, segments: list[Path], first: int, stop: int) -> np.ndarray:
         """[N] int64: in how many of the usable segments first..stop-1 each Gaussian has a kept observation."""

@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-from itertools import pairwise
-
 import numpy as np
 import pytest
 
@@ -158,35 +156,94 @@ def test_a_live_map_folds_refreshes_and_ends_exact(tmp_path):
     offline, observed = stores["offline"].refine(None, config, False, unit_float16=True)
     np.testing.assert_array_equal(live["whole"].features, offline)  # everything refreshed: exact
     np.testing.assert_array_equal(live["whole"].observed, observed)
-    assert changed["whole"].sum() == observed.sum() and live["whole"].cursor == n
+    assert changed["whole"].sum() == observed.sum()
+    np.testing.assert_array_equal(live["whole"].exact_at, live["whole"].seen)  # nothing left stale
     assert not np.array_equal(live["plain"].features, offline)
     live["plain"].update(config, exact=True)  # the final pass
     np.testing.assert_array_equal(live["plain"].features, offline)
     np.testing.assert_array_equal(live["plain"].observed, observed)
 
 
-def test_refresh_slices_go_round_the_map(tmp_path):
-    """Each fold's refresh slice starts where the last one ended (at 0 after the map's end) and
-    holds just enough Gaussians for ``refresh`` times the new view's observations."""
+def test_the_refresh_takes_the_likeliest_wrong_gaussians_within_its_budget(tmp_path):
+    """After each fold the refresh recomputes, exactly, the stale Gaussians (folded observations
+    since their last exact computation) with the largest spread x share / seen (ties by index),
+    as many as ``refresh`` times the new view's observations hold: the ranking against a plain
+    Python oracle on the live map's state at that moment, the refreshed rows against an offline
+    pass, the counts against the store's own."""
     from olsplat_nodes.method.live import LiveMap
 
     n, config = 150, AggregationConfig()
-    views = list(_views(8, n))
+    # unit region features, as the encoders give: a mean's length then tells how views agree
+    views = [(name, obs, bank / np.linalg.norm(bank, axis=1, keepdims=True)) for name, obs, bank in _views(8, n)]
     store = ObservationStore(tmp_path / "s", n, writer=True)
+    offline = ObservationStore(tmp_path / "offline", n, writer=True)
     live = LiveMap(store, refresh=2.0)
-    store.append(*views[0])
+    chosen: list[np.ndarray] = []
+    reordered: list[bool] = []
+    real = live.stalest
+
+    def oracle(budget: float):
+        seen, exact_at, norm = live.seen.astype(np.int64), live.exact_at.astype(np.int64), live.norm
+        priority = {
+            g: (1 - min(max(norm[g], 0.0), 1.0)) * (seen[g] - exact_at[g]) / seen[g] ** 2
+            for g in range(n)
+            if seen[g] > exact_at[g]
+        }
+        ranked = sorted(priority, key=lambda g: (-priority[g], g))
+        reordered.append(ranked != sorted(priority))  # not the index order: the priorities rank
+        take, spent = 0, 0
+        while take < len(ranked) and spent + seen[ranked[take]] <= budget:
+            spent += seen[ranked[take]]
+            take += 1
+        expected = np.zeros(n, bool)
+        expected[ranked[: max(take, 1)]] = True
+        got = real(budget)
+        np.testing.assert_array_equal(got, expected)
+        assert budget == 2.0 * (seen.sum() - seen_before.sum())
+        chosen.append(got)
+        return got
+
+    live.stalest = oracle
+    for s_ in (store, offline):
+        s_.append(*views[0])
     live.update(config, exact=True)
-    slices = []
+    np.testing.assert_array_equal(live.exact_at, live.seen)  # everything exact after an exact pass
     for view in views[1:]:
-        store.append(*view)
-        lo = live.cursor if live.cursor < n else 0
+        for s_ in (store, offline):
+            s_.append(*view)
+        seen_before, exact_before = live.seen.astype(np.int64), live.exact_at.astype(np.int64)
         live.update(config, exact=False)
-        slices.append((lo, live.cursor))
-        counts = store.observation_counts()
-        budget = 2.0 * len(view[1].gaussians)
-        end = live.cursor  # the longest slice within the budget (at least one Gaussian)
-        assert counts[lo:end].sum() <= budget or end == lo + 1
-        assert end == n or counts[lo : end + 1].sum() > budget
-    for (_, end), (lo, _) in pairwise(slices):
-        assert lo == (end if end < n else 0)
-    assert any(end == n for _, end in slices)  # it went round
+        seen = store.observation_counts().astype(np.int64)
+        np.testing.assert_array_equal(live.seen, seen)
+        expected = exact_before.copy()
+        expected[seen_before == 0] = seen[seen_before == 0]  # first seen in this view: folded exactly
+        expected[chosen[-1]] = seen[chosen[-1]]
+        np.testing.assert_array_equal(live.exact_at, expected)
+        reference, _ = offline.refine(None, config, False, unit_float16=True)
+        np.testing.assert_array_equal(live.features[chosen[-1]], reference[chosen[-1]])  # refreshed: exact
+    assert len(chosen) == len(views) - 1 and all(c.any() for c in chosen) and all(reordered)
+    assert real(0.0) is None
+
+
+def test_a_segment_written_during_a_pass_waits_for_the_next(tmp_path):
+    """A store pass reads the segments up to ``stop`` only: a view that lands while a live map's
+    exact pass or refresh runs is not taken in, so the next fold does not take it in twice."""
+    n, config = 150, AggregationConfig()
+    views = list(_views(4, n))
+    store = ObservationStore(tmp_path / "s", n, writer=True)
+    short = ObservationStore(tmp_path / "short", n, writer=True)
+    for view in views[:3]:
+        short.append(*view)
+    for view in views:
+        store.append(*view)
+    expected, seen = short.refine(None, config, False)
+    got, observed = store.refine(None, config, False, stop=3)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(observed, seen)
+    mask = np.zeros(n, bool)
+    mask[::3] = True
+    part, _ = store.refine(np.zeros_like(got), config, gaussians=mask, stop=3)
+    np.testing.assert_array_equal(part[mask], expected[mask])
+    assert not part[~mask].any()
+    with pytest.raises(ValueError, match="bool mask"):
+        store.refine(got, config, gaussians=np.zeros(n, np.int64), stop=3)
