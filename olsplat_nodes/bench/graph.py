@@ -56,13 +56,17 @@ each view), ``refine_pass_observations`` (the store's observations after each pa
 ``refine_pass_s_per_view_added`` ({first_third, last_third, ratio, and the same per million
 observations added: first_third_per_m_obs, last_third_per_m_obs, ratio_obs}: the fold
 passes' seconds per view added, over the passes that ended in the first and the last third of
-the flight; see pass_growth below), with ``--lossless`` on an annotated flight
-``live_drift_miou`` (the exact map's mIoU minus the last live version's, both over the views
-that version held: how far the folds let a live map drift; ``live_drift`` has both scores,
-Loc@50, the version and its views; ``live.graph_drift``), ``heatmap_views`` (the views the heatmap queries asked
+the flight; see pass_growth below), with ``--lossless`` ``live_drift_miou`` (the exact map's
+mIoU minus the last live version's, both over the views that version held: how far the folds
+let a live map drift; ``live_drift`` has both scores, Loc@50, the version and its views;
+graph_drift in live.py; both null when the flight has no annotations or the run made no fold),
+``heatmap_views`` (the views the heatmap queries asked
 for), ``memory_series`` {node: [[views stored, resident MB, private MB], ...]} and
 ``nodes.<name>.{busy_ms, latency_ms, drops, handled}`` (means over the flight's heartbeats; the
-accumulator's latency_ms is the frame-to-store latency).
+accumulator's latency_ms is the frame-to-store latency), ``core_s_per_view`` {node: CPU
+seconds of its processes (every thread, user + system, from ``/proc``; a restarted node's
+processes summed) from launch to the final map, over the views aggregated} and
+``core_s_per_view_sum`` (all nodes: with the machine's cores, the views per second it allows).
 
 ``--queries-only --work DIR``: only the queries again, on a run kept with ``--work DIR``
 (``requery.py``).
@@ -72,6 +76,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import tempfile
 import threading
@@ -223,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"  {done}/{len(cameras)} views stored after {elapsed:.0f} s{left}", flush=True)
         wall_s = time.monotonic() - start
         watch.sample()  # before the ingest exits
+        cpu_s = watch.node_cpu_s()  # the flight's, start-up included; the queries after it not
         watch.flight_over = True  # the queries below still count in the peaks
         # the ingest's counts are final in the heartbeat it sends after it saw the final map
         # (then it exits); the sampling above may have missed it
@@ -275,6 +281,9 @@ def run(args: argparse.Namespace) -> int:
             "refine_pass_views": [int(p["views"]) for p in ordered],
             "refine_pass_exact": [bool(p.get("exact", True)) for p in ordered],  # False: a fold
             "nodes": {},
+            # CPU seconds per view aggregated, by node and in all (the machine's cores are the budget)
+            "core_s_per_view": {name: round(c / max(views, 1), 3) for name, c in sorted(cpu_s.items())},
+            "core_s_per_view_sum": round(sum(cpu_s.values()) / max(views, 1), 3),
         }
         # a pass's cost over the views it added: flat when passes grow with the views since the
         # last pass (which refiner.max_duty lets grow as passes lengthen), not with the flight
@@ -304,6 +313,11 @@ def run(args: argparse.Namespace) -> int:
             f"  start-up: slowest node ready {figures['startup_s']} s after its process started ("
             + ", ".join(f"{name} {s:.1f}" for name, s in figures["node_ready_s"].items())
             + f"); every node reporting {figures['all_reporting_s']} s after launch"
+        )
+        print(
+            "  CPU per view (core-seconds, the flight's start-up included): "
+            + ", ".join(f"{name} {c:.2f}" for name, c in figures["core_s_per_view"].items())
+            + f"; in all {figures['core_s_per_view_sum']:.2f} ({os.cpu_count()} cores here)"
         )
         for name in ("ingest", "region_encoder", "accumulator", "refiner", "query_server"):
             values = [v for v in samples.get(name, []) if v.get("handled", 0)]
@@ -356,9 +370,9 @@ def run(args: argparse.Namespace) -> int:
         report_queries(times, figures)
         if args.lossless:  # live-paced runs drop views: their exact map would not be the same views
             drift = graph_drift(scene, run_dir, passes)
+            figures["live_drift_miou"] = None if drift is None else drift["drift_miou"]
+            figures["live_drift"] = drift
             if drift is not None:
-                figures["live_drift_miou"] = drift["drift_miou"]
-                figures["live_drift"] = drift
                 print(
                     f"  drift of the last live version (v{drift['version']}, a fold at {drift['views']} views) from "
                     f"the exact map of the same views: {drift['drift_miou']:+.2f} mIoU ({drift['live_mIoU']:.2f} "

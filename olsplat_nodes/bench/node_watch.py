@@ -5,6 +5,7 @@ Shared by the graph run (``graph.py``) and the queries of a kept run (``requery.
 
 from __future__ import annotations
 
+import os
 import re
 import threading
 from collections.abc import Callable
@@ -47,6 +48,16 @@ def process_memory(pid: int) -> dict[str, float]:
     return values
 
 
+def process_cpu_s(pid: int) -> float | None:
+    """CPU seconds (user + system, every thread) a live process has used, from /proc/PID/stat;
+    None once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime: fields 14, 15
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 class MemoryWatch:
     """Samples every node's memory, every ``every_s`` in a background thread (none when
     ``every_s`` is 0: then only the explicit ``sample()`` calls): per node the highest peak RSS
@@ -57,6 +68,7 @@ class MemoryWatch:
         self.peak: dict[str, float] = {}
         self.series: dict[str, list[tuple[int, float, float]]] = {}
         self.flight_over = False  # after the final map: peaks still taken, the series stops
+        self.cpu_s: dict[str, dict[int, float]] = {}  # node -> {pid: CPU seconds}: a restart's too
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._loop, name="memory-watch", daemon=True)
 
@@ -71,11 +83,18 @@ class MemoryWatch:
     def sample(self) -> None:
         views = self.views_stored()
         for name, pid in self.pids().items():
+            cpu = process_cpu_s(pid)
+            if cpu is not None and not self.flight_over:
+                self.cpu_s.setdefault(name, {})[pid] = cpu
             values = process_memory(pid)
             if values:
                 self.peak[name] = max(self.peak.get(name, 0.0), values["peak_rss_mb"])
                 if not self.flight_over:
                     self.series.setdefault(name, []).append((views, values["rss_mb"], values["private_mb"]))
+
+    def node_cpu_s(self) -> dict[str, float]:
+        """{node: CPU seconds its processes used until the last sample of the flight}."""
+        return {name: sum(by_pid.values()) for name, by_pid in self.cpu_s.items()}
 
     def growth(self, name: str, views: int) -> float:
         """Resident MB at the last sample minus at the first sample once a quarter of the

@@ -52,7 +52,16 @@ def check_common(figures: dict, frames: int = 12) -> None:
     """What holds in both modes: every documented key written, the counts and the figures of a
     completed flight."""
     missing = documented_keys(graph.__doc__ or "") - set(figures)
+    if not figures["lossless"]:  # written by --lossless only: a live-paced run's views are not the exact map's
+        missing -= {"live_drift_miou", "live_drift"}
     assert not missing, missing
+    assert sum(figures["core_s_per_view"].values()) == pytest.approx(figures["core_s_per_view_sum"], abs=0.01)
+    assert set(figures["core_s_per_view"]) == NODES and all(c > 0 for c in figures["core_s_per_view"].values())
+    # the encoder and the accumulator work for every view: more CPU than the ingest, which only reads frames
+    assert (
+        min(figures["core_s_per_view"][n] for n in ("region_encoder", "accumulator"))
+        > figures["core_s_per_view"]["ingest"]
+    )
     assert figures["frames_sent"] == frames  # the tiny flight, every frame sent once
     assert 0 < figures["frames_aggregated"] == figures["views"] <= frames
     assert figures["frames_dropped"] == frames - figures["frames_aggregated"]
@@ -133,9 +142,15 @@ def test_lossless_flight_and_its_queries_again(tiny, tmp_path, capsys):
     args = ["bench", "graph", "--scene", str(scene), "--lossless", "--queries", "3", "--heatmap-queries", "2"]
     args += ["--heatmap-views", "1", "--sample-s", "0.2", "--work", str(tmp_path / "run")]
     args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port()), "--json", str(out)]
+    args += ["--set", "refiner.period_s=1", "--set", "refiner.max_duty=1"]  # live folds on a short flight
     assert main(args) == 0
     figures = json.loads(out.read_text())
     check_common(figures)
+    drift = figures["live_drift"]  # the last fold against an exact pass over the same views, both scored
+    assert drift is not None and figures["live_drift_miou"] == drift["drift_miou"]
+    assert 0 < drift["views"] < 12 and 0 < drift["version"] and not figures["refine_pass_exact"][-2]
+    assert 0 < drift["live_mIoU"] <= 100 and 0 < drift["exact_mIoU"] <= 100
+    assert drift["drift_miou"] == pytest.approx(drift["exact_mIoU"] - drift["live_mIoU"], abs=0.011)
     assert figures["lossless"] is True and figures["rate"] is None
     assert figures["views"] == 12 and figures["frames_dropped"] == 0  # lossless: every frame
     assert figures["views_per_s"] == pytest.approx(12 / figures["wall_s"], rel=0.02)
