@@ -67,7 +67,8 @@ EXAMPLES = {
     "bench encode": "olsplat bench encode --scene small0",
     "bench aggregate": "olsplat bench aggregate --scene small0",
     "bench live": "olsplat eval --scene small1 --methods outlangsplat,vala\n"
-    "olsplat bench live --scene small1 --methods outlangsplat,vala --every 10 --json live.json",
+    "olsplat bench live --scene small1 --methods outlangsplat,vala --every 10 --json live.json\n"
+    "olsplat bench live --scene small1 --methods outlangsplat --study",
     "bench frame": "olsplat bench frame --scene small0 --json frame.json",
     "bench query": "olsplat bench query --scene small0 --map maps/small0/language_map.npz",
     "bench graph": "olsplat bench graph --scene small0 --rate 1 --json graph.json\n"

@@ -28,6 +28,12 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--methods", default="outlangsplat,vala", help="methods whose eval stores to replay")
     parser.add_argument("--every", type=int, default=10, help="views that arrive between two passes")
     parser.add_argument("--refresh", type=float, default=1.0, help="the folds' exact slice (refiner.refresh)")
+    parser.add_argument(
+        "--study",
+        action="store_true",
+        help="instead: fold without refresh, then print how much of the folds' error each refresh priority "
+        "would recompute within a budget of 30%% of the stale observations",
+    )
     parser.add_argument("--json", type=Path, help="write the figures to this file")
     parser.set_defaults(run=run)
 
@@ -60,6 +66,54 @@ def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 
         figures["views"].append(fold.views)
         figures["cosine"].append(round(_cosine(fold.features, exact.features, exact.observed), 5))
     return {"figures": figures, "fold": live["fold"], "exact": live["exact"]}
+
+
+STUDY_BUDGET = 0.3  # of the stale observations: what a refresh may recompute in the study
+
+
+def refresh_study(store_folder: Path, method, every: int, work: Path) -> dict:
+    """Which refresh priority finds the Gaussians a fold got wrong: the store's views folded
+    ``every`` at a time with no refresh, then each Gaussian's error 1 - cos(fold, exact) against
+    an exact pass over all views; per candidate priority, the share of the total error held by
+    the Gaussians it ranks first within ``STUDY_BUDGET`` of the stale observations (each costs
+    its observations). ``oracle`` ranks by the error itself per observation."""
+    from ..method.live import LiveMap
+    from ..storage import ObservationStore
+
+    n = _map_size(store_folder)
+    segments = ObservationStore(store_folder, n).segments()
+    (work / "views").mkdir(parents=True)
+    fold = LiveMap(ObservationStore(work, n), refresh=0.0)
+    moved = np.zeros(n)
+    for stop in range(every, len(segments) + every, every):
+        for segment in segments[stop - every : stop]:
+            (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
+        before = None if fold.features is None else fold.features.astype(np.float32)
+        fold.update(method.aggregation, exact=False)
+        if before is not None and fold.features is not None:
+            had = np.linalg.norm(before, axis=1) > 0
+            moved[had] += 1 - np.sum(before[had] * fold.features[had].astype(np.float32), 1)
+    exact, observed = ObservationStore(work, n).refine(None, method.aggregation, False, unit_float16=True)
+    assert fold.features is not None
+    error = (1 - np.sum(fold.features.astype(np.float32) * exact.astype(np.float32), 1))[observed]
+    seen = np.maximum(fold.seen[observed], 1).astype(np.float64)
+    stale = (fold.seen - fold.exact_at)[observed].astype(np.float64)
+    share, spread = stale / seen, 1 - np.clip(fold.norm[observed], 0, 1)
+    budget = STUDY_BUDGET * stale.sum()
+    priorities = {
+        "spread x share / seen (the refiner's)": spread * share / seen,
+        "spread x share": spread * share,
+        "spread": spread,
+        "movement in the folds": moved[observed],
+        "share": share,
+        "oracle: error / seen": error / seen,
+    }
+    captured = {}
+    for name, priority in priorities.items():
+        ranked = np.argsort(-priority, kind="stable")
+        take = int(np.searchsorted(np.cumsum(seen[ranked]), budget, side="right"))
+        captured[name] = round(float(error[ranked[:take]].sum() / max(error.sum(), 1e-12)), 3)
+    return {"views": len(segments), "mean_error": round(float(error.mean()), 5), "captured": captured}
 
 
 def graph_drift(scene_folder: Path, run_dir: Path, passes: dict[int, dict]) -> dict | None:
@@ -138,6 +192,18 @@ def run(args: argparse.Namespace) -> int:
                 raise OlsplatInputError(
                     f"{store}: no store; run `olsplat eval --scene {folder} --methods {name}` first"
                 )
+            if args.study:
+                with tempfile.TemporaryDirectory() as tmp:
+                    study = refresh_study(store, named_method(name), args.every, Path(tmp) / "store")
+                results[f"{folder.name}/{name}"] = study
+                print(
+                    f"{folder.name} {name}: {study['views']} views folded {args.every} at a time without refresh, "
+                    f"mean error 1 - cos {study['mean_error']}; share of the error recomputed within "
+                    f"{STUDY_BUDGET:.0%} of the stale observations:"
+                )
+                for priority, share in study["captured"].items():
+                    print(f"  {priority:40s} {share:.3f}")
+                continue
             with tempfile.TemporaryDirectory() as tmp:
                 out = replay(store, named_method(name), args.every, Path(tmp) / "store", args.refresh)
             scores = {}

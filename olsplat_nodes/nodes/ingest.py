@@ -49,7 +49,7 @@ class IngestNode(Node):
     @dataclass(frozen=True)
     class Params(SourceParams):  # source_kind, source, rate_hz, fast, exif_*, depthai_*, fixed_pose, telemetry_*
         lossless: bool = True
-        window: int = 2  # frames in flight without acknowledgement (lossless)
+        window: int = 4  # frames in flight without acknowledgement (lossless): the encoder works ahead
         ack_timeout_s: float = 20.0  # send a frame again when it was not acknowledged in time
         # ... but until the first acknowledgement of this run, after this long, doubling up to
         # ack_timeout_s: frames published before the graph's subscribers have connected are

@@ -141,5 +141,12 @@ def test_bench_live_replays_a_store_folded_and_exact(tiny, tmp_path, capsys):
     assert figures["cosine"] == pytest.approx([1.0, 1.0, 1.0], abs=1e-4)
     assert figures["fold_mIoU"] == figures["exact_mIoU"] > 0
     assert "before the final pass: fold" in capsys.readouterr().out
+    # the refresh study: every priority's share of the folds' error within the budget; the oracle's the most
+    assert main([*args, "--study", "--json", str(tmp_path / "study.json")]) == 0
+    study = json.loads((tmp_path / "study.json").read_text())["scene/outlangsplat"]
+    captured = study["captured"]
+    assert study["views"] == 12 and study["mean_error"] > 0 and len(captured) == 6
+    assert all(0 <= c <= 1 for c in captured.values()) and captured["oracle: error / seen"] == max(captured.values())
+    assert "spread x share / seen (the refiner's)" in capsys.readouterr().out
     assert main([*args, "--methods", "vala"]) == 1
     assert "no store; run `olsplat eval" in capsys.readouterr().err
