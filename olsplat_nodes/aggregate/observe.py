@@ -93,18 +93,18 @@ def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
 
 
 @njit(cache=True)
-def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, n_gaussians):
-    """One pass over the view's entries (pixel order, then rank): d_i = sum of w~ over
-    Gaussian i's entries (float64 [N]), and the runs: per used level, consecutive entries of a
-    Gaussian in the same slot summed into one (gaussian, slot, level, summed w~) row, in the
-    order the runs start. Neighbouring pixels mostly share their Gaussians and regions, so a
-    view's ~5M entries make ~15x fewer runs, and only the runs are grouped afterwards
-    (``_mixtures``). last_slot / last_run remember each Gaussian's open run per level."""
+def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, strength, open_runs):
+    """One pass over the view's entries (pixel order, then rank): strength[i] += w~ over
+    Gaussian i's entries, and the runs: per used level, consecutive entries of a Gaussian in
+    the same slot summed into one (gaussian, slot, level, summed w~) row, in the order the runs
+    start. Neighbouring pixels mostly share their Gaussians and regions, so a view's ~5M
+    entries make ~15x fewer runs, and only the runs are grouped afterwards (``_mixtures``).
+
+    strength [N] float64 (zeros) and open_runs [L, N] int64 (-1) are columns of one [N, 1 + L]
+    record per Gaussian (``observe_view``), so that an entry's Gaussian costs one cache line,
+    not three: open_runs[l, i] is Gaussian i's open run on level l as slot << 32 | run."""
     n_pixels, k = topk_ids.shape
     n_levels = slot_maps.shape[0]
-    strength = np.zeros(n_gaussians, np.float64)
-    last_slot = np.full((n_levels, n_gaussians), -1, np.int32)
-    last_run = np.zeros((n_levels, n_gaussians), np.int64)
     cap = max(1024, n_pixels)
     run_gaussian = np.empty(cap, np.int32)
     run_slot = np.empty(cap, np.int32)
@@ -127,8 +127,9 @@ def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, n_gaussians):
                 slot = slot_maps[level, p]
                 if not level_on[level] or slot < 0:
                     continue
-                if last_slot[level, i] == slot:
-                    run_weight[last_run[level, i]] += w
+                packed = open_runs[level, i]
+                if packed >= 0 and (packed >> 32) == slot:
+                    run_weight[packed & 0xFFFFFFFF] += w
                     continue
                 if n == cap:  # grow by half (numba has no append to a preallocated array)
                     cap += cap // 2
@@ -137,10 +138,9 @@ def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, n_gaussians):
                     run_level = _grown(run_level, cap)
                     run_weight = _grown(run_weight, cap)
                 run_gaussian[n], run_slot[n], run_level[n], run_weight[n] = i, slot, level, w
-                last_slot[level, i] = slot
-                last_run[level, i] = n
+                open_runs[level, i] = (np.int64(slot) << 32) | n
                 n += 1
-    return strength, run_gaussian[:n], run_slot[:n], run_level[:n], run_weight[:n]
+    return run_gaussian[:n], run_slot[:n], run_level[:n], run_weight[:n]
 
 
 @njit(cache=True)
@@ -230,8 +230,12 @@ def observe_view(
     factors = _pixel_factors(w, valid, config.q_min, config.tau_e, config.kappa, config.eps, config.use_quality)
     levels = slot_maps.shape[0]
     a = level_weights(config, levels)
-    strength, run_gaussian, run_slot, run_level, run_weight = _runs(
-        ids, w, factors, slot_maps.reshape(levels, -1), a > 0, n_gaussians
+    record = np.zeros((n_gaussians, 1 + levels), np.float64)  # per Gaussian: strength, then its open runs
+    open_runs = record.view(np.int64)[:, 1:].T  # [L, N], strided into the records
+    open_runs[:] = -1
+    strength = record[:, 0]
+    run_gaussian, run_slot, run_level, run_weight = _runs(
+        ids, w, factors, slot_maps.reshape(levels, -1), a > 0, strength, open_runs
     )
     kept = np.flatnonzero(strength > config.tau_d).astype(np.int32)
     kept_of = np.full(n_gaussians, -1, np.int32)
