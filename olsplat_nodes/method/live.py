@@ -68,7 +68,7 @@ class LiveMap:
                 self.features is not None,
                 unit_float16=True,
                 state=(self.weight, self.norm),
-                stop=stop,
+                upto=stop,
             )
             self.exact_at[:] = self.seen
         else:
@@ -86,7 +86,7 @@ class LiveMap:
             stalest = self.stalest(self.refresh * added)
             if stalest is not None:
                 self.features, refreshed = self.store.refine(
-                    self.features, config, unit_float16=True, state=state, gaussians=stalest, stop=stop
+                    self.features, config, unit_float16=True, state=state, gaussians=stalest, upto=stop
                 )
                 self.exact_at[stalest] = self.seen[stalest]
                 changed |= refreshed

@@ -378,7 +378,7 @@ class ObservationStore:
         views: tuple[int, int] | None = None,
         gaussians: tuple[int, int] | np.ndarray | None = None,
         evidence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-        stop: int | None = None,
+        upto: int | None = None,
     ):
         """(features [N, D], observed [N] bool). Recomputes the Gaussians touched since the last
         call (all of them when ``only_touched`` is False or F is None); the others keep their
@@ -400,13 +400,13 @@ class ObservationStore:
         the new views against the current F, without re-weighing the earlier ones). With
         ``gaussians`` = (lo, hi), or an [N] bool mask, the pass recomputes exactly the Gaussians
         lo <= g < hi (or where the mask is True) that any view observed (a live map's refresh),
-        and leaves ``touched`` alone too. With ``stop`` only segments 0..stop-1 are read: a live
+        and leaves ``touched`` alone too. With ``upto`` only segments 0..upto-1 are read: a live
         map's views, so that a segment written while the pass runs is not taken in twice (now,
-        and by the next fold of the views after ``stop``).
+        and by the next fold of the views after ``upto``).
         ``evidence`` = (strength sum [N], effective views [N], spread [N]) float64 gets, for
         every Gaussian computed, its sum of d_iv, its effective number of views and the spread
         of its views about its feature (``refine_mixed``)."""
-        segments = self.segments()[:stop]
+        segments = self.segments()[:upto]
         if views is not None:
             if F is None or state is None or evidence is not None:
                 raise ValueError("folding views in needs the current features and their state (and gives no evidence)")

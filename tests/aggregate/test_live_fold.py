@@ -226,7 +226,7 @@ def test_the_refresh_takes_the_likeliest_wrong_gaussians_within_its_budget(tmp_p
 
 
 def test_a_segment_written_during_a_pass_waits_for_the_next(tmp_path):
-    """A store pass reads the segments up to ``stop`` only: a view that lands while a live map's
+    """A store pass reads the segments up to ``upto`` only: a view that lands while a live map's
     exact pass or refresh runs is not taken in, so the next fold does not take it in twice."""
     n, config = 150, AggregationConfig()
     views = list(_views(4, n))
@@ -237,13 +237,13 @@ def test_a_segment_written_during_a_pass_waits_for_the_next(tmp_path):
     for view in views:
         store.append(*view)
     expected, seen = short.refine(None, config, False)
-    got, observed = store.refine(None, config, False, stop=3)
+    got, observed = store.refine(None, config, False, upto=3)
     np.testing.assert_array_equal(got, expected)
     np.testing.assert_array_equal(observed, seen)
     mask = np.zeros(n, bool)
     mask[::3] = True
-    part, _ = store.refine(np.zeros_like(got), config, gaussians=mask, stop=3)
+    part, _ = store.refine(np.zeros_like(got), config, gaussians=mask, upto=3)
     np.testing.assert_array_equal(part[mask], expected[mask])
     assert not part[~mask].any()
     with pytest.raises(ValueError, match="bool mask"):
-        store.refine(got, config, gaussians=np.zeros(n, np.int64), stop=3)
+        store.refine(got, config, gaussians=np.zeros(n, np.int64), upto=3)
