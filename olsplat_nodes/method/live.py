@@ -126,7 +126,7 @@ class LiveMap:
 
 def warm_up(config: AggregationConfig | None = None, feature_dim: int = 8) -> float:
     """Run a live map's passes once on a made-up store in a temporary folder (64 Gaussians, three
-    views of random mixtures): an exact pass, a fold with its refresh slice, and a snapshot's
+    views of random mixtures): an exact pass, a fold with its refresh, and a snapshot's
     write, so that numba compiles the refinement kernels (or loads them from its cache) when the
     refiner starts and not in its first pass, while the accumulator compiles its own: on a fresh
     install that first pass took 42 s of a 12-view flight. ``config``: the aggregation to warm
