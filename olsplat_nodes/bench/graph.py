@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     from ..launcher import Supervisor, load_launch
     from ..scene import read_cameras
     from ..scene.ply import ply_vertex_count
-    from ..storage.snapshot import latest_map
+    from ..storage.snapshot import latest_map, map_history
     from ..transport import QueryClient
     from .ground_link import final_map, report_queries, sample_status, time_queries
     from .live import graph_drift
@@ -228,6 +228,9 @@ def run(args: argparse.Namespace) -> int:
                 print(f"  {done}/{len(cameras)} views stored after {elapsed:.0f} s{left}", flush=True)
         wall_s = time.monotonic() - start
         watch.sample()  # before the ingest exits
+        # every pass, also those written between two polls of latest.json (on a fast machine a
+        # fold and the final map can land within one poll)
+        passes.update({r["version"]: r for r in map_history(run_dir / "map") if "refine_s" in r})
         cpu_s = watch.node_cpu_s()  # the flight's, start-up included; the queries after it not
         watch.flight_over = True  # the queries below still count in the peaks
         # the ingest's counts are final in the heartbeat it sends after it saw the final map

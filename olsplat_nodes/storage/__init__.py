@@ -8,7 +8,7 @@ The method's numerics (``aggregate``) sit below this layer: the store refines it
 observations with them, and nothing here touches a socket.
 """
 
-from .snapshot import LanguageMap, latest_map, write_snapshot
+from .snapshot import LanguageMap, latest_map, map_history, write_snapshot
 from .store import ObservationStore
 from .views import SavedView, load_views, save_view
 
@@ -17,6 +17,7 @@ __all__ = [
     "ObservationStore",
     "SavedView",
     "latest_map",
+    "map_history",
     "load_views",
     "save_view",
     "write_snapshot",

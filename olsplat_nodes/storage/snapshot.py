@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from ..aggregate.codebook import compress, decompress, fit_codebook
-from ..durable import write_atomic
+from ..durable import append_line, write_atomic
 from ..errors import SceneFormatError
 
 FORMAT_VERSION = 2
@@ -179,8 +179,11 @@ class LanguageMap:
         return LanguageMap(features, observed, str(data["encoder"]), form, codes, centres, **evidence)
 
 
-# The run's map folder: versioned snapshots and latest.json, the late joiner's way in.
+# The run's map folder: versioned snapshots and latest.json, the late joiner's way in, and
+# versions.jsonl, every version's record in order (a reader polling latest.json can miss a
+# version written moments after another: the bench's per-pass figures read the history)
 KEEP_VERSIONS = 3  # older snapshots are deleted; a reader that still holds one has it in memory
+HISTORY = "versions.jsonl"
 
 
 def latest_map(map_dir: str | Path) -> dict | None:
@@ -198,9 +201,30 @@ def latest_map(map_dir: str | Path) -> dict | None:
     return record
 
 
+def map_history(map_dir: str | Path) -> list[dict]:
+    """Every version's record the refiner wrote to ``map_dir`` (``versions.jsonl``), oldest
+    first, as ``latest_map`` gives them but without ``path`` (a version's snapshot may be
+    deleted: only the newest ``KEEP_VERSIONS`` are kept). A line a power cut tore is skipped
+    (with the next, appended to it); [] when there is no history."""
+    try:
+        lines = (Path(map_dir) / HISTORY).read_text().splitlines()
+    except FileNotFoundError:
+        return []
+    records = []
+    for line in lines:
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(record, dict) and isinstance(record.get("version"), int):
+            records.append(record)
+    return records
+
+
 def write_snapshot(map_dir: Path, version: int, language_map: LanguageMap, record: dict, codebook: int | None) -> dict:
     """Write ``MAP_DIR/language_map_NNNNNN.npz`` for ``version`` and point ``latest.json`` at it
-    (both atomic); delete all but the newest ``KEEP_VERSIONS``. Returns the new record, which
+    (both atomic), append its record to ``versions.jsonl``; delete all but the newest
+    ``KEEP_VERSIONS``. Returns the new record, which
     adds to ``record`` the version, file, path, ``bytes`` (the snapshot's size) and ``write_s``
     (seconds to write it)."""
     map_dir.mkdir(parents=True, exist_ok=True)
@@ -216,6 +240,10 @@ def write_snapshot(map_dir: Path, version: int, language_map: LanguageMap, recor
         "write_s": round(time.perf_counter() - start, 3),
     }
     write_atomic(map_dir / "latest.json", json.dumps(record).encode())  # after the snapshot it names
+    try:  # the history is a record of the run, not the map: a full disk costs a line, never the version
+        append_line(map_dir / HISTORY, json.dumps({k: v for k, v in record.items() if k != "path"}))
+    except OSError:
+        pass
     for old in sorted(map_dir.glob("language_map_*.npz"))[:-KEEP_VERSIONS]:
         old.unlink(missing_ok=True)
     return record

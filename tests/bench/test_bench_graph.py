@@ -160,6 +160,7 @@ def test_lossless_flight_and_its_queries_again(tiny, tmp_path, capsys):
     final = json.loads((tmp_path / "run" / "map" / "latest.json").read_text())
     assert figures["snapshot_bytes"] == final["bytes"] == (tmp_path / "run" / "map" / final["file"]).stat().st_size
     exact = figures["refine_pass_exact"]  # the refiner folds its live passes; its first and final are exact
+    assert len(exact) == final["version"]  # every pass, also one written between two polls of latest.json
     assert len(exact) == len(figures["refine_pass_s"]) and exact[0] and exact[-1] and final["final"] and final["exact"]
     printed = capsys.readouterr().out
     assert "12 frames sent lossless (" in printed and "12 views of" in printed

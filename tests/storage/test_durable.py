@@ -169,3 +169,20 @@ def test_a_disk_runway_counts_the_views_the_free_space_holds_at_the_rate_so_far(
     assert runway.bytes_per_view == 5 * 2**20
     assert runway.views_left(600 * 2**20) == pytest.approx(100.0)
     assert DiskRunway(margin=1.0, written=10, views=1).views_left(25) == pytest.approx(2.5)
+
+
+def test_the_map_history_keeps_every_version_in_order_and_skips_a_torn_line(tmp_path):
+    from olsplat_nodes.storage import map_history
+
+    assert map_history(tmp_path / "map") == []
+    language_map = LanguageMap.from_features(np.ones((5, 4), np.float32), np.ones(5, bool), "enc")
+    for version in range(1, 6):  # more versions than the folder keeps snapshots of
+        write_snapshot(tmp_path / "map", version, language_map, {"views": version, "exact": version % 2 == 1}, None)
+    history = map_history(tmp_path / "map")
+    assert [r["version"] for r in history] == [1, 2, 3, 4, 5] and [r["views"] for r in history] == [1, 2, 3, 4, 5]
+    assert [r["exact"] for r in history] == [True, False, True, False, True]
+    assert all(r["file"] == f"language_map_{r['version']:06d}.npz" and "path" not in r for r in history)
+    assert len(list((tmp_path / "map").glob("language_map_*.npz"))) == 3  # the snapshots are pruned, the history not
+    with open(tmp_path / "map" / "versions.jsonl", "a") as torn:
+        torn.write('{"version": 6, "vie')  # a power cut in the middle of a line
+    assert [r["version"] for r in map_history(tmp_path / "map")] == [1, 2, 3, 4, 5]
