@@ -17,8 +17,8 @@ __all__ = [
     "ObservationStore",
     "SavedView",
     "latest_map",
-    "map_history",
     "load_views",
+    "map_history",
     "save_view",
     "write_snapshot",
 ]
