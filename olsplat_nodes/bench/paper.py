@@ -15,6 +15,9 @@ scene.json is what sim make writes are reused, a world's tuning is reused when `
 made with the same training scenes, methods, grids and encoder files (``tuning_key``), and each
 held-out scene's results when its ``results.json`` under ``WORK/<world>/eval`` matches its runs
 and settings (``olsplat eval --resume``). A changed encoder or setting is run again, not reused.
+Below those, every finished aggregation goes to the run ledger (``--ledger``, default
+``WORK/ledger``; ``evaluate.ledger``): a tuning or a scene cut short keeps its finished runs, and a
+ledger copied to another machine (the repository keeps the protocol's) spares its runs there.
 
 Training seeds are >= 1000 and held-out seeds below (``bench tune``'s ``TRAINING_SEEDS``): a
 choice of settings never sees a seed whose results are reported. ``--grid-limit N`` (hidden)
@@ -95,6 +98,14 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--weights", default="0.6,0.4", help="lambda_2D fusion weights of --encoders (0.6,0.4)")
     parser.add_argument("--work", type=Path, required=True, help="folder for the scenes, tunings, maps and results")
+    parser.add_argument(
+        "--ledger",
+        type=Path,
+        metavar="DIR",
+        help="the ledger of finished runs (default WORK/ledger): a run found there is not run again, each finished "
+        "run is added, so the tables can be made in pieces and on other machines (the repository keeps the "
+        "protocol's in results/paper-ledger)",
+    )
     parser.add_argument("--json", type=Path, help="write the tables' figures and the claims here")
     parser.add_argument("--md", type=Path, help="write the Markdown document here")
     parser.add_argument("--dry-run", action="store_true", help="print the plan (scenes, runs) and stop")
@@ -414,6 +425,7 @@ def run(args: argparse.Namespace) -> int:
         "encoders": args.encoders, "weights": args.weights, "grid_limit": args.grid_limit, "worlds": {},
     }  # fmt: skip
     started = time.perf_counter()
+    ledger = args.ledger or args.work / "ledger"
     for world in worlds:
         for seed in [*train, *seeds]:
             if states[world, seed] == "make":
@@ -426,7 +438,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"[{world}] tuning {', '.join(methods)} on seeds {train} ({time.perf_counter() - started:.0f} s)")
             tune = tune_methods(
-                [folders[world, s] for s in train], methods, args.encoders, args.weights, args.grid_limit
+                [folders[world, s] for s in train], methods, args.encoders, args.weights, args.grid_limit, ledger
             )
             tune["key"] = key
             partial = base / "tune.json.partial"
@@ -437,7 +449,7 @@ def run(args: argparse.Namespace) -> int:
               f"({time.perf_counter() - started:.0f} s)")  # fmt: skip
         argv = [a for s in seeds for a in ("--scene", str(folders[world, s]))]
         argv += ["--methods", ",".join(methods), "--encoders", args.encoders, "--feature-ablation", "--fusion-sweep"]
-        argv += ["--tuned", str(base / "tune.json"), "--work", str(base / "eval"), "--resume"]
+        argv += ["--tuned", str(base / "tune.json"), "--work", str(base / "eval"), "--resume", "--ledger", str(ledger)]
         argv += ["--json", str(base / "eval.json"), "--md", str(base / "eval.md")]
         if args.weights:
             argv += ["--weights", args.weights]

@@ -16,6 +16,7 @@ settings of each grid: for tests, never for a table.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import tempfile
 import time
@@ -63,6 +64,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--weights", help="lambda_2D fusion weights of --encoders, e.g. 0.6,0.4")
     parser.add_argument("--json", type=Path, help="write every setting's scores and the choices here")
     parser.add_argument("--md", type=Path, help="write the sweep as a Markdown table here")
+    parser.add_argument(
+        "--ledger", type=Path, metavar="DIR", help="reuse and add finished runs here, as `olsplat eval --ledger`"
+    )
     # tests only: the first N settings of each grid (a smaller budget than the protocol's)
     parser.add_argument("--grid-limit", type=int, help=argparse.SUPPRESS)
     parser.set_defaults(run=run)
@@ -125,16 +129,19 @@ def tune_methods(
     encoders: str = DEFAULT_ENCODER,
     weights: str | None = None,
     grid_limit: int | None = None,
+    ledger: Path | None = None,
 ) -> dict[str, Any]:
     """Run each method's grid (its first ``grid_limit`` settings, or all) on the training scenes
     ``folders`` with the encoder configuration ``encoders`` / ``weights`` (as ``olsplat eval``
     takes them); returns the ``--json`` document: ``{"scenes", "encoders", "weights", "methods":
-    {name: {"rows", "chosen"}}}``. Every scene, name and setting is checked before any work."""
+    {name: {"rows", "chosen"}}}``. Every scene, name and setting is checked before any work. A run
+    in the ``ledger`` folder (``evaluate.ledger``) is not run again; each finished run is added."""
     import numpy as np
 
-    from ..encoders.spec import encoder_from_spec
+    from ..encoders.spec import encoder_fingerprint, encoder_from_spec
     from ..errors import OlsplatInputError
     from ..evaluate import evaluate_map
+    from ..evaluate.ledger import RunLedger, run_key, scene_digest
     from ..method import MethodParams
     from ..params import parse_params
     from ..pipeline import Scene, aggregate_scene
@@ -153,16 +160,26 @@ def tune_methods(
         for name in names
     }
     encoder = encoder_from_spec(encoders, weights)
+    runs = RunLedger(ledger)
+    contents = [scene_digest(scene.folder) for scene in scenes] if ledger is not None else [""] * len(scenes)
+    fingerprint = encoder_fingerprint(encoders) if ledger is not None else ""
+    lambdas = [float(w) for w in weights.split(",")] if weights else None
+
+    def aggregate_and_score(scene, method) -> dict:
+        with tempfile.TemporaryDirectory() as tmp:
+            aggregate_scene(scene, method, encoder, Path(tmp))
+            return evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
+
     results: dict[str, Any] = {}
     for name in names:
         rows: list[dict[str, Any]] = []
         for grid, method in zip(grids[name], settings[name], strict=True):
             scores = []
             start = time.perf_counter()
-            for scene in scenes:
-                with tempfile.TemporaryDirectory() as tmp:
-                    aggregate_scene(scene, method, encoder, Path(tmp))
-                    scores.append(evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder))
+            for scene, content in zip(scenes, contents, strict=True):
+                made_of = run_key(content, method, encoders, lambdas, fingerprint, None)
+                compute = functools.partial(aggregate_and_score, scene, method)
+                scores.append(runs.run(made_of, compute, f"{scene.folder.name} {name} {json.dumps(grid)}")[0])
             row = {
                 "setting": grid,
                 "mIoU": float(np.mean([s["mIoU"] for s in scores])),
@@ -183,7 +200,7 @@ def tune_methods(
 
 def run(args: argparse.Namespace) -> int:
     names = [m.strip() for m in args.methods.split(",") if m.strip()]
-    document = tune_methods(args.scene, names, args.encoders, args.weights, args.grid_limit)
+    document = tune_methods(args.scene, names, args.encoders, args.weights, args.grid_limit, args.ledger)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(document, indent=1))

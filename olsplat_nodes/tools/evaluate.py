@@ -77,6 +77,14 @@ def add_parser(subparsers) -> None:
         help="reuse a scene's results saved in its work folder (results.json) by an earlier run with the same scene, "
         "runs, settings and encoder files; an interrupted evaluation continues where it stopped",
     )
+    ev.add_argument(
+        "--ledger",
+        type=Path,
+        metavar="DIR",
+        help="a ledger of finished runs (one JSON per run, named by what made it: the scene's content, the method's "
+        "parameters, the encoder files, the 3D branch): a run found there is not run again (the first is, and must "
+        "match), each finished run is added; docs/evaluation-protocol.md",
+    )
     ev.add_argument("--json", type=Path, help="write the results here")
     ev.add_argument("--md", type=Path, help="write the paper's tables (Markdown) here")
     ev.add_argument("--figures", type=Path, help="write side-by-side heatmaps per view and query here")
@@ -89,22 +97,16 @@ def _folder_name(label: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import shutil
-    import time
-
-    from tqdm import tqdm
 
     from ..encoders.spec import encoder_fingerprint, encoder_from_spec
     from ..errors import OlsplatInputError
-    from ..evaluate import evaluate_map
     from ..evaluate.figures import qualitative_figures
+    from ..evaluate.ledger import RunLedger, run_key, scene_digest
     from ..evaluate.runs import plan_runs
     from ..evaluate.tables import overall, paper_tables, spread
-    from ..memory import peak_rss_mb, reset_peak_rss
     from ..method import MethodParams
     from ..params import parse_assignments, parse_params
-    from ..pipeline import Scene, aggregate_scene
-    from ..storage.snapshot import LanguageMap
+    from ..pipeline import Scene
     from ..structure.branch import StructureConfig, minkunet_path
 
     scenes = [Scene.open(folder) for folder in args.scene]  # every folder is checked before any work
@@ -150,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         titles = [str(s.folder) for s in scenes]
     results: dict[str, dict] = {}
     fingerprints = {spec: encoder_fingerprint(spec) for spec in {r.encoders for r in runs}}
+    ledger = RunLedger(args.ledger if not args.figures else None)  # figures need every map made here
     for title, scene in zip(titles, scenes, strict=True):
         work = (args.work / title if len(scenes) > 1 else args.work) if args.work else scene.folder / "eval"
         resume_key = _resume_key(scene, runs, used, fingerprints)
@@ -159,37 +162,31 @@ def run(args: argparse.Namespace) -> int:
             print(f"{title}: {len(saved)} runs reused from {work / RESULTS_FILE} (--resume)")
             continue
         results[title], maps, done = {}, {}, {}
+        content = scene_digest(scene.folder) if ledger.folder is not None else ""
         for r in runs:
             encoder = encoders[r.encoders, r.weights]
             key = (r.method, encoder.name, r.structure)
             if key not in done:
-                out = work / _folder_name(r.label)
-                shutil.rmtree(out, ignore_errors=True)
-                reset_peak_rss()  # each method's own peak (aggregation and scoring), not the process's
-                stats = aggregate_scene(
-                    scene,
-                    methods[r.method],
-                    encoder,
-                    out,
-                    functools.partial(tqdm, desc=r.label, unit="view"),
-                    structure=r.structure,
-                )
-                started = time.perf_counter()
-                language_map = LanguageMap.load(out / "language_map.npz")
-                scoring = functools.partial(tqdm, desc=f"{r.label} scoring", unit="view")
-                scores = evaluate_map(scene, language_map, encoder, progress=scoring)
-                scored_s = time.perf_counter() - started
-                # the figures need every method's map at the end; otherwise a map goes once
-                # scored, so memory does not grow with the number of methods (large scenes)
-                kept = language_map if args.figures and r.kind == "method" else None
-                del language_map
-                timing = {"seconds": stats["seconds"], "score_seconds": scored_s, "peak_rss_mb": peak_rss_mb()}
-                done[key] = ({**scores, **timing}, kept)
-            scores, kept = done[key]
+                kept: list = []  # the map, when the figures need it
+                compute = functools.partial(
+                    _aggregate_and_score, scene, methods[r.method], encoder, r.structure,
+                    work / _folder_name(r.label), r.label, kept if args.figures and r.kind == "method" else None,
+                )  # fmt: skip
+                if ledger.folder is None:
+                    scores = compute()
+                else:
+                    made_of = run_key(
+                        content, methods[r.method], r.encoders, r.weights, fingerprints[r.encoders], r.structure
+                    )
+                    scores, reused = ledger.run(made_of, compute, f"{title} {r.label}")
+                    if reused:
+                        print(f"{title}: {r.label} from the ledger ({ledger.path(made_of).name})")
+                done[key] = (scores, kept[0] if kept else None)
+            scores, kept_map = done[key]
             described = {**r.describe(), "settings": used[r.method], "tuned": chosen[r.method]}
             results[title][r.label] = {**scores, "run": described}
-            if kept is not None:
-                maps[r.label] = kept
+            if kept_map is not None:
+                maps[r.label] = kept_map
             print(f"{title}: {r.label:28s} mIoU {scores['mIoU']:5.1f}  mAcc {scores['mAcc']:5.1f}  Loc@40/50/60 "
                   f"{scores['loc40']:5.1f} {scores['loc50']:5.1f} {scores['loc60']:5.1f}  ({scores['seconds']:.0f} "
                   "s)")  # fmt: skip
@@ -211,6 +208,34 @@ def run(args: argparse.Namespace) -> int:
     if args.md:
         args.md.write_text(tables)
     return 0
+
+
+def _aggregate_and_score(scene, method, encoder, structure, out: Path, label: str, keep: list | None) -> dict:
+    """One run: aggregate ``scene`` into ``out`` and score the map; its scores with the seconds
+    to aggregate and to score and the run's peak RSS. ``keep``: append the map to it (the
+    figures need every method's map at the end; otherwise a map goes once scored, so memory
+    does not grow with the number of methods on large scenes)."""
+    import shutil
+    import time
+
+    from tqdm import tqdm
+
+    from ..evaluate import evaluate_map
+    from ..memory import peak_rss_mb, reset_peak_rss
+    from ..pipeline import aggregate_scene
+    from ..storage.snapshot import LanguageMap
+
+    shutil.rmtree(out, ignore_errors=True)
+    reset_peak_rss()  # each method's own peak (aggregation and scoring), not the process's
+    progress = functools.partial(tqdm, desc=label, unit="view")
+    stats = aggregate_scene(scene, method, encoder, out, progress, structure=structure)
+    started = time.perf_counter()
+    language_map = LanguageMap.load(out / "language_map.npz")
+    scores = evaluate_map(scene, language_map, encoder, progress=functools.partial(tqdm, desc=f"{label} scoring"))
+    timing = {"seconds": stats["seconds"], "score_seconds": time.perf_counter() - started, "peak_rss_mb": peak_rss_mb()}
+    if keep is not None:
+        keep.append(language_map)
+    return {**scores, **timing}
 
 
 RESULTS_FILE = "results.json"  # a scene's results in its work folder, for --resume

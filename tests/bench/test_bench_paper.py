@@ -148,6 +148,25 @@ def test_bench_paper_end_to_end_on_the_tiny_preset(tmp_path, monkeypatch, capsys
 
     assert main([*argv, "--dry-run"]) == 0  # the same scenes again: reused, nothing run
     assert "scenes: 0 to make, 3 reused" in capsys.readouterr().out
+
+    # the ledger alone, as on another machine: scenes made again, every run from the ledger but
+    # the first reuse of the tuning and of the evaluation, each computed again as a check
+    ledger = work / "ledger"
+    # tuning: 1 seed x 2 methods; held out, per scene: the 2 methods, each encoder alone and
+    # 2D-3D with descriptors and with the MinkUNet (2D fusion is outlangsplat's run, Table 7's
+    # only cell the descriptors run)
+    assert len(list(ledger.glob("*.json"))) == 2 + 2 * 6
+    elsewhere = ["--work", str(tmp_path / "elsewhere"), "--ledger", str(ledger), "--json", str(tmp_path / "e.json")]
+    assert main([*argv[: argv.index("--work")], *elsewhere]) == 0
+    printed = capsys.readouterr().out
+    assert "scenes: 3 to make, 0 reused" in printed and printed.count("computed again matches its entry") == 2
+    assert printed.count("from the ledger (") == 2 * 6  # every held-out run (the check's too)
+    made_here = json.loads((tmp_path / "e.json").read_text())["worlds"]["v1"]
+    assert made_here["tune"] == str(tmp_path / "elsewhere" / "v1" / "tune.json")
+    assert {k: v for k, v in made_here.items() if k not in ("tune", "eval")} == {
+        k: v for k, v in world.items() if k not in ("tune", "eval")
+    }
+    assert len(list(ledger.glob("*.json"))) == 2 + 2 * 6  # nothing new
     scene = json.loads((work / "v1" / "tiny1" / "scene.json").read_text())
     (work / "v1" / "tiny1" / "scene.json").write_text(json.dumps({**scene, "seed": 7}))
     assert main([*argv, "--dry-run"]) == 1
