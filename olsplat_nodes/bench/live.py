@@ -44,6 +44,14 @@ def _cosine(a: np.ndarray, b: np.ndarray, rows: np.ndarray) -> float:
     return float(np.mean(np.sum(x * y, 1)))
 
 
+def link_segments(segments: list[Path], work: Path) -> None:
+    """Link a store's view segments into the store at ``work`` (``work/views/<segment>``, made
+    when missing): a store of chosen views, nothing copied."""
+    (work / "views").mkdir(parents=True, exist_ok=True)
+    for segment in segments:
+        (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
+
+
 def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 1.0) -> dict:
     """Both live maps over the store's segments, ``every`` at a time; the figures and maps."""
     from ..method.live import LiveMap
@@ -55,8 +63,7 @@ def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 
     live = {kind: LiveMap(ObservationStore(work, n), refresh=refresh) for kind in ("fold", "exact")}
     figures: dict = {"views": [], "fold_s": [], "exact_s": [], "cosine": []}
     for stop in range(every, len(segments) + every, every):
-        for segment in segments[stop - every : stop]:
-            (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
+        link_segments(segments[stop - every : stop], work)
         for kind, live_map in live.items():
             start = time.perf_counter()
             live_map.update(method.aggregation, exact=kind == "exact")
@@ -77,7 +84,7 @@ def refresh_study(store_folder: Path, method, every: int, work: Path) -> dict:
     an exact pass over all views; per candidate priority, the share of the total error held by
     the Gaussians it ranks first within ``STUDY_BUDGET`` of the stale observations (each costs
     its observations). ``oracle`` ranks by the error itself per observation."""
-    from ..method.live import LiveMap
+    from ..method.live import LiveMap, refresh_priority
     from ..storage import ObservationStore
 
     n = _map_size(store_folder)
@@ -86,8 +93,7 @@ def refresh_study(store_folder: Path, method, every: int, work: Path) -> dict:
     fold = LiveMap(ObservationStore(work, n), refresh=0.0)
     moved = np.zeros(n)
     for stop in range(every, len(segments) + every, every):
-        for segment in segments[stop - every : stop]:
-            (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
+        link_segments(segments[stop - every : stop], work)
         before = None if fold.features is None else fold.features.astype(np.float32)
         fold.update(method.aggregation, exact=False)
         if before is not None and fold.features is not None:
@@ -101,7 +107,7 @@ def refresh_study(store_folder: Path, method, every: int, work: Path) -> dict:
     share, spread = stale / seen, 1 - np.clip(fold.norm[observed], 0, 1)
     budget = STUDY_BUDGET * stale.sum()
     priorities = {
-        "spread x share / seen (the refiner's)": spread * share / seen,
+        "spread x share / seen (the refiner's)": refresh_priority(spread, stale, seen),
         "spread x share": spread * share,
         "spread": spread,
         "movement in the folds": moved[observed],
@@ -146,9 +152,7 @@ def graph_drift(scene_folder: Path, run_dir: Path, passes: dict[int, dict]) -> d
     segments = ObservationStore(run_dir / "store", n).segments()[:views]
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp) / "store"
-        (work / "views").mkdir(parents=True)
-        for segment in segments:
-            (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
+        link_segments(segments, work)
         exact = LiveMap(ObservationStore(work, n))
         exact.update(manifest.method.aggregation, exact=True)
     assert exact.features is not None and exact.observed is not None

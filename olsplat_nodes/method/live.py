@@ -116,12 +116,19 @@ class LiveMap:
             return None
         seen = self.seen[stale].astype(np.float64)
         spread = 1.0 - np.clip(self.norm[stale], 0.0, 1.0)
-        priority = spread * (seen - self.exact_at[stale]) / (seen * seen)
+        priority = refresh_priority(spread, seen - self.exact_at[stale], seen)
         ranked = stale[np.argsort(-priority, kind="stable")]  # stable: ties keep the index order
         take = max(int(np.searchsorted(np.cumsum(self.seen[ranked], dtype=np.int64), budget, side="right")), 1)
         chosen = np.zeros(len(self.seen), bool)
         chosen[ranked[:take]] = True
         return chosen
+
+
+def refresh_priority(spread: np.ndarray, folded: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The refresh's priority of stale Gaussians ([M] each, float64): spread (1 - |F|) x share
+    (``folded`` / ``seen``: its observations taken in by folds since its last exact computation,
+    of all of them) / ``seen`` (what recomputing it costs); ``LiveMap.stalest`` explains it."""
+    return spread * folded / (seen * seen)
 
 
 def warm_up(config: AggregationConfig | None = None, feature_dim: int = 8) -> float:
