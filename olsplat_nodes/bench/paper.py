@@ -358,6 +358,24 @@ def _plan_counts(args, methods: list[str], seeds: list[int], train: list[int]) -
     return counts | {kind: kinds.count(kind) * len(seeds) for kind in ("2d", "descriptors", "minkunet")}
 
 
+def _print_ledger_progress(ledger: Path, worlds, folders, states, train, seeds, counts) -> None:
+    """Per world, how many of its tuning and held-out runs the ledger already holds (found by the
+    scenes' content; a scene not made yet counts none)."""
+    from ..evaluate.ledger import RunLedger, scene_digest
+
+    held = RunLedger(ledger).scene_counts()
+    per_seed = (counts["2d"] + counts["descriptors"] + counts["minkunet"]) // len(seeds)
+    for world in worlds:
+        found = {
+            seed: held.get(scene_digest(folders[world, seed]), 0) if states[world, seed] == "reuse" else 0
+            for seed in [*train, *seeds]
+        }
+        done = [found[s] for s in seeds]
+        print(f"  ledger {ledger}: [{world}] {sum(found[s] for s in train)}/{counts['tuning']} tuning runs, "
+              f"{sum(done)}/{per_seed * len(seeds)} held-out runs (per seed {', '.join(map(str, done))} of "
+              f"{per_seed})")  # fmt: skip
+
+
 def run(args: argparse.Namespace) -> int:
     import time
 
@@ -410,6 +428,9 @@ def run(args: argparse.Namespace) -> int:
         per_run = f"2D {times['2d']} s, descriptors {times['descriptors']} s, MinkUNet {times['minkunet']} s per run"
         print(f"  about {seconds / 3600:.1f} h on two idle cores at the per-run times measured on {args.preset} "
               f"({per_run}), plus the scenes")  # fmt: skip
+    ledger = args.ledger or args.work / "ledger"
+    if ledger.is_dir():
+        _print_ledger_progress(ledger, worlds, folders, states, train, seeds, counts)
     if args.dry_run:
         return 0
 
@@ -425,7 +446,6 @@ def run(args: argparse.Namespace) -> int:
         "encoders": args.encoders, "weights": args.weights, "grid_limit": args.grid_limit, "worlds": {},
     }  # fmt: skip
     started = time.perf_counter()
-    ledger = args.ledger or args.work / "ledger"
     for world in worlds:
         for seed in [*train, *seeds]:
             if states[world, seed] == "make":

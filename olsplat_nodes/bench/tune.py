@@ -166,9 +166,11 @@ def tune_methods(
     lambdas = [float(w) for w in weights.split(",")] if weights else None
 
     def aggregate_and_score(scene, method) -> dict:
+        start = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
             aggregate_scene(scene, method, encoder, Path(tmp))
-            return evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
+            scores = evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
+        return {**scores, "seconds": time.perf_counter() - start}  # kept in the ledger with the scores
 
     results: dict[str, Any] = {}
     for name in names:

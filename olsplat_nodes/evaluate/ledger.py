@@ -112,6 +112,17 @@ class RunLedger:
             return None
         return entry["scores"]
 
+    def scene_counts(self) -> dict[str, int]:
+        """How many runs the ledger holds per scene (``scene_digest``): a long evaluation's progress."""
+        counts: dict[str, int] = {}
+        for path in sorted(self.folder.glob("*.json")) if self.folder is not None else []:
+            try:
+                scene = json.loads(path.read_text())["key"]["scene"]
+            except (OSError, ValueError, KeyError, TypeError):
+                continue
+            counts[scene] = counts.get(scene, 0) + 1
+        return counts
+
     def run(self, key: dict[str, Any], compute: Callable[[], dict], label: str = "") -> tuple[dict, bool]:
         """(scores, reused): the saved scores of ``key``, or ``compute()``'s (a dict with at
         least mIoU and loc50), saved before they are returned. The first run this ledger would

@@ -147,7 +147,9 @@ def test_bench_paper_end_to_end_on_the_tiny_preset(tmp_path, monkeypatch, capsys
     assert capsys.readouterr().out.count("runs reused from") == 1
 
     assert main([*argv, "--dry-run"]) == 0  # the same scenes again: reused, nothing run
-    assert "scenes: 0 to make, 3 reused" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "scenes: 0 to make, 3 reused" in printed
+    assert f"ledger {work / 'ledger'}: [v1] 2/2 tuning runs, 12/12 held-out runs (per seed 6, 6 of 6)" in printed
 
     # the ledger alone, as on another machine: scenes made again, every run from the ledger but
     # the first reuse of the tuning and of the evaluation, each computed again as a check
