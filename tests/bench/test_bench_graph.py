@@ -142,7 +142,7 @@ def test_lossless_flight_and_its_queries_again(tiny, tmp_path, capsys):
     args = ["bench", "graph", "--scene", str(scene), "--lossless", "--queries", "3", "--heatmap-queries", "2"]
     args += ["--heatmap-views", "1", "--sample-s", "0.2", "--work", str(tmp_path / "run")]
     args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port()), "--json", str(out)]
-    args += ["--set", "refiner.period_s=1", "--set", "refiner.max_duty=1"]  # live folds on a short flight
+    args += ["--set", "refiner.period_s=0.5", "--set", "refiner.max_duty=1"]  # live folds on a short flight
     assert main(args) == 0
     figures = json.loads(out.read_text())
     check_common(figures)
