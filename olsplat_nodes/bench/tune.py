@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -140,12 +139,11 @@ def tune_methods(
 
     from ..encoders.spec import encoder_fingerprint, encoder_from_spec
     from ..errors import OlsplatInputError
-    from ..evaluate import evaluate_map
     from ..evaluate.ledger import RunLedger, run_key, scene_digest
+    from ..evaluate.one_run import aggregate_and_score
     from ..method import MethodParams
     from ..params import parse_params
-    from ..pipeline import Scene, aggregate_scene
-    from ..storage.snapshot import LanguageMap
+    from ..pipeline import Scene
 
     unknown = [n for n in names if n not in GRIDS]
     if unknown:
@@ -165,13 +163,6 @@ def tune_methods(
     fingerprint = encoder_fingerprint(encoders) if ledger is not None else ""
     lambdas = [float(w) for w in weights.split(",")] if weights else None
 
-    def aggregate_and_score(scene, method) -> dict:
-        start = time.perf_counter()
-        with tempfile.TemporaryDirectory() as tmp:
-            aggregate_scene(scene, method, encoder, Path(tmp))
-            scores = evaluate_map(scene, LanguageMap.load(Path(tmp) / "language_map.npz"), encoder)
-        return {**scores, "seconds": time.perf_counter() - start}  # kept in the ledger with the scores
-
     results: dict[str, Any] = {}
     for name in names:
         rows: list[dict[str, Any]] = []
@@ -180,7 +171,7 @@ def tune_methods(
             start = time.perf_counter()
             for scene, content in zip(scenes, contents, strict=True):
                 made_of = run_key(content, method, encoders, lambdas, fingerprint, None)
-                compute = functools.partial(aggregate_and_score, scene, method)
+                compute = functools.partial(aggregate_and_score, scene, method, encoder)
                 scores.append(runs.run(made_of, compute, f"{scene.folder.name} {name} {json.dumps(grid)}")[0])
             row = {
                 "setting": grid,

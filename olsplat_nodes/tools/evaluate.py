@@ -102,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
     from ..evaluate.figures import qualitative_figures
     from ..evaluate.ledger import RunLedger, run_key, scene_digest
+    from ..evaluate.one_run import aggregate_and_score
     from ..evaluate.runs import plan_runs
     from ..evaluate.tables import overall, paper_tables, spread
     from ..method import MethodParams
@@ -169,18 +170,15 @@ def run(args: argparse.Namespace) -> int:
             if key not in done:
                 kept: list = []  # the map, when the figures need it
                 compute = functools.partial(
-                    _aggregate_and_score, scene, methods[r.method], encoder, r.structure,
+                    aggregate_and_score, scene, methods[r.method], encoder, r.structure,
                     work / _folder_name(r.label), r.label, kept if args.figures and r.kind == "method" else None,
                 )  # fmt: skip
-                if ledger.folder is None:
-                    scores = compute()
-                else:
-                    made_of = run_key(
-                        content, methods[r.method], r.encoders, r.weights, fingerprints[r.encoders], r.structure
-                    )
-                    scores, reused = ledger.run(made_of, compute, f"{title} {r.label}")
-                    if reused:
-                        print(f"{title}: {r.label} from the ledger ({ledger.path(made_of).name})")
+                made_of = run_key(
+                    content, methods[r.method], r.encoders, r.weights, fingerprints[r.encoders], r.structure
+                )
+                scores, reused = ledger.run(made_of, compute, f"{title} {r.label}")
+                if reused:
+                    print(f"{title}: {r.label} from the ledger ({ledger.path(made_of).name})")
                 done[key] = (scores, kept[0] if kept else None)
             scores, kept_map = done[key]
             described = {**r.describe(), "settings": used[r.method], "tuned": chosen[r.method]}
@@ -208,34 +206,6 @@ def run(args: argparse.Namespace) -> int:
     if args.md:
         args.md.write_text(tables)
     return 0
-
-
-def _aggregate_and_score(scene, method, encoder, structure, out: Path, label: str, keep: list | None) -> dict:
-    """One run: aggregate ``scene`` into ``out`` and score the map; its scores with the seconds
-    to aggregate and to score and the run's peak RSS. ``keep``: append the map to it (the
-    figures need every method's map at the end; otherwise a map goes once scored, so memory
-    does not grow with the number of methods on large scenes)."""
-    import shutil
-    import time
-
-    from tqdm import tqdm
-
-    from ..evaluate import evaluate_map
-    from ..memory import peak_rss_mb, reset_peak_rss
-    from ..pipeline import aggregate_scene
-    from ..storage.snapshot import LanguageMap
-
-    shutil.rmtree(out, ignore_errors=True)
-    reset_peak_rss()  # each method's own peak (aggregation and scoring), not the process's
-    progress = functools.partial(tqdm, desc=label, unit="view")
-    stats = aggregate_scene(scene, method, encoder, out, progress, structure=structure)
-    started = time.perf_counter()
-    language_map = LanguageMap.load(out / "language_map.npz")
-    scores = evaluate_map(scene, language_map, encoder, progress=functools.partial(tqdm, desc=f"{label} scoring"))
-    timing = {"seconds": stats["seconds"], "score_seconds": time.perf_counter() - started, "peak_rss_mb": peak_rss_mb()}
-    if keep is not None:
-        keep.append(language_map)
-    return {**scores, **timing}
 
 
 RESULTS_FILE = "results.json"  # a scene's results in its work folder, for --resume
