@@ -12,11 +12,11 @@ finer ones.
 
 from __future__ import annotations
 
-import heapq
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit, typed, types
 
 from .levels import RegionLevels, relabel_contiguous
 
@@ -91,10 +91,30 @@ def propose_regions(image_rgb: np.ndarray, config: RegionConfig = RegionConfig()
     return RegionLevels(np.stack([relabel_contiguous(level) for level in full]))
 
 
-def _merge_levels(
-    image_rgb: np.ndarray, superpixel_px: int, mean_shift: tuple[float, float], edge_weight: float, targets: list[int]
-) -> np.ndarray:
-    """[L, H, W] int32 label maps, coarse to fine, with the given region counts (any order)."""
+@dataclass(frozen=True)
+class SuperpixelGraph:
+    """A view's superpixels and their neighbourhood, what the greedy merge starts from."""
+
+    labels: np.ndarray  # [H, W] int32 superpixel ids 0..n-1
+    sizes: np.ndarray  # [n] float64 pixels
+    means: np.ndarray  # [n, 3] float64 mean Lab colour (L 0..100, a/b centred on 0)
+    pairs: np.ndarray  # [E, 2] int64 neighbours a < b, in increasing (a, b) order
+    lengths: np.ndarray  # [E] float64 shared boundary, in pixel pairs
+    grad_sums: np.ndarray  # [E] float64 Lab gradient summed along the boundary
+
+    def first_costs(self, edge_weight: float) -> np.ndarray:
+        """[E] float64 every pair's merge cost (``_cost``'s formula, vectorised: the same numbers)."""
+        a, b = self.pairs[:, 0], self.pairs[:, 1]
+        colour = ((self.means[a] - self.means[b]) ** 2).sum(1)
+        sizes = self.sizes
+        return (
+            sizes[a] * sizes[b] / (sizes[a] + sizes[b]) * (colour + (edge_weight * self.grad_sums / self.lengths) ** 2)
+        )
+
+
+def superpixel_graph(image_rgb: np.ndarray, superpixel_px: int, mean_shift: tuple[float, float]) -> SuperpixelGraph:
+    """Smooth [H, W, 3] uint8 RGB (mean shift), cut it into SLIC superpixels in Lab colour, and
+    measure each one and each pair of neighbours."""
     bgr = np.ascontiguousarray(image_rgb[..., ::-1])
     smooth = cv2.pyrMeanShiftFiltering(bgr, *mean_shift)
     lab_u8 = cv2.cvtColor(smooth, cv2.COLOR_BGR2Lab)
@@ -112,67 +132,163 @@ def _merge_levels(
         np.stack([np.bincount(labels.ravel(), weights=lab[..., c].ravel(), minlength=n) for c in range(3)], 1)
         / sizes[:, None]
     )
-    pairs, lengths, grad_sums = _adjacency(labels, gradient)
-    neighbours: list[dict[int, list[float]]] = [dict() for _ in range(n)]
-    for (a, b), length, grad_sum in zip(pairs.tolist(), lengths.tolist(), grad_sums.tolist(), strict=True):
-        neighbours[a][b] = neighbours[b][a] = [length, grad_sum]
+    return SuperpixelGraph(labels, sizes, means, *_adjacency(labels, gradient))
 
-    # the merge loop runs on Python floats: tens of thousands of 3-vector operations, where
-    # numpy's per-call overhead would dominate (same float64 arithmetic, same order)
-    mean_of: list[list[float]] = means.tolist()
-    size_of: list[float] = sizes.tolist()
 
-    def cost(a: int, b: int) -> float:
-        length, grad_sum = neighbours[a][b]
-        (l1, a1, b1), (l2, a2, b2) = mean_of[a], mean_of[b]
-        colour = (l1 - l2) ** 2 + (a1 - a2) ** 2 + (b1 - b2) ** 2
-        edge = grad_sum / length
-        return size_of[a] * size_of[b] / (size_of[a] + size_of[b]) * (colour + (edge_weight * edge) ** 2)
+def merge_levels(graph: SuperpixelGraph, edge_weight: float, targets: list[int]) -> np.ndarray:
+    """[L, H, W] int32 label maps, coarse to fine, with the given region counts (any order):
+    neighbours merged greedily, cheapest first (``_merge``), each map taken when the count
+    reaches its target."""
+    n = len(graph.sizes)
+    targets = sorted(targets, reverse=True)  # fine first
+    reached = [t for t in targets if t >= n]  # no merge needed: the superpixels themselves
+    pending = np.array([t for t in targets if t < n], np.int64)
+    a, b = graph.pairs[:, 0], graph.pairs[:, 1]
+    parents = _merge(
+        n, a, b, graph.lengths, graph.grad_sums, graph.first_costs(edge_weight), graph.means, graph.sizes,
+        edge_weight, pending,
+    )  # fmt: skip
+    snapshots = {t: relabel_contiguous(graph.labels) for t in reached}
+    for target, parent in zip(pending.tolist(), parents, strict=True):
+        snapshots[target] = relabel_contiguous(parent[graph.labels])  # parent[] always holds roots
+    return np.stack([snapshots[t] for t in sorted(snapshots)])
 
+
+def _merge_levels(
+    image_rgb: np.ndarray, superpixel_px: int, mean_shift: tuple[float, float], edge_weight: float, targets: list[int]
+) -> np.ndarray:
+    """[L, H, W] int32 label maps, coarse to fine, with the given region counts (any order)."""
+    return merge_levels(superpixel_graph(image_rgb, superpixel_px, mean_shift), edge_weight, targets)
+
+
+@njit(cache=True)
+def _cost(a, b, e, size, mean, e_length, e_grad, edge_weight):
+    """The merge cost of neighbours a < b sharing boundary record e: Ward-like colour
+    difference plus the boundary gradient (module docstring)."""
+    colour = (mean[a, 0] - mean[b, 0]) ** 2 + (mean[a, 1] - mean[b, 1]) ** 2 + (mean[a, 2] - mean[b, 2]) ** 2
+    edge = e_grad[e] / e_length[e]
+    return size[a] * size[b] / (size[a] + size[b]) * (colour + (edge_weight * edge) ** 2)
+
+
+@njit(cache=True)
+def _before(heap, i, j):
+    """Whether heap row i orders before row j: (cost, a, b, version a, version b) compared as
+    Python compares tuples."""
+    for c in range(5):
+        if heap[i, c] != heap[j, c]:
+            return heap[i, c] < heap[j, c]
+    return False
+
+
+@njit(cache=True)
+def _swap(heap, i, j):
+    for c in range(5):
+        heap[i, c], heap[j, c] = heap[j, c], heap[i, c]
+
+
+@njit(cache=True)
+def _sift_up(heap, i):
+    while i > 0:
+        up = (i - 1) >> 1
+        if not _before(heap, i, up):
+            return
+        _swap(heap, i, up)
+        i = up
+
+
+@njit(cache=True)
+def _sift_down(heap, i, n):
+    while True:
+        smallest, left = i, 2 * i + 1
+        if left < n and _before(heap, left, smallest):
+            smallest = left
+        if left + 1 < n and _before(heap, left + 1, smallest):
+            smallest = left + 1
+        if smallest == i:
+            return
+        _swap(heap, i, smallest)
+        i = smallest
+
+
+@njit(cache=True)
+def _merge(n, pair_a, pair_b, lengths, grad_sums, first_costs, means, sizes, edge_weight, pending):
+    """Greedy merging, cheapest pair first: [len(pending), n] int64 parent arrays (every
+    superpixel's region root) taken when the region count reaches each target of ``pending``
+    (descending, each < n; a target not reached takes the last state).
+
+    The same float64 arithmetic in the same order as ``_reference.merge_levels_python`` (the Python
+    loop it replaces; a test compares their label maps exactly): the heap holds (cost, a, b,
+    version a, version b) with a < b, so ties break alike; an entry is stale once either side
+    merged or changed since it was pushed."""
+    size = sizes.copy()
+    mean = means.copy()
+    # boundary records: both neighbours' dicts hold the same record id, as the reference's
+    # dicts share one [length, grad_sum] list
+    e_length = np.empty(max(1, len(lengths)), np.float64)
+    e_grad = np.empty(max(1, len(lengths)), np.float64)
+    neighbours = typed.List()
+    for _ in range(n):
+        neighbours.append(typed.Dict.empty(key_type=types.int64, value_type=types.int64))
+    # the heap: rows (cost, a, b, version a, version b), float64 (ids and versions are exact
+    # in a float64 far beyond any image's superpixel count)
+    heap = np.zeros((max(16, 4 * len(pair_a)), 5), np.float64)
+    n_heap = len(pair_a)
+    for e in range(n_heap):
+        a, b = pair_a[e], pair_b[e]
+        e_length[e], e_grad[e] = lengths[e], grad_sums[e]
+        neighbours[a][b] = e
+        neighbours[b][a] = e
+        heap[e, 0], heap[e, 1], heap[e, 2] = first_costs[e], a, b
+    for i in range(n_heap // 2 - 1, -1, -1):
+        _sift_down(heap, i, n_heap)
     parent = np.arange(n)
     version = np.zeros(n, np.int64)
-    # the first costs for all pairs at once (the same formula as cost(), vectorised)
-    a, b = pairs[:, 0], pairs[:, 1]
-    colour = ((means[a] - means[b]) ** 2).sum(1)
-    first_costs = sizes[a] * sizes[b] / (sizes[a] + sizes[b]) * (colour + (edge_weight * grad_sums / lengths) ** 2)
-    heap = [(c, x, y, 0, 0) for c, x, y in zip(first_costs.tolist(), a.tolist(), b.tolist(), strict=True)]
-    heapq.heapify(heap)
-    targets = sorted(targets, reverse=True)  # fine first
-    snapshots: dict[int, np.ndarray] = {}
+    out = np.empty((len(pending), n), np.int64)
     alive = n
-
-    def snapshot(target: int) -> None:
-        snapshots[target] = relabel_contiguous(parent[labels])  # parent[] always holds roots
-
-    for target in [t for t in targets if t >= alive]:
-        snapshot(target)
-    pending = [t for t in targets if t < alive]
-    while heap and pending:
-        _, a, b, va, vb = heapq.heappop(heap)
+    next_target = 0
+    while n_heap > 0 and next_target < len(pending):
+        a, b, va, vb = int(heap[0, 1]), int(heap[0, 2]), int(heap[0, 3]), int(heap[0, 4])
+        n_heap -= 1
+        _swap(heap, 0, n_heap)
+        _sift_down(heap, 0, n_heap)
         if parent[a] != a or parent[b] != b or va != version[a] or vb != version[b]:
-            continue  # stale entry: one side merged or changed since it was pushed
-        # merge b into a
-        total = size_of[a] + size_of[b]
-        mean_of[a] = [(x * size_of[a] + y * size_of[b]) / total for x, y in zip(mean_of[a], mean_of[b], strict=True)]
-        size_of[a] = total
+            continue
+        total = size[a] + size[b]  # merge b into a
+        for c in range(3):
+            mean[a, c] = (mean[a, c] * size[a] + mean[b, c] * size[b]) / total
+        size[a] = total
         parent[b] = a
-        parent[parent == b] = a
-        del neighbours[a][b], neighbours[b][a]
-        for c, (length, grad_sum) in neighbours[b].items():
+        for i in range(n):
+            if parent[i] == b:
+                parent[i] = a
+        del neighbours[a][b]
+        del neighbours[b][a]
+        for c, e in neighbours[b].items():
             del neighbours[c][b]
-            merged = neighbours[a].get(c)
-            stats = [length + merged[0], grad_sum + merged[1]] if merged else [length, grad_sum]
-            neighbours[a][c] = neighbours[c][a] = stats
-        neighbours[b] = {}
+            if c in neighbours[a]:
+                shared = neighbours[a][c]
+                e_length[shared] = e_length[e] + e_length[shared]
+                e_grad[shared] = e_grad[e] + e_grad[shared]
+            else:
+                neighbours[a][c] = e
+                neighbours[c][a] = e
+        neighbours[b].clear()
         version[a] += 1
-        for c in neighbours[a]:
-            heapq.heappush(
-                heap,
-                (cost(a, c), a, c, version[a], version[c]) if a < c else (cost(c, a), c, a, version[c], version[a]),
-            )
+        for c, e in neighbours[a].items():
+            if n_heap == len(heap):  # grow by half
+                grown = np.zeros((len(heap) + len(heap) // 2, 5), np.float64)
+                grown[:n_heap] = heap
+                heap = grown
+            low, high = min(a, c), max(a, c)
+            heap[n_heap, 0] = _cost(low, high, e, size, mean, e_length, e_grad, edge_weight)
+            heap[n_heap, 1], heap[n_heap, 2] = low, high
+            heap[n_heap, 3], heap[n_heap, 4] = version[low], version[high]
+            _sift_up(heap, n_heap)
+            n_heap += 1
         alive -= 1
-        while pending and alive <= pending[0]:
-            snapshot(pending.pop(0))
-    for target in pending:  # fewer merges possible than asked (disconnected image?)
-        snapshot(target)
-    return np.stack([snapshots[t] for t in sorted(snapshots)])
+        while next_target < len(pending) and alive <= pending[next_target]:
+            out[next_target] = parent
+            next_target += 1
+    for t in range(next_target, len(pending)):  # fewer merges possible than asked (disconnected image?)
+        out[t] = parent
+    return out
