@@ -93,18 +93,21 @@ def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
 
 
 @njit(cache=True)
-def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, strength, open_runs):
+def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, record):
     """One pass over the view's entries (pixel order, then rank): strength[i] += w~ over
     Gaussian i's entries, and the runs: per used level, consecutive entries of a Gaussian in
     the same slot summed into one (gaussian, slot, level, summed w~) row, in the order the runs
     start. Neighbouring pixels mostly share their Gaussians and regions, so a view's ~5M
     entries make ~15x fewer runs, and only the runs are grouped afterwards (``_mixtures``).
 
-    strength [N] float64 (zeros) and open_runs [L, N] int64 (-1) are columns of one [N, 1 + L]
-    record per Gaussian (``observe_view``), so that an entry's Gaussian costs one cache line,
-    not three: open_runs[l, i] is Gaussian i's open run on level l as slot << 32 | run."""
+    ``record`` [N, >= 1 + 2L] float64 zeros, one row per Gaussian (``observe_view``): its
+    strength, then per level its open run, (slot + 1) << 32 | run as int64 bits (0: none), and
+    that run's running sum. An entry thus touches one row, not the strength, the open run and
+    the run's sum in three places; a run's sum goes to its row of the output when it closes
+    (another slot) or at the end. The sums are the same float64 additions in the same order."""
     n_pixels, k = topk_ids.shape
     n_levels = slot_maps.shape[0]
+    packed_of = record.view(np.int64)
     cap = max(1024, n_pixels)
     run_gaussian = np.empty(cap, np.int32)
     run_slot = np.empty(cap, np.int32)
@@ -122,24 +125,31 @@ def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, strength, open_r
             w = topk_weights[p, r] * f
             if not w > 0.0:
                 continue
-            strength[i] += w
+            record[i, 0] += w
             for level in range(n_levels):
                 slot = slot_maps[level, p]
                 if not level_on[level] or slot < 0:
                     continue
-                packed = open_runs[level, i]
-                if packed >= 0 and (packed >> 32) == slot:
-                    run_weight[packed & 0xFFFFFFFF] += w
+                packed = packed_of[i, 1 + 2 * level]
+                if packed != 0 and (packed >> 32) == slot + 1:
+                    record[i, 2 + 2 * level] += w
                     continue
+                if packed != 0:  # the open run closes: its sum is final
+                    run_weight[packed & 0xFFFFFFFF] = record[i, 2 + 2 * level]
                 if n == cap:  # grow by half (numba has no append to a preallocated array)
                     cap += cap // 2
                     run_gaussian = _grown(run_gaussian, cap)
                     run_slot = _grown(run_slot, cap)
                     run_level = _grown(run_level, cap)
                     run_weight = _grown(run_weight, cap)
-                run_gaussian[n], run_slot[n], run_level[n], run_weight[n] = i, slot, level, w
-                open_runs[level, i] = (np.int64(slot) << 32) | n
+                run_gaussian[n], run_slot[n], run_level[n] = i, slot, level
+                packed_of[i, 1 + 2 * level] = (np.int64(slot + 1) << 32) | n
+                record[i, 2 + 2 * level] = w
                 n += 1
+    for e in range(n):  # the runs still open at the end
+        i, level = run_gaussian[e], run_level[e]
+        if (packed_of[i, 1 + 2 * level] & 0xFFFFFFFF) == e:
+            run_weight[e] = record[i, 2 + 2 * level]
     return run_gaussian[:n], run_slot[:n], run_level[:n], run_weight[:n]
 
 
@@ -230,13 +240,12 @@ def observe_view(
     factors = _pixel_factors(w, valid, config.q_min, config.tau_e, config.kappa, config.eps, config.use_quality)
     levels = slot_maps.shape[0]
     a = level_weights(config, levels)
-    record = np.zeros((n_gaussians, 1 + levels), np.float64)  # per Gaussian: strength, then its open runs
-    open_runs = record.view(np.int64)[:, 1:].T  # [L, N], strided into the records
-    open_runs[:] = -1
+    # per Gaussian: strength, then per level its open run and that run's sum (``_runs``), in
+    # rows of 32 or 64 bytes: one cache line per entry. Zeros: pages never touched stay unmade.
+    width = -(-(1 + 2 * levels) // 4) * 4
+    record = np.zeros((n_gaussians, width), np.float64)
+    run_gaussian, run_slot, run_level, run_weight = _runs(ids, w, factors, slot_maps.reshape(levels, -1), a > 0, record)
     strength = record[:, 0]
-    run_gaussian, run_slot, run_level, run_weight = _runs(
-        ids, w, factors, slot_maps.reshape(levels, -1), a > 0, strength, open_runs
-    )
     kept = np.flatnonzero(strength > config.tau_d).astype(np.int32)
     kept_of = np.full(n_gaussians, -1, np.int32)
     kept_of[kept] = np.arange(len(kept), dtype=np.int32)
