@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             clock.append(time.perf_counter())
             bank = encode_regions(image, levels, encoder)
             clock.append(time.perf_counter())
-            rendered = rasterize(gaussians, camera, method.raster)
+            rendered = rasterize(gaussians, camera, method.raster, want_rgb=False)  # as the accumulator
             clock.append(time.perf_counter())
             assert rendered.topk_ids is not None and rendered.topk_weights is not None
             slots, stacked = stack_levels(levels.label_maps, bank.features)

@@ -53,7 +53,7 @@ def view_observations(
     (0..1) and ``height_m`` (the camera above the map's ground under the view). Raises
     ``ViewOffMap`` when ``gate`` refuses the view (nothing fused, nothing observed)."""
     t0 = time.perf_counter()
-    rendered = rasterize(gaussians, camera, method.raster)
+    rendered = rasterize(gaussians, camera, method.raster, want_rgb=False)  # the colour is never read
     assert rendered.topk_ids is not None and rendered.topk_weights is not None  # rasterize always keeps Top-K
     seen = map_coverage(rendered.alpha, rendered.topk_ids, gaussians.means[:, 2], float(camera.center[2]))
     if gate is not None and gate.refuses(seen):

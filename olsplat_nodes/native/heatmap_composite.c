@@ -214,7 +214,7 @@ int composite_heatmaps(const int64_t *offsets, const int32_t *slots, const int32
                     chunk_rows[c] = row < 0 ? (const void *)zero_row : (const char *)features + row * row_bytes;
                 }
             }
-            if (!tile_pass(&t, chunk[j % CHUNK], j, alpha_min, alpha_max, t_min))
+            if (!tile_pass(&t, chunk[j % CHUNK], j, alpha_min, alpha_max, t_min, 1))
                 continue;
             for (int64_t ly = t.py0; ly < t.py1; ly++) {
                 for (uint64_t added = t.added[ly - t.py0]; added; added &= added - 1) { /* in x order */

@@ -118,10 +118,12 @@ static inline void box_alphas(const float *rec, int64_t px0, int64_t px1, int64_
  * its transmittance would fall to <= t_min, else adds w = alpha T and takes T (1 - alpha). Each
  * pixel's weight (0: no contribution) replaces its alpha in ``box``; returns the bits (1 << x) of
  * the pixels it stopped, sets *added to the bits of those it added to and adds its live pixels
- * inside the box to *live. The arrays hold 8 floats past a tile. */
+ * inside the box to *live. The arrays hold 8 floats past a tile. ``colour`` 0: the colour sums
+ * are left alone (a render nobody reads the colour of: the accumulator's). */
 static inline uint64_t row_blend(float *restrict trans, float *restrict acc_r, float *restrict acc_g,
                                  float *restrict acc_b, float *restrict acc_z, float *restrict box, int64_t x_first,
-                                 int64_t groups, const float *rec, float t_min, uint64_t *added, int64_t *live)
+                                 int64_t groups, const float *rec, float t_min, int colour, uint64_t *added,
+                                 int64_t *live)
 {
     int64_t live_n = 0;
     uint64_t stops = 0, adds = 0;
@@ -143,9 +145,11 @@ static inline uint64_t row_blend(float *restrict trans, float *restrict acc_r, f
         __m256 t_out = _mm256_blendv_ps(t, next_t, add);
         t_out = _mm256_blendv_ps(t_out, _mm256_sub_ps(zero, t), stop);
         _mm256_storeu_ps(trans + x0, t_out);
-        _mm256_storeu_ps(acc_r + x0, _mm256_fmadd_ps(w, red, _mm256_loadu_ps(acc_r + x0)));
-        _mm256_storeu_ps(acc_g + x0, _mm256_fmadd_ps(w, green, _mm256_loadu_ps(acc_g + x0)));
-        _mm256_storeu_ps(acc_b + x0, _mm256_fmadd_ps(w, blue, _mm256_loadu_ps(acc_b + x0)));
+        if (colour) {
+            _mm256_storeu_ps(acc_r + x0, _mm256_fmadd_ps(w, red, _mm256_loadu_ps(acc_r + x0)));
+            _mm256_storeu_ps(acc_g + x0, _mm256_fmadd_ps(w, green, _mm256_loadu_ps(acc_g + x0)));
+            _mm256_storeu_ps(acc_b + x0, _mm256_fmadd_ps(w, blue, _mm256_loadu_ps(acc_b + x0)));
+        }
         _mm256_storeu_ps(acc_z + x0, _mm256_fmadd_ps(w, depth, _mm256_loadu_ps(acc_z + x0)));
         live_n += __builtin_popcount(_mm256_movemask_ps(live));
         stops |= (uint64_t)(uint32_t)_mm256_movemask_ps(stop) << x0;
@@ -164,9 +168,11 @@ static inline uint64_t row_blend(float *restrict trans, float *restrict acc_r, f
         const float w = add ? alpha * t : 0.0f;
         box[i] = w;
         trans[lx] = add ? next_t : stop ? -t : t;
-        acc_r[lx] += w * rec[RED];
-        acc_g[lx] += w * rec[GREEN];
-        acc_b[lx] += w * rec[BLUE];
+        if (colour) {
+            acc_r[lx] += w * rec[RED];
+            acc_g[lx] += w * rec[GREEN];
+            acc_b[lx] += w * rec[BLUE];
+        }
         acc_z[lx] += w * rec[DEPTH];
         live_n += live;
         stops |= (uint64_t)stop << lx;
@@ -239,8 +245,10 @@ static inline void tile_start(Tile *t, int64_t tile, int64_t tiles_x, int64_t ti
 
 /* The pass of the tile's j-th Gaussian (record rec) over its pixel box, in two steps (box_alphas,
  * then row_blend row by row), skipping the rows where every pixel of the box has stopped.
- * Returns the bits of the pixels it added to, over all rows (0: it added nowhere). */
-static inline uint64_t tile_pass(Tile *t, const float *rec, int64_t j, float alpha_min, float alpha_max, float t_min)
+ * Returns the bits of the pixels it added to, over all rows (0: it added nowhere). ``colour`` 0:
+ * without the colour sums (row_blend). */
+static inline uint64_t tile_pass(Tile *t, const float *rec, int64_t j, float alpha_min, float alpha_max, float t_min,
+                                 int colour)
 {
     int64_t box[4];
     pixel_box(rec, t->x_start, t->x_end, t->y_start, t->y_end, box);
@@ -264,7 +272,7 @@ static inline uint64_t tile_pass(Tile *t, const float *rec, int64_t j, float alp
         const int64_t row = ly * t->tile_size;
         const uint64_t stops = row_blend(t->trans + row, t->acc_r + row, t->acc_g + row, t->acc_b + row, t->acc_z + row,
                                          t->box + (ly - t->py0) * t->groups * 8, t->x_first, t->groups, rec, t_min,
-                                         added, &t->evals);
+                                         colour, added, &t->evals);
         const int64_t stopped = __builtin_popcountll(stops);
         t->live_rows[ly] &= ~stops;
         t->n_live -= stopped;
@@ -280,8 +288,9 @@ static inline float tile_weight(const Tile *t, int64_t lx, int64_t ly)
     return t->box[(ly - t->py0) * t->groups * 8 + lx - t->x_first];
 }
 
-/* The tile's colour (+ background x final T), alpha = 1 - T and depth = sum(w z) / alpha into
- * the image's [H, W, 3] / [H, W] outputs, and its two counts into out_evals[tile]. */
+/* The tile's colour (+ background x final T; out_rgb NULL: none), alpha = 1 - T and depth =
+ * sum(w z) / alpha into the image's [H, W, 3] / [H, W] outputs, and its two counts into
+ * out_evals[tile]. */
 static inline void tile_finish(const Tile *t, int64_t tile, int64_t width, const float *background, float *out_rgb,
                                float *out_alpha, float *out_depth, int64_t *out_evals)
 {
@@ -290,10 +299,18 @@ static inline void tile_finish(const Tile *t, int64_t tile, int64_t width, const
             const int64_t p = ly * t->tile_size + lx, at = (t->y_start + ly) * width + t->x_start + lx;
             const float final_t = fabsf(t->trans[p]), total = 1.0f - final_t;
             out_alpha[at] = total;
+            out_depth[at] = total > 1e-10f ? t->acc_z[p] / total : 0.0f;
+        }
+    }
+    /* the colour in a loop of its own: the loop above compiles the same with or without it, so
+     * alpha and depth are the same bits either way */
+    for (int64_t ly = 0; out_rgb && ly < t->y_end - t->y_start; ly++) {
+        for (int64_t lx = 0; lx < t->x_end - t->x_start; lx++) {
+            const int64_t p = ly * t->tile_size + lx, at = (t->y_start + ly) * width + t->x_start + lx;
+            const float final_t = fabsf(t->trans[p]);
             out_rgb[at * 3] = t->acc_r[p] + final_t * background[0];
             out_rgb[at * 3 + 1] = t->acc_g[p] + final_t * background[1];
             out_rgb[at * 3 + 2] = t->acc_b[p] + final_t * background[2];
-            out_depth[at] = total > 1e-10f ? t->acc_z[p] / total : 0.0f;
         }
     }
     out_evals[tile * 2] = t->evals;

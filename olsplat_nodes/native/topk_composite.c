@@ -63,12 +63,15 @@ static inline float bits_float(uint32_t bits)
 
 /* Returns 0, or -1 when a tile's buffers could not be allocated, tile_size is over MAX_TILE or
  * k_cap over MAX_K (outputs then incomplete). out_topk_ids / out_topk_weights are [H, W, k_cap]
- * (unused when k_cap is 0); every entry is written (padding -1 / 0). */
+ * (unused when k_cap is 0); every entry is written (padding -1 / 0). out_rgb NULL: no colour (the
+ * colour sums are skipped, the rest is the same). map_ids [M] (NULL: none): the records are the
+ * rows of a culled projection and out_topk_ids gets map_ids[row], the Gaussians' own indices. */
 int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *order, const int64_t *tile_order,
                    int64_t n_tiles, const float *records, int64_t width, int64_t height, int64_t tile_size,
                    float alpha_min, float alpha_max, float t_min, int32_t k_cap, int32_t topk_min, double coverage,
                    const float *background, float *out_rgb, float *out_alpha, float *out_depth,
-                   int32_t *out_topk_ids, float *out_topk_weights, int64_t *out_evals, int threads)
+                   int32_t *out_topk_ids, float *out_topk_weights, int64_t *out_evals, const int64_t *map_ids,
+                   int threads)
 {
     if (tile_size > MAX_TILE || k_cap > MAX_K || k_cap < 0)
         return -1;
@@ -102,7 +105,7 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
                     memcpy(chunk[c], records + (int64_t)order[chunk_position[c]] * RECORD, RECORD * sizeof(float));
                 }
             }
-            if (!tile_pass(&t, chunk[j % CHUNK], j, alpha_min, alpha_max, t_min) || k_cap == 0)
+            if (!tile_pass(&t, chunk[j % CHUNK], j, alpha_min, alpha_max, t_min, out_rgb != NULL) || k_cap == 0)
                 continue;
             /* the rank key's low half: the inverted depth position (the nearer ranks first on ties) */
             const int64_t low = (int64_t)(0xFFFFFFFFu - (uint32_t)chunk_position[j % CHUNK]);
@@ -150,7 +153,8 @@ int composite_topk(const int64_t *offsets, const int32_t *slots, const int32_t *
                 int32_t *ids = out_topk_ids + at * k_cap;
                 float *w = out_topk_weights + at * k_cap;
                 for (int32_t k = 0; k < keep; k++) {
-                    ids[k] = order[0xFFFFFFFFu - (uint32_t)(ranked[k] & 0xFFFFFFFF)];
+                    const int32_t row = order[0xFFFFFFFFu - (uint32_t)(ranked[k] & 0xFFFFFFFF)];
+                    ids[k] = map_ids ? (int32_t)map_ids[row] : row;
                     w[k] = bits_float((uint32_t)(ranked[k] >> 32));
                 }
                 for (int32_t k = keep; k < k_cap; k++) {

@@ -20,7 +20,7 @@ from .project import Projected, project
 
 @dataclass
 class RenderResult:
-    rgb: np.ndarray  # [H, W, 3] float32, 0..1 (+ background * final transmittance)
+    rgb: np.ndarray | None  # [H, W, 3] float32, 0..1 (+ background * final transmittance); None: not asked for
     alpha: np.ndarray  # [H, W] float32 accumulated opacity = sum of weights = 1 - T_final
     depth: np.ndarray  # [H, W] float32 expected camera z = sum(w z) / alpha; 0 where alpha = 0
     features: np.ndarray | None  # [H, W, D] float32 sum(w f) / (alpha + eps), when features were given
@@ -61,6 +61,7 @@ def rasterize(
     unit_features_out: np.ndarray | None = None,  # [H * W, D] float32, with feature_queries: receives F / |F|
     feature_rows: np.ndarray | None = None,  # [N] int: Gaussian g's feature is features[feature_rows[g]] (-1: 0)
     active: np.ndarray | None = None,  # [N] bool: only these are drawn (the others as if culled)
+    want_rgb: bool = True,  # False: rgb None (the C Top-K kernel then skips the colour sums)
 ) -> RenderResult:
     """Render ``gaussians`` into ``camera``'s ideal pinhole image (distortion not applied).
 
@@ -80,7 +81,8 @@ def rasterize(
     With ``active`` only the Gaussians where it is True are drawn, as if the others were not in
     the map.
     Renders without features (the accumulator's Top-K) go to the C Top-K kernel when it is built
-    (``topk_native.py``: weights within a few ulp of the numba kernel's, the same ranking rule).
+    (``topk_native.py``: weights within a few ulp of the numba kernel's, the same ranking rule);
+    with ``want_rgb`` False it leaves the colour out (every other output the same).
     """
     config = config or RasterConfig()
     n = len(gaussians)
@@ -121,7 +123,8 @@ def rasterize(
     clock.append(time.perf_counter())
 
     k = config.topk_max if want_topk else 0
-    rgb = np.empty((height, width, 3), np.float32)
+    native_topk = features is None and topk_native.available(tile, k)
+    rgb = np.empty((height, width, 3) if want_rgb or not native_topk else (0, 0, 3), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
     out_features = np.empty((height, width, len(queries) or feats.shape[1]), np.float32)
@@ -147,15 +150,15 @@ def rasterize(
     out = Outputs(rgb, alpha, depth, out_features, topk_ids, topk_weights, evals, unit)
     if len(queries) and not want_topk and heatmap_native.available(tile):  # heatmaps: the C kernel, same outputs
         heatmap_native.composite_heatmaps(splats, lists, canvas, out)
-    elif features is None and topk_native.available(tile, k):  # the accumulator's render: the C kernel, same Top-K
-        topk_native.composite_topk(splats, lists, canvas, topk, out)
+    elif native_topk:  # the accumulator's render: the C kernel, same Top-K, the map's ids written at once
+        topk_native.composite_topk(splats, lists, canvas, topk, out, projected.ids if want_topk else None)
     else:
         composite_tiles(splats, lists, canvas, topk, out)
-    if want_topk and projected.ids is not None:
-        _to_map_ids(topk_ids, projected.ids)
+        if want_topk and projected.ids is not None:
+            _to_map_ids(topk_ids, projected.ids)
     clock.append(time.perf_counter())
     return RenderResult(
-        rgb=rgb,
+        rgb=rgb if want_rgb else None,
         alpha=alpha,
         depth=depth,
         features=out_features if features is not None else None,

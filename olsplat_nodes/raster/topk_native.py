@@ -31,7 +31,8 @@ ARGUMENTS: list = [
     *[_I64, _I64, _I64, _F, _F, _F],  # Canvas: width, height, tile_size, alpha_min, alpha_max, t_min
     *[_I32, _I32, ctypes.c_double],  # TopK: k_cap, topk_min, coverage
     _P,  # Canvas: background
-    *[_P, _P, _P, _P, _P, _P],  # Outputs: rgb, alpha, depth, topk_ids, topk_weights, evals
+    *[_P, _P, _P, _P, _P, _P],  # Outputs: rgb (NULL: no colour), alpha, depth, topk_ids, topk_weights, evals
+    _P,  # map_ids: the Gaussians' indices of a culled projection's rows (NULL: rows are indices)
     ctypes.c_int,  # threads
 ]
 
@@ -50,15 +51,19 @@ def available(tile_size: int, k_cap: int) -> bool:
     return tile_size <= MAX_TILE and k_cap <= MAX_K and kernel() is not None
 
 
-def composite_topk(splats: Splats, lists: TileLists, canvas: Canvas, topk: TopK, out: Outputs) -> None:
+def composite_topk(
+    splats: Splats, lists: TileLists, canvas: Canvas, topk: TopK, out: Outputs, map_ids: np.ndarray | None = None
+) -> None:
     """The C kernel on ``rasterize``'s records (``arguments.py``; their arrays C-contiguous,
     int32 slots/order/topk_ids, int64 offsets/tile_order/evals, float32 otherwise; the Top-K
     outputs [H, W, topk.k_cap], k_cap 0 for a plain render; the features are not read: a render
-    without them), on the caller's numba thread count. Raises MemoryError when a tile's
-    buffers cannot be had."""
+    without them), on the caller's numba thread count. An empty ``out.rgb``: no colour (its sums
+    skipped). ``map_ids`` [M] int64: the records are the rows of a culled projection and the
+    Top-K ids are written as map_ids[row]. Raises MemoryError when a tile's buffers cannot be had."""
     loaded = kernel()
     assert loaded is not None, "composite_topk needs available() first"
     colour = np.ascontiguousarray(canvas.background, np.float32)  # a name: alive through the call
+    ids = None if map_ids is None else np.ascontiguousarray(map_ids, np.int64)  # likewise
 
     def address(array):
         assert array.flags.c_contiguous, "the C kernel needs C-contiguous arrays"
@@ -74,6 +79,7 @@ def composite_topk(splats: Splats, lists: TileLists, canvas: Canvas, topk: TopK,
         address(colour),
         *(address(out.rgb), address(out.alpha), address(out.depth), address(out.topk_ids)),
         *(address(out.topk_weights), address(out.evals)),
+        None if map_ids is None else address(ids),
         numba.get_num_threads(),
     )
     if status != 0:

@@ -100,3 +100,16 @@ def test_the_c_network_is_batchers():
     assert table is not None
     pairs = [(int(a), int(b)) for a, b in re.findall(r"\{(\d+),\s*(\d+)\}", table.group(1))]
     assert pairs == batcher_pairs(32)
+
+
+@pytest.mark.parametrize("width,height,n,kind,opacity", CASES[:2])
+def test_without_the_colour_every_other_output_is_the_same_bits(width, height, n, kind, opacity, built):
+    gaussians = random_gaussians(n, 1, seed=n, spread=0.6)
+    if opacity is not None:
+        gaussians.opacity_logits[:] = opacity
+    camera = camera_for(kind, width, height)
+    full = rasterize(gaussians, camera, RasterConfig())
+    plain = rasterize(gaussians, camera, RasterConfig(), want_rgb=False)  # as the accumulator renders
+    assert plain.rgb is None and full.rgb is not None and full.alpha.max() > 0.5
+    for name in ("alpha", "depth", "topk_ids", "topk_weights"):
+        assert np.array_equal(getattr(plain, name), getattr(full, name)), name
