@@ -7,6 +7,7 @@ import functools
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -30,15 +31,13 @@ def aggregate_and_score(
     from ..storage.snapshot import LanguageMap
     from .scene_eval import evaluate_map
 
+    progress: Callable | None = None
+    scoring: Callable | None = None
     if label is not None:
         from tqdm import tqdm
 
-        progress, scoring = (
-            functools.partial(tqdm, desc=label, unit="view"),
-            functools.partial(tqdm, desc=f"{label} scoring"),
-        )
-    else:
-        progress = scoring = None
+        progress = functools.partial(tqdm, desc=label, unit="view")
+        scoring = functools.partial(tqdm, desc=f"{label} scoring")
     shutil.rmtree(out, ignore_errors=True)
     reset_peak_rss()  # each run's own peak, not the process's
     stats = aggregate_scene(scene, method, encoder, out, progress, structure=structure)

@@ -20,7 +20,7 @@ from .project import Projected, project
 
 @dataclass
 class RenderResult:
-    rgb: np.ndarray | None  # [H, W, 3] float32, 0..1 (+ background * final transmittance); None: not asked for
+    rgb: np.ndarray  # [H, W, 3] float32, 0..1 (+ background * final transmittance); [0, 0, 3] when not asked for
     alpha: np.ndarray  # [H, W] float32 accumulated opacity = sum of weights = 1 - T_final
     depth: np.ndarray  # [H, W] float32 expected camera z = sum(w z) / alpha; 0 where alpha = 0
     features: np.ndarray | None  # [H, W, D] float32 sum(w f) / (alpha + eps), when features were given
@@ -61,7 +61,7 @@ def rasterize(
     unit_features_out: np.ndarray | None = None,  # [H * W, D] float32, with feature_queries: receives F / |F|
     feature_rows: np.ndarray | None = None,  # [N] int: Gaussian g's feature is features[feature_rows[g]] (-1: 0)
     active: np.ndarray | None = None,  # [N] bool: only these are drawn (the others as if culled)
-    want_rgb: bool = True,  # False: rgb None (the C Top-K kernel then skips the colour sums)
+    want_rgb: bool = True,  # False: rgb empty [0, 0, 3] (the C Top-K kernel then skips the colour sums)
 ) -> RenderResult:
     """Render ``gaussians`` into ``camera``'s ideal pinhole image (distortion not applied).
 
@@ -158,7 +158,7 @@ def rasterize(
             _to_map_ids(topk_ids, projected.ids)
     clock.append(time.perf_counter())
     return RenderResult(
-        rgb=rgb if want_rgb else None,
+        rgb=rgb if want_rgb else np.zeros((0, 0, 3), np.float32),
         alpha=alpha,
         depth=depth,
         features=out_features if features is not None else None,
