@@ -63,3 +63,7 @@ def test_portable_float16_tables_render_as_their_float32_values(dim, with_portab
 def test_portable_topk_equals_the_numba_kernel(width, height, n, kind, opacity, with_portable, monkeypatch):
     for config in (RasterConfig(), RasterConfig(tile_size=8, topk_min=4, topk_max=12, topk_coverage=0.75)):
         test_topk_native.test_c_topk_equals_the_numba_kernel(width, height, n, kind, opacity, config, None, monkeypatch)
+
+
+def test_portable_ranking_sorts_like_numpy(with_portable):
+    test_topk_native.test_the_c_ranking_sorts_like_numpy(None)  # Batcher's network, not the AVX2 sort

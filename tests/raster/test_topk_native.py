@@ -1,6 +1,6 @@
 """The C Top-K kernel (native/topk_composite.c) against the numba kernel: the same renders and
 the same per-pixel Top-K, on scenes of every camera model and Top-K settings; its ranking
-network is Batcher's; Top-Ks past its network go to numba."""
+network is Batcher's and its ranking sorts; Top-Ks past its network go to numba."""
 
 from __future__ import annotations
 
@@ -100,6 +100,28 @@ def test_the_c_network_is_batchers():
     assert table is not None
     pairs = [(int(a), int(b)) for a, b in re.findall(r"\{(\d+),\s*(\d+)\}", table.group(1))]
     assert pairs == batcher_pairs(32)
+
+
+def test_the_c_ranking_sorts_like_numpy(built):
+    """sort32 (the AVX2 bitonic sort in this build, Batcher's network without AVX2) puts every
+    list of 32 keys largest first: distinct keys, ties, zero padding, keys near 2^63."""
+    import ctypes
+
+    rng = np.random.default_rng(0)
+    lists = [
+        rng.integers(0, 2**63 - 1, (4000, 32), dtype=np.int64),  # distinct
+        rng.integers(0, 4, (4000, 32), dtype=np.int64),  # many ties
+        (rng.integers(0, 3, (4000, 32), dtype=np.int64) << 32) | rng.integers(0, 4, (4000, 32)),
+        np.where(np.arange(32) < rng.integers(0, 33, (4000, 1)), rng.integers(1, 2**40, (4000, 32)), 0),  # padded
+        np.tile(np.arange(32, dtype=np.int64), (4000, 1)),  # ascending: every key moves
+        2**63 - 1 - rng.integers(0, 8, (4000, 32), dtype=np.int64),
+    ]
+    keys = np.ascontiguousarray(np.concatenate(lists), dtype=np.int64)
+    expected = -np.sort(-keys, axis=1)
+    sort = topk_native.kernel().sort_key_lists32
+    sort.argtypes, sort.restype = [ctypes.c_void_p, ctypes.c_int64], None
+    sort(keys.ctypes.data, len(keys))
+    assert np.array_equal(keys, expected)
 
 
 @pytest.mark.parametrize("width,height,n,kind,opacity", CASES[:2])
