@@ -87,7 +87,8 @@ static inline void merge_runs(__m256i *r, int n)
 /* Sort k[32] largest first (equal keys are equal: any order of them is the same array). With
  * AVX2 a bitonic sort of 8 registers: the 4 columns by an 8-key network across the registers,
  * a 4x4 transpose of each half so that each column is a run of 2 registers, then three merges
- * (a third of the scalar network's time; tests/raster/test_topk_native.py compares the two).
+ * (about half the scalar network's time in a medium view's render, ~0.13 -> ~0.07 s;
+ * tests/raster/test_topk_native.py checks both against numpy's sort).
  * Without AVX2 Batcher's network, unrolled so that k's indices are constants and the keys stay in
  * registers. Keys are below 2^63 (a weight's bits are those of a positive float): signed compares. */
 static inline void sort32(int64_t *k)

@@ -4,6 +4,7 @@ network is Batcher's and its ranking sorts; Top-Ks past its network go to numba.
 
 from __future__ import annotations
 
+import ctypes
 import re
 from pathlib import Path
 
@@ -105,8 +106,6 @@ def test_the_c_network_is_batchers():
 def test_the_c_ranking_sorts_like_numpy(built):
     """sort32 (the AVX2 bitonic sort in this build, Batcher's network without AVX2) puts every
     list of 32 keys largest first: distinct keys, ties, zero padding, keys near 2^63."""
-    import ctypes
-
     rng = np.random.default_rng(0)
     lists = [
         rng.integers(0, 2**63 - 1, (4000, 32), dtype=np.int64),  # distinct
