@@ -229,8 +229,12 @@ def observe_view(
     slot_maps: np.ndarray,  # [L, H, W] int32 rows of the stacked bank (stack_levels), -1 = no feature
     n_gaussians: int,
     config: AggregationConfig = AggregationConfig(),
+    pixel_area: float = 1.0,
 ) -> ViewObservations:
-    """The view's kept observations (see the module docstring)."""
+    """The view's kept observations (see the module docstring). ``pixel_area``: a rendered
+    pixel's area in the view's own pixels (4 for a Top-K render at half the width and height,
+    ``RasterConfig.topk_scale``): the strengths d_iv are counted in the view's pixels, so tau_d
+    and the weights across views mean the same at any render size (the mixtures do not change)."""
     height, width, k = topk_ids.shape
     if slot_maps.shape[1:] != (height, width):
         raise ValueError(f"label maps {slot_maps.shape[1:]} do not match the rendered view {(height, width)}")
@@ -246,11 +250,12 @@ def observe_view(
     record = np.zeros((n_gaussians, width), np.float64)
     run_gaussian, run_slot, run_level, run_weight = _runs(ids, w, factors, slot_maps.reshape(levels, -1), a > 0, record)
     strength = record[:, 0]
-    kept = np.flatnonzero(strength > config.tau_d).astype(np.int32)
+    counted = strength * pixel_area if pixel_area != 1.0 else strength  # in the view's pixels
+    kept = np.flatnonzero(counted > config.tau_d).astype(np.int32)
     kept_of = np.full(n_gaussians, -1, np.int32)
     kept_of[kept] = np.arange(len(kept), dtype=np.int32)
     kept_strength = strength[kept]
     offsets, slots, weights = _mixtures(
         run_gaussian, run_slot, run_level, run_weight, kept_of, len(kept), levels, a, kept_strength
     )
-    return ViewObservations(kept, kept_strength.astype(np.float32), offsets, slots, weights)
+    return ViewObservations(kept, counted[kept].astype(np.float32), offsets, slots, weights)

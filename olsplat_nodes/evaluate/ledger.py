@@ -60,7 +60,8 @@ def file_digest(path: Path | None) -> str | None:
 
 def run_key(scene: str, method, encoders: str, weights, encoder_files: str, structure) -> dict[str, Any]:
     """What a run's scores depend on, as a JSON-able mapping: ``scene`` (``scene_digest``),
-    ``method`` (a resolved ``Method``: its repr names every parameter), ``encoders`` (the spec)
+    ``method`` (a resolved ``Method``: its repr names every parameter, but
+    ``raster.topk_scale``, added as ``topk_scale`` when not 1), ``encoders`` (the spec)
     with ``weights`` (the lambda_2D fusion weights or None) and ``encoder_files``
     (``encoder_fingerprint``), ``structure`` (a ``StructureConfig`` or None: 2D features)."""
     branch = None
@@ -69,7 +70,7 @@ def run_key(scene: str, method, encoders: str, weights, encoder_files: str, stru
             "settings": repr(dataclasses.replace(structure, minkunet=None)),
             "minkunet": file_digest(structure.minkunet),
         }
-    return {
+    key: dict[str, Any] = {
         "scene": scene,
         "method": repr(method),
         "encoders": encoders,
@@ -77,6 +78,10 @@ def run_key(scene: str, method, encoders: str, weights, encoder_files: str, stru
         "encoder_files": encoder_files,
         "structure": branch,
     }
+    scale = getattr(getattr(method, "raster", None), "topk_scale", 1.0)
+    if scale != 1.0:  # left out of the method's repr, so that the keys of runs at 1 stay as they were
+        key["topk_scale"] = scale
+    return key
 
 
 class LedgerMismatch(OlsplatInputError):

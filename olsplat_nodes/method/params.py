@@ -37,6 +37,7 @@ class MethodParams:
     topk_min: int | None = None  # adaptive Top-K: at least this many contributors per pixel (paper: 16) ...
     topk_max: int | None = None  # ... at most this many (paper: 32) ...
     topk_coverage: float | None = None  # ... stopping at this share of the pixel's weight (paper: 0.9)
+    topk_scale: float | None = None  # the observations' Top-K render at this fraction of the view's size (1: exact)
 
     def overrides(self) -> dict[str, Any]:
         """The fields that were set (not None), by name."""

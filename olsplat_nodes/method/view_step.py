@@ -51,8 +51,19 @@ def view_observations(
     array per level. Returns the observations, the stacked region bank [sum R_l, D] they refer
     to, and the seconds of each stage (rasterize, fuse, observe) with the view's ``coverage``
     (0..1) and ``height_m`` (the camera above the map's ground under the view). Raises
-    ``ViewOffMap`` when ``gate`` refuses the view (nothing fused, nothing observed)."""
+    ``ViewOffMap`` when ``gate`` refuses the view (nothing fused, nothing observed). With the
+    method's ``raster.topk_scale`` below 1 the render, the 3D branch and the observations work on
+    the view scaled by it (``Camera.scaled``, ``sample_label_maps``), strengths counted in the
+    view's own pixels."""
     t0 = time.perf_counter()
+    pixel_area = 1.0
+    if method.raster.topk_scale != 1.0:  # a smaller Top-K render: labels sampled at its pixels
+        if method.aggregation.view_feature == "centre":
+            raise ValueError(f"{method.name}: topk_scale applies to the pixel-weighted view features only")
+        full = camera.width * camera.height
+        camera = camera.scaled(method.raster.topk_scale)
+        label_maps = sample_label_maps(label_maps, camera.width, camera.height)
+        pixel_area = full / (camera.width * camera.height)
     rendered = rasterize(gaussians, camera, method.raster, want_rgb=False)  # the colour is never read
     assert rendered.topk_ids is not None and rendered.topk_weights is not None  # rasterize always keeps Top-K
     seen = map_coverage(rendered.alpha, rendered.topk_ids, gaussians.means[:, 2], float(camera.center[2]))
@@ -69,10 +80,21 @@ def view_observations(
             rendered.topk_ids, rendered.topk_weights, rendered.means2d, rendered.radii, slots, len(gaussians), config
         )
     else:
-        observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), config)
+        observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), config, pixel_area)
     t3 = time.perf_counter()
     stages = {"rasterize": t1 - t0, "fuse": t2 - t1, "observe": t3 - t2}
     return observations, stacked, {**stages, "coverage": seen.coverage, "height_m": seen.height_m}
+
+
+def sample_label_maps(label_maps: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[L, height, width] int32: each level's region at the centres of a ``width`` x ``height``
+    image of the same view (``Camera.scaled``: pixel edges map onto each other), nearest, from
+    ``label_maps`` [L, H, W]. Pixel (x, y) of the small image has its centre at
+    ((x + 0.5) W / width, (y + 0.5) H / height) in the large one."""
+    _, full_height, full_width = label_maps.shape
+    rows = np.minimum(((np.arange(height) + 0.5) * full_height / height).astype(np.int64), full_height - 1)
+    columns = np.minimum(((np.arange(width) + 0.5) * full_width / width).astype(np.int64), full_width - 1)
+    return np.ascontiguousarray(label_maps[:, rows[:, None], columns[None, :]], np.int32)
 
 
 def add_view(

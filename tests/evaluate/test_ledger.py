@@ -41,6 +41,7 @@ def test_every_part_of_a_run_is_in_its_key():
     others = [
         run_key("other scene", _method(), "a,b", (0.6, 0.4), "files", None),
         run_key("scene", _method(tau_d=0.5), "a,b", (0.6, 0.4), "files", None),
+        run_key("scene", _method(topk_scale=0.5), "a,b", (0.6, 0.4), "files", None),
         run_key("scene", _method(), "a", (0.6, 0.4), "files", None),
         run_key("scene", _method(), "a,b", (0.7, 0.3), "files", None),
         run_key("scene", _method(), "a,b", (0.6, 0.4), "other files", None),
@@ -50,6 +51,8 @@ def test_every_part_of_a_run_is_in_its_key():
     keys = [json.dumps(k, sort_keys=True) for k in [base, *others]]
     assert len(set(keys)) == len(keys)
     assert json.loads(json.dumps(base)) == base  # as saved and read back
+    # a run at the default render size keeps the key it had before topk_scale existed
+    assert "topk_scale" not in base and "topk_scale" not in base["method"]
 
 
 def test_a_saved_run_is_reused_after_one_check_and_a_stale_one_is_refused(tmp_path, capsys):
