@@ -61,6 +61,8 @@ class MethodParams:
             raster = replace(base.raster, **{k: v for k, v in overrides.items() if k in _RASTER})
         except ValueError as exc:  # the configs' own range checks
             raise ParameterError(f"{where}: {exc}") from exc
+        if raster.topk_scale != 1.0 and aggregation.view_feature == "centre":  # VALA reads centre pixels
+            raise ParameterError(f"{where}: topk_scale applies to pixel-weighted view features, not {base.name}'s")
         return Method(base.name, aggregation, raster)
 
 

@@ -132,6 +132,8 @@ def test_a_smaller_topk_render_is_the_step_on_the_scaled_view_with_strengths_in_
     np.testing.assert_array_equal(full_observations.strength, direct.strength)
     with pytest.raises(ValueError, match="topk_scale"):
         MethodParams(topk_scale=1.5).resolve()
+    with pytest.raises(ValueError, match="topk_scale applies to pixel-weighted view features, not vala"):
+        MethodParams(method="vala", topk_scale=0.5).resolve()
 
 
 def _topk(gaussians, camera, method):
