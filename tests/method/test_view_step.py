@@ -139,3 +139,16 @@ def test_a_smaller_topk_render_is_the_step_on_the_scaled_view_with_strengths_in_
 def _topk(gaussians, camera, method):
     rendered = rasterize(gaussians, camera, method.raster, want_rgb=False)
     return rendered.topk_ids, rendered.topk_weights
+
+
+def test_the_accumulators_topk_scale_reaches_its_method_and_the_stores_manifest():
+    """``--set accumulator.topk_scale=0.5``: the node's method has it, the store's manifest keeps
+    it (a resumed run with another value is refused by check_store's comparison of methods)."""
+    from olsplat_nodes.method import Method, method_params_of
+    from olsplat_nodes.nodes.accumulator import AccumulatorNode
+
+    params = parse_params(AccumulatorNode.Params, {"map": "m.ply", "topk_scale": 0.5}, "accumulator")
+    method = method_params_of(params).resolve("accumulator")
+    assert method.raster.topk_scale == 0.5
+    again = Method.from_record(method.record(), "manifest")
+    assert again == method and again != MethodParams().resolve()
