@@ -27,7 +27,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--scene", required=True, type=Path, action="append", help="a scene folder (repeatable)")
     parser.add_argument("--methods", default="outlangsplat,vala", help="methods whose eval stores to replay")
     parser.add_argument("--every", type=int, default=10, help="views that arrive between two passes")
-    parser.add_argument("--refresh", type=float, default=1.0, help="the folds' exact slice (refiner.refresh)")
+    parser.add_argument("--refresh", type=float, default=2.0, help="the folds' exact slice (refiner.refresh)")
     parser.add_argument(
         "--study",
         action="store_true",
@@ -52,7 +52,7 @@ def link_segments(segments: list[Path], work: Path) -> None:
         (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
 
 
-def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 1.0) -> dict:
+def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 2.0) -> dict:
     """Both live maps over the store's segments, ``every`` at a time; the figures and maps."""
     from ..method.live import LiveMap
     from ..storage import ObservationStore

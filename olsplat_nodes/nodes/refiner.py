@@ -59,7 +59,7 @@ class RefinerNode(Node):
         # live passes: "fold" the new views into the running map (flat cost; the final pass is
         # exact) or "exact" (every touched Gaussian from all its views: grows with the flight)
         passes: str = "fold"
-        refresh: float = 1.0  # a fold also recomputes exactly this many times its new observations
+        refresh: float = 2.0  # a fold also recomputes exactly this many times its new observations
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
