@@ -27,7 +27,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--scene", required=True, type=Path, action="append", help="a scene folder (repeatable)")
     parser.add_argument("--methods", default="outlangsplat,vala", help="methods whose eval stores to replay")
     parser.add_argument("--every", type=int, default=10, help="views that arrive between two passes")
-    parser.add_argument("--refresh", type=float, default=2.0, help="the folds' exact slice (refiner.refresh)")
+    parser.add_argument(
+        "--refresh", type=float, default=None, help="the folds' exact slice (default: the refiner's, refiner.refresh)"
+    )
     parser.add_argument(
         "--study",
         action="store_true",
@@ -52,14 +54,16 @@ def link_segments(segments: list[Path], work: Path) -> None:
         (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
 
 
-def replay(store_folder: Path, method, every: int, work: Path, refresh: float = 2.0) -> dict:
-    """Both live maps over the store's segments, ``every`` at a time; the figures and maps."""
+def replay(store_folder: Path, method, every: int, work: Path, refresh: float | None = None) -> dict:
+    """Both live maps over the store's segments, ``every`` at a time; the figures and maps
+    (``refresh`` None: ``LiveMap``'s default, the refiner's)."""
     from ..method.live import LiveMap
     from ..storage import ObservationStore
 
     n = _map_size(store_folder)
     segments = ObservationStore(store_folder, n).segments()
     (work / "views").mkdir(parents=True)
+    refresh = LiveMap.refresh if refresh is None else refresh
     live = {kind: LiveMap(ObservationStore(work, n), refresh=refresh) for kind in ("fold", "exact")}
     figures: dict = {"views": [], "fold_s": [], "exact_s": [], "cosine": []}
     for stop in range(every, len(segments) + every, every):
@@ -181,9 +185,12 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import OlsplatInputError
     from ..evaluate.scene_eval import evaluate_map
     from ..method import named_method
+    from ..method.live import LiveMap
     from ..pipeline import Scene
     from ..storage.snapshot import LanguageMap
 
+    if args.refresh is None:
+        args.refresh = LiveMap.refresh
     if args.every < 1 or not args.refresh >= 0:
         raise OlsplatInputError(f"need --every >= 1 and --refresh >= 0, got {args.every}, {args.refresh}")
     encoder = encoder_from_spec()

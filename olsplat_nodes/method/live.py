@@ -44,7 +44,7 @@ class LiveMap:
     weight: np.ndarray = field(init=False)
     norm: np.ndarray = field(init=False)
     views: int = 0
-    refresh: float = 2.0  # the refiner's default (refiner.refresh; docs/decisions.md, "A larger refresh")
+    refresh: float = 2.0  # refiner.refresh's default (docs/decisions.md, "A larger refresh on the medium preset")
     seen: np.ndarray = field(init=False)  # [N] int32 each Gaussian's observations in views 0..views-1
     exact_at: np.ndarray = field(init=False)  # [N] int32 its ``seen`` when it was last computed exactly
 

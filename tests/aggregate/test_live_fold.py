@@ -247,3 +247,18 @@ def test_a_segment_written_during_a_pass_waits_for_the_next(tmp_path):
     assert not part[~mask].any()
     with pytest.raises(ValueError, match="bool mask"):
         store.refine(got, config, gaussians=np.zeros(n, np.int64), upto=3)
+
+
+def test_the_refiner_and_bench_live_fold_with_the_live_maps_default_refresh():
+    """One default (``LiveMap.refresh``): the refiner node's parameter and ``olsplat bench live``
+    without --refresh take the same, so a drift measured offline is the graph's."""
+    import argparse
+
+    from olsplat_nodes.bench import live as bench_live
+    from olsplat_nodes.method.live import LiveMap
+    from olsplat_nodes.nodes.refiner import RefinerNode
+
+    assert RefinerNode.Params().refresh == LiveMap.refresh
+    parser = argparse.ArgumentParser()
+    bench_live.add_parser(parser.add_subparsers())
+    assert parser.parse_args(["live", "--scene", "S"]).refresh is None  # resolved to LiveMap.refresh in run
