@@ -45,7 +45,10 @@ final map), ``gaussians``, ``views``, ``width``, ``height``, ``startup_s``,
 end minus once a quarter of the views were stored}, ``private_mb_max`` {node: MB},
 ``store_bytes_per_view``, ``snapshot_bytes``, ``refine_pass_s`` (list), ``refine_pass_views``
 (views in the map after each pass), ``refine_pass_exact`` (false for a fold of the new views:
-the refiner's first pass and its final one are exact), ``refine_s_per_added_view`` (each pass
+the refiner's first pass and its final one are exact, and so is a live pass where an exact one
+was the cheaper: the refiner's fold_limit), ``refine_pass_reads`` (each pass's observations
+{added, fold, exact}: those it took in, and those a fold and an exact pass would have read),
+``refine_s_per_added_view`` (each pass
 over the views it added), ``query_relevance_p95_ms`` (round trip) and
 ``query_relevance_server_p95_ms`` (the query server's own time), ``query_heatmap_p95_ms`` (all
 heatmap queries), ``query_heatmap_first_p95_ms`` and ``query_heatmap_repeat_p95_ms`` (first and
@@ -54,7 +57,7 @@ first ones), ``query_heatmap_preview_p95_ms`` and ``query_heatmap_preview_first_
 heatmap query's preview, asked first as the ground station page asks it: all, and the first on
 each view), ``refine_pass_observations`` (the store's observations after each pass),
 ``refine_pass_s_per_view_added`` ({first_third, last_third, ratio, and the same per million
-observations added: first_third_per_m_obs, last_third_per_m_obs, ratio_obs}: the fold
+observations added: first_third_per_m_obs, last_third_per_m_obs, ratio_obs}: the live
 passes' seconds per view added, over the passes that ended in the first and the last third of
 the flight; see pass_growth below), with ``--lossless`` ``live_drift_miou`` (the exact map's
 mIoU minus the last live version's, both over the views that version held: how far the folds
@@ -283,6 +286,7 @@ def run(args: argparse.Namespace) -> int:
             "refine_pass_s": refine_pass_s,
             "refine_pass_views": [int(p["views"]) for p in ordered],
             "refine_pass_exact": [bool(p.get("exact", True)) for p in ordered],  # False: a fold
+            "refine_pass_reads": [p.get("reads") for p in ordered],  # None from a refiner before them
             "nodes": {},
             # CPU seconds per view aggregated, by node and in all (the machine's cores are the budget)
             "core_s_per_view": {name: round(c / max(views, 1), 3) for name, c in sorted(cpu_s.items())},
@@ -295,8 +299,9 @@ def run(args: argparse.Namespace) -> int:
             round(s / max(int(a), 1), 3) for s, a in zip(refine_pass_s, added, strict=True)
         ]
         figures["refine_pass_observations"] = [int(p.get("observations", 0)) for p in ordered]
+        live = [i > 0 and not p.get("final") for i, p in enumerate(ordered)]  # not the first, not the final
         figures["refine_pass_s_per_view_added"] = pass_growth(
-            refine_pass_s, figures["refine_pass_views"], figures["refine_pass_exact"], views,
+            refine_pass_s, figures["refine_pass_views"], live, views,
             figures["refine_pass_observations"],
         )  # fmt: skip
         how = (
@@ -366,7 +371,7 @@ def run(args: argparse.Namespace) -> int:
         print("  per view added by the pass (s): " + ", ".join(f"{s:.2f}" for s in figures["refine_s_per_added_view"]))
         growth = figures["refine_pass_s_per_view_added"]
         print(
-            f"  folds, s per view added: first third {growth['first_third']}, last third {growth['last_third']} "
+            f"  live passes, s per view added: first third {growth['first_third']}, last third {growth['last_third']} "
             f"(x{growth['ratio']}); s per million observations added: first third "
             f"{growth['first_third_per_m_obs']}, last third {growth['last_third_per_m_obs']} (x{growth['ratio_obs']})"
         )
@@ -409,27 +414,28 @@ def memory_figures(watch, views: int, figures: dict) -> None:
 
 
 def pass_growth(
-    pass_s: list[float], pass_views: list[int], exact: list[bool], views: int, observations: list[int] | None = None
+    pass_s: list[float], pass_views: list[int], live: list[bool], views: int, observations: list[int] | None = None
 ) -> dict:
-    """Whether live passes grow with the flight: the mean seconds per view added of the fold
-    passes (``exact`` False; the first and the final pass are exact by design) that ended with
+    """Whether live passes grow with the flight: the mean seconds per view added of the live
+    passes (``live`` [P] bool: every pass but the first and the final one, which are exact by
+    design; a live pass is a fold, or an exact pass where that was the cheaper) that ended with
     at most a third of the flight's ``views`` in the map, and of those that ended in its last
     third; ``ratio`` = last / first. With ``observations`` [P] (the store's after each pass) the
     same per million observations added (``*_per_m_obs``, ``ratio_obs``): what a fold's cost
-    follows (a view that sees more of the map adds more). None where a third has no fold pass.
+    follows (a view that sees more of the map adds more). None where a third has no live pass.
     ``pass_s`` [P] seconds, ``pass_views`` [P] views in the map after each pass, in pass order."""
-    per_view = _thirds(pass_s, pass_views, np.diff([0, *pass_views]), exact, views)
+    per_view = _thirds(pass_s, pass_views, np.diff([0, *pass_views]), live, views)
     per_m_obs = (None, None, None)
     if observations is not None and any(observations):
-        per_m_obs = _thirds(pass_s, pass_views, np.diff([0, *observations]) / 1e6, exact, views)
+        per_m_obs = _thirds(pass_s, pass_views, np.diff([0, *observations]) / 1e6, live, views)
     keys = ("first_third", "last_third", "ratio", "first_third_per_m_obs", "last_third_per_m_obs", "ratio_obs")
     return dict(zip(keys, (*per_view, *per_m_obs), strict=True))
 
 
-def _thirds(pass_s, pass_views, added, exact, views: int) -> tuple:
-    """(first third's mean, last third's mean, last / first) of the fold passes' seconds per unit
-    ``added`` [P] (views or observations added by each pass); None where a third has no fold."""
-    rate = [(v, s / a) for s, v, a, e in zip(pass_s, pass_views, added, exact, strict=True) if not e and a > 0]
+def _thirds(pass_s, pass_views, added, live, views: int) -> tuple:
+    """(first third's mean, last third's mean, last / first) of the live passes' seconds per unit
+    ``added`` [P] (views or observations added by each pass); None where a third has none."""
+    rate = [(v, s / a) for s, v, a, counted in zip(pass_s, pass_views, added, live, strict=True) if counted and a > 0]
     first = [x for v, x in rate if v <= views / 3]
     last = [x for v, x in rate if v > 2 * views / 3]
     first_mean = round(float(np.mean(first)), 3) if first else None

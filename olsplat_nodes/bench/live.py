@@ -4,8 +4,10 @@ what each pass costs, replaying a finished store view by view.
 The store of ``olsplat eval`` (``SCENE/eval/METHOD/store``) is replayed as the refiner meets it:
 its segments appear ``--every`` at a time (linked into a growing store folder, nothing copied),
 and after each arrival two live maps take a pass, one folding the new views in (``passes: fold``,
-the refiner's default) and one exact (``passes: exact``). Printed per scene and method: each
-pass's seconds for both, the mean cosine between the two maps' features over the observed
+the refiner's default: a fold, or an exact pass where a fold would read more than
+``--fold-limit`` times its observations, marked *) and one exact (``passes: exact``). Printed
+per scene and method: each pass's seconds for both, the observations a fold and an exact pass
+would read, the mean cosine between the two maps' features over the observed
 Gaussians, and the scores (mIoU, Loc@50) of both maps before the final pass (all views in,
 the most folds behind them): the largest drift a live user sees. The final pass is exact in
 both, so the final map does not drift.
@@ -31,6 +33,13 @@ def add_parser(subparsers) -> None:
         "--refresh", type=float, default=None, help="the folds' exact slice (default: the refiner's, refiner.refresh)"
     )
     parser.add_argument(
+        "--fold-limit",
+        type=float,
+        default=None,
+        help="a live pass folds while it reads at most this share of an exact pass's observations "
+        "(default: the refiner's, refiner.fold_limit; inf: always fold)",
+    )
+    parser.add_argument(
         "--study",
         action="store_true",
         help="instead: fold without refresh, then print how much of the folds' error each refresh priority "
@@ -54,9 +63,14 @@ def link_segments(segments: list[Path], work: Path) -> None:
         (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
 
 
-def replay(store_folder: Path, method, every: int, work: Path, refresh: float | None = None) -> dict:
+def replay(
+    store_folder: Path, method, every: int, work: Path, refresh: float | None = None, fold_limit: float | None = None
+) -> dict:
     """Both live maps over the store's segments, ``every`` at a time; the figures and maps
-    (``refresh`` None: ``LiveMap``'s default, the refiner's)."""
+    (``refresh``, ``fold_limit`` None: ``LiveMap``'s defaults, the refiner's). Per pass besides
+    the seconds: ``fold_exact`` (the live map's pass was exact: the cheaper by its fold_limit)
+    and the observations ``added``, ``fold_reads`` and ``exact_reads`` (what a fold and an
+    exact pass would read: ``LiveMap.reads``), ``exact_pass_reads`` (what the exact map's pass read)."""
     from ..method.live import LiveMap
     from ..storage import ObservationStore
 
@@ -64,8 +78,12 @@ def replay(store_folder: Path, method, every: int, work: Path, refresh: float | 
     segments = ObservationStore(store_folder, n).segments()
     (work / "views").mkdir(parents=True)
     refresh = LiveMap.refresh if refresh is None else refresh
-    live = {kind: LiveMap(ObservationStore(work, n), refresh=refresh) for kind in ("fold", "exact")}
-    figures: dict = {"views": [], "fold_s": [], "exact_s": [], "cosine": []}
+    fold_limit = LiveMap.fold_limit if fold_limit is None else fold_limit
+    live = {
+        kind: LiveMap(ObservationStore(work, n), refresh=refresh, fold_limit=fold_limit) for kind in ("fold", "exact")
+    }
+    figures: dict = {"views": [], "fold_s": [], "exact_s": [], "cosine": [], "fold_exact": []}
+    figures.update({"added": [], "fold_reads": [], "exact_reads": [], "exact_pass_reads": []})
     for stop in range(every, len(segments) + every, every):
         link_segments(segments[stop - every : stop], work)
         for kind, live_map in live.items():
@@ -75,6 +93,10 @@ def replay(store_folder: Path, method, every: int, work: Path, refresh: float | 
         fold, exact = live["fold"], live["exact"]
         assert fold.features is not None and exact.features is not None and exact.observed is not None
         figures["views"].append(fold.views)
+        figures["fold_exact"].append(fold.last_exact)
+        for key in ("added", "fold", "exact"):
+            figures["added" if key == "added" else f"{key}_reads"].append(fold.last_reads[key])
+        figures["exact_pass_reads"].append(exact.last_reads["exact"])  # what the exact map's pass read
         figures["cosine"].append(round(_cosine(fold.features, exact.features, exact.observed), 5))
     return {"figures": figures, "fold": live["fold"], "exact": live["exact"]}
 
@@ -191,8 +213,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.refresh is None:
         args.refresh = LiveMap.refresh
-    if args.every < 1 or not args.refresh >= 0:
-        raise OlsplatInputError(f"need --every >= 1 and --refresh >= 0, got {args.every}, {args.refresh}")
+    if args.fold_limit is None:
+        args.fold_limit = LiveMap.fold_limit
+    if args.every < 1 or not args.refresh >= 0 or not args.fold_limit >= 0:
+        raise OlsplatInputError(
+            f"need --every >= 1, --refresh >= 0 and --fold-limit >= 0, got {args.every}, {args.refresh}, "
+            f"{args.fold_limit}"
+        )
     encoder = encoder_from_spec()
     results: dict = {}
     for folder in args.scene:
@@ -216,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
                     print(f"  {priority:40s} {share:.3f}")
                 continue
             with tempfile.TemporaryDirectory() as tmp:
-                out = replay(store, named_method(name), args.every, Path(tmp) / "store", args.refresh)
+                out = replay(store, named_method(name), args.every, Path(tmp) / "store", args.refresh, args.fold_limit)
             scores = {}
             for kind in ("fold", "exact"):
                 live = out[kind]
@@ -224,8 +251,20 @@ def run(args: argparse.Namespace) -> int:
             f = out["figures"]
             f.update({f"{k}_{m}": round(scores[k][m], 2) for k in scores for m in ("mIoU", "loc50")})
             results[f"{folder.name}/{name}"] = f
-            print(f"{folder.name} {name}: {f['views'][-1]} views, a pass every {args.every}, refresh {args.refresh}")
-            print("  fold  s: " + ", ".join(f"{s:.2f}" for s in f["fold_s"]))
+            print(
+                f"{folder.name} {name}: {f['views'][-1]} views, a pass every {args.every}, refresh {args.refresh}, "
+                f"fold limit {args.fold_limit}"
+            )
+            print(
+                "  fold  s: "
+                + ", ".join(f"{s:.2f}{'*' if e else ''}" for s, e in zip(f["fold_s"], f["fold_exact"], strict=True))
+            )
+            print(
+                "  reads, fold / exact (M observations): "
+                + ", ".join(
+                    f"{a / 1e6:.2f} / {b / 1e6:.2f}" for a, b in zip(f["fold_reads"], f["exact_reads"], strict=True)
+                )
+            )
             print("  exact s: " + ", ".join(f"{s:.2f}" for s in f["exact_s"]))
             print("  cosine fold vs exact: " + ", ".join(f"{c:.4f}" for c in f["cosine"]))
             print(

@@ -16,7 +16,14 @@ observations since their last exact computation) likeliest to be wrong (``stales
 as hold ``refresh`` times the observations the fold took in. A pass's cost stays in proportion
 to the new views; the budget goes where the approximation errs (a Gaussian no fold touched
 since its exact pass is exact, and recomputing it would change nothing: round-robin slices of
-the map, the first design, spent most of their budget there). A pass reads the store's
+the map, the first design, spent most of their budget there).
+
+A fold is not always the cheaper pass: its refresh reads scattered Gaussians (each view's id
+list scanned for them) and costs more per observation than an exact pass's sequential read, and
+a fold that comes after a long wait takes in a large share of the flight. So a fold runs only
+while the observations it would read (its new ones plus its refresh's) stay under
+``fold_limit`` times those of an exact pass (every touched Gaussian's); otherwise the pass is
+exact, no dearer and without drift (``last_exact`` says which ran). A pass reads the store's
 segments up to the views it counted at its start: a segment written while it runs waits for the
 next pass (taken in now by an exact recomputation, it would be folded in again by the next fold).
 """
@@ -45,6 +52,11 @@ class LiveMap:
     norm: np.ndarray = field(init=False)
     views: int = 0
     refresh: float = 2.0  # refiner.refresh's default (docs/decisions.md, "A larger refresh on the medium preset")
+    # refiner.fold_limit's default (docs/decisions.md, "A fold or an exact pass"): a fold only while
+    # it reads at most this share of an exact pass's observations (0: every pass exact; inf: folds)
+    fold_limit: float = 0.5
+    last_exact: bool = False  # the last pass was exact (asked for, the first one, or the cheaper)
+    last_reads: dict = field(default_factory=dict)  # its observations: added, fold and exact (would read)
     seen: np.ndarray = field(init=False)  # [N] int32 each Gaussian's observations in views 0..views-1
     exact_at: np.ndarray = field(init=False)  # [N] int32 its ``seen`` when it was last computed exactly
 
@@ -55,12 +67,18 @@ class LiveMap:
 
     def update(self, config: AggregationConfig, exact: bool) -> np.ndarray | None:
         """One pass over the views that arrived since the last one (exact, or a fold; the first
-        pass is always exact); returns the rows it changed [N] bool (None: all rows), and
+        pass is always exact, and so is a fold that would read more than ``fold_limit`` times an
+        exact pass's observations); returns the rows it changed [N] bool (None: all rows), and
         nothing changes (an all-False mask) when no view arrived and ``exact`` is False."""
         stop = self.store.touch_views(self.views)
         before = self.seen.copy()
         self.seen += self.store.counts_in(self.views, stop)
-        if self.features is None or exact:
+        added = int(self.seen.sum(dtype=np.int64) - before.sum(dtype=np.int64))  # a fold's observations
+        self.last_reads = self.reads(before, added)
+        # strictly more: a fold of no new view reads nothing and stays a fold (it changes nothing)
+        exact = exact or self.features is None or self.last_reads["fold"] > self.fold_limit * self.last_reads["exact"]
+        self.last_exact = exact
+        if exact:
             changed = None if self.features is None else self.store.touched.copy()
             self.features, observed = self.store.refine(
                 self.features,
@@ -82,7 +100,6 @@ class LiveMap:
             changed[:] = observed
             first_seen = before == 0  # a fold computes these exactly
             self.exact_at[first_seen] = self.seen[first_seen]
-            added = int(self.seen.sum(dtype=np.int64) - before.sum(dtype=np.int64))  # the fold's observations
             stalest = self.stalest(self.refresh * added)
             if stalest is not None:
                 self.features, refreshed = self.store.refine(
@@ -96,6 +113,16 @@ class LiveMap:
         self.observed = observed
         self.views = stop
         return changed
+
+    def reads(self, before: np.ndarray, added: int) -> dict[str, int]:
+        """What each kind of pass would read now, in observations (``before`` [N]: ``seen``
+        before the new views; ``added``: their observations): ``fold`` = the new ones plus the
+        refresh's (``refresh`` x added, at most the observations of the Gaussians still stale
+        after the fold: not those first seen in it), ``exact`` = every touched Gaussian's."""
+        stale = (self.seen > self.exact_at) & (before > 0)
+        refresh = min(self.refresh * added, float(self.seen[stale].sum(dtype=np.int64)))
+        exact = int(self.seen[self.store.touched].sum(dtype=np.int64))
+        return {"added": added, "fold": int(added + refresh), "exact": exact}
 
     def stalest(self, budget: float) -> np.ndarray | None:
         """[N] bool: the Gaussians to recompute exactly after a fold, the likeliest wrong first

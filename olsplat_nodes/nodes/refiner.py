@@ -60,6 +60,9 @@ class RefinerNode(Node):
         # exact) or "exact" (every touched Gaussian from all its views: grows with the flight)
         passes: str = "fold"
         refresh: float = 2.0  # a fold also recomputes exactly this many times its new observations
+        # a fold only while it would read at most this share of an exact pass's observations
+        # (a fold's scattered reads cost more per observation); otherwise the pass is exact
+        fold_limit: float = 0.5
 
     @classmethod
     def validate(cls, params: Params, where: str) -> None:
@@ -70,9 +73,10 @@ class RefinerNode(Node):
             raise ParameterError(
                 f"{where}: need 0 < max_duty <= 1 and codebook 0 or 2..65534, got {p.max_duty}, {p.codebook}"
             )
-        if p.passes not in ("fold", "exact") or not p.refresh >= 0:
+        if p.passes not in ("fold", "exact") or not p.refresh >= 0 or not p.fold_limit >= 0:
             raise ParameterError(
-                f"{where}: passes must be fold or exact and refresh >= 0, got {p.passes!r}, {p.refresh}"
+                f"{where}: passes must be fold or exact, refresh >= 0 and fold_limit >= 0, "
+                f"got {p.passes!r}, {p.refresh}, {p.fold_limit}"
             )
 
     def setup(self) -> None:
@@ -91,7 +95,8 @@ class RefinerNode(Node):
         previous = latest_map(self.map_dir)
         self.version = previous["version"] if previous else 0
         self.record = previous
-        self.live = LiveMap(self.store, refresh=p.refresh)  # a restarted refiner recomputes everything once
+        # a restarted refiner recomputes everything once (its first pass is exact)
+        self.live = LiveMap(self.store, refresh=p.refresh, fold_limit=p.fold_limit)
         self.sub = self.own(
             Subscriber(self.context, [p.observations_in], [p.topic_observations], hwm=1000, max_bytes=CONTROL_MAX_BYTES)
         )
@@ -219,7 +224,9 @@ class RefinerNode(Node):
             "encoder": manifest.encoder,
             "final": final,
             "refine_s": round(time.perf_counter() - start, 3),  # this pass, before the snapshot's write
-            "exact": exact or changed is None,  # False: a fold of the new views
+            "exact": self.live.last_exact,  # False: a fold of the new views
+            # the observations the pass took in, and those a fold and an exact pass would read
+            "reads": self.live.last_reads,
             # the store's observations (one per Gaussian per view) once the pass ended: a fold's
             # cost follows the observations it adds, which a view of more of the map has more of
             "observations": int(self.store.observation_counts().sum()),

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -140,7 +142,10 @@ def test_a_live_map_folds_refreshes_and_ends_exact(tmp_path):
     n, config = 150, AggregationConfig()
     views = list(_views(6, n))
     stores = {k: ObservationStore(tmp_path / k, n, writer=True) for k in ("plain", "whole", "offline")}
-    live = {"plain": LiveMap(stores["plain"], refresh=0.0), "whole": LiveMap(stores["whole"], refresh=1e9)}
+    live = {  # never the cheaper exact pass here (fold_limit inf): the folds themselves are tested
+        "plain": LiveMap(stores["plain"], refresh=0.0, fold_limit=math.inf),
+        "whole": LiveMap(stores["whole"], refresh=1e9, fold_limit=math.inf),
+    }
     for store in stores.values():
         for view in views[:2]:
             store.append(*view)
@@ -177,7 +182,7 @@ def test_the_refresh_takes_the_likeliest_wrong_gaussians_within_its_budget(tmp_p
     views = [(name, obs, bank / np.linalg.norm(bank, axis=1, keepdims=True)) for name, obs, bank in _views(8, n)]
     store = ObservationStore(tmp_path / "s", n, writer=True)
     offline = ObservationStore(tmp_path / "offline", n, writer=True)
-    live = LiveMap(store, refresh=2.0)
+    live = LiveMap(store, refresh=2.0, fold_limit=math.inf)
     chosen: list[np.ndarray] = []
     reordered: list[bool] = []
     real = live.stalest
@@ -223,6 +228,64 @@ def test_the_refresh_takes_the_likeliest_wrong_gaussians_within_its_budget(tmp_p
         np.testing.assert_array_equal(live.features[chosen[-1]], reference[chosen[-1]])  # refreshed: exact
     assert len(chosen) == len(views) - 1 and all(c.any() for c in chosen) and all(reordered)
     assert real(0.0) is None
+
+
+def test_a_fold_that_would_read_more_than_its_share_of_an_exact_pass_is_exact(tmp_path):
+    """A live pass folds while the observations it would read (the new ones plus its refresh's,
+    at most the still-stale Gaussians' observations) are at most ``fold_limit`` times an exact
+    pass's (every Gaussian touched since the last exact pass, all of its views); above that it
+    is exact: the offline map's rows, nothing left stale. The counts against a Python oracle
+    over the views' id lists; fold_limit 0 makes every pass with a new view exact."""
+    from olsplat_nodes.method.live import LiveMap
+
+    n, config = 150, AggregationConfig()
+    views = list(_views(5, n))
+    ids = [set(np.asarray(v[1].gaussians).tolist()) for v in views]
+
+    def oracle(done: int, exact_done: int, arriving: int) -> dict:
+        """Reads after exact passes over views < exact_done, folds up to ``done``, then ``arriving``."""
+        seen = {g: sum(g in s for s in ids[: done + 1]) for g in range(n)}
+        seen_at_exact = {g: sum(g in s for s in ids[:exact_done]) for g in range(n)}
+        added = len(ids[arriving])
+        stale = [g for g in range(n) if sum(g in s for s in ids[:done]) > 0 and seen[g] > seen_at_exact[g]]
+        touched = set().union(*ids[exact_done : done + 1])
+        refresh = min(2.0 * added, sum(seen[g] for g in stale))
+        return {"added": added, "fold": int(added + refresh), "exact": sum(seen[g] for g in touched)}
+
+    offline = ObservationStore(tmp_path / "offline", n, writer=True)
+    for limit, kinds in ((math.inf, [False, False]), (0.0, [True, True])):
+        store = ObservationStore(tmp_path / f"s{limit}", n, writer=True)
+        live = LiveMap(store, refresh=2.0, fold_limit=limit)
+        for view in views[:3]:
+            store.append(*view)
+        live.update(config, exact=False)
+        assert live.last_exact  # the first pass
+        for index, kind in zip((3, 4), kinds, strict=True):
+            store.append(*views[index])
+            live.update(config, exact=False)
+            assert live.last_exact is kind
+        assert not live.update(config, exact=False).any() and not live.last_exact  # nothing new: nothing read
+    # at the limit itself a fold, just under it exact: the reads of the fourth view after three
+    for view in views[:4]:
+        offline.append(*view)
+    reference, _ = offline.refine(None, config, False, unit_float16=True)
+    expected = oracle(3, 3, 3)
+    ratio = expected["fold"] / expected["exact"]
+    for limit, exact in ((ratio, False), (ratio * 0.999, True)):
+        store = ObservationStore(tmp_path / f"r{limit}", n, writer=True)
+        live = LiveMap(store, refresh=2.0, fold_limit=limit)
+        for view in views[:3]:
+            store.append(*view)
+        live.update(config, exact=False)
+        store.append(*views[3])
+        live.update(config, exact=False)
+        assert live.last_reads == expected and live.last_exact is exact
+        assert np.array_equal(live.features, reference) is exact
+        assert np.array_equal(live.exact_at, live.seen) is exact
+    # after a fold the exact pass would read every Gaussian touched since the last exact one
+    store.append(*views[4])
+    live.update(config, exact=False)
+    assert live.last_reads["exact"] == oracle(4, 4, 4)["exact"]
 
 
 def test_a_segment_written_during_a_pass_waits_for_the_next(tmp_path):

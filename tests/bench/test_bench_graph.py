@@ -142,7 +142,8 @@ def test_lossless_flight_and_its_queries_again(tiny, tmp_path, capsys):
     args = ["bench", "graph", "--scene", str(scene), "--lossless", "--queries", "3", "--heatmap-queries", "2"]
     args += ["--heatmap-views", "1", "--sample-s", "0.2", "--work", str(tmp_path / "run")]
     args += ["--launch", str(REPO / "launch" / "replay.yaml"), "--port", str(free_port()), "--json", str(out)]
-    args += ["--set", "refiner.period_s=0.5", "--set", "refiner.max_duty=1"]  # live folds on a short flight
+    # live folds on a short flight (where an exact pass would always be the cheaper: the same map)
+    args += ["--set", "refiner.period_s=0.5", "--set", "refiner.max_duty=1", "--set", "refiner.fold_limit=1e9"]
     assert main(args) == 0
     figures = json.loads(out.read_text())
     check_common(figures)
@@ -162,6 +163,10 @@ def test_lossless_flight_and_its_queries_again(tiny, tmp_path, capsys):
     exact = figures["refine_pass_exact"]  # the refiner folds its live passes; its first and final are exact
     assert len(exact) == final["version"]  # every pass, also one written between two polls of latest.json
     assert len(exact) == len(figures["refine_pass_s"]) and exact[0] and exact[-1] and final["final"] and final["exact"]
+    reads = figures["refine_pass_reads"]  # each pass's observations: taken in, and what each kind would read
+    assert len(reads) == len(exact) and 0 < reads[0]["added"] <= figures["refine_pass_observations"][0]
+    for r, total in zip(reads, figures["refine_pass_observations"], strict=True):
+        assert r["added"] <= r["fold"] and r["exact"] <= total
     printed = capsys.readouterr().out
     assert "12 frames sent lossless (" in printed and "12 views of" in printed
     assert "sustained aggregation rate" not in printed  # no stream rate to aggregate per second of
@@ -256,19 +261,19 @@ def test_a_stream_that_aggregates_no_view_is_one_error_not_a_hang(tiny, tmp_path
     shutil.rmtree(logs.parent)  # the bench's own temporary run folder, kept for the message
 
 
-def test_pass_growth_compares_the_folds_of_the_first_and_last_thirds():
-    # passes after 1 (exact), 3, 5, 10, 14 (folds) and 15 views (the final exact pass)
+def test_pass_growth_compares_the_live_passes_of_the_first_and_last_thirds():
+    # passes after 1 (the first, exact), 3, 5, 10, 14 (live) and 15 views (the final exact pass)
     seconds = [9.0, 2.0, 2.0, 10.0, 8.0, 30.0]
-    growth = graph.pass_growth(seconds, [1, 3, 5, 10, 14, 15], [True, False, False, False, False, True], 15)
+    live = [False, True, True, True, True, False]
+    growth = graph.pass_growth(seconds, [1, 3, 5, 10, 14, 15], live, 15)
     # first third (<= 5 views): 2/2 and 2/2 s per view added; last third (> 10): 8/4
     nothing = {"first_third_per_m_obs": None, "last_third_per_m_obs": None, "ratio_obs": None}
     assert growth == {"first_third": 1.0, "last_third": 2.0, "ratio": 2.0, **nothing}
-    # the later views see more of the map: per million observations added the folds are flat
+    # the later views see more of the map: per million observations added the passes are flat
     observations = [1_000_000, 3_000_000, 5_000_000, 15_000_000, 23_000_000, 25_000_000]
-    growth = graph.pass_growth(seconds, [1, 3, 5, 10, 14, 15], [True, False, False, False, False, True], 15,
-                               observations)  # fmt: skip
+    growth = graph.pass_growth(seconds, [1, 3, 5, 10, 14, 15], live, 15, observations)
     assert (growth["first_third_per_m_obs"], growth["last_third_per_m_obs"], growth["ratio_obs"]) == (1.0, 1.0, 1.0)
-    assert graph.pass_growth([9.0, 1.0], [1, 12], [True, True], 12) == {
+    assert graph.pass_growth([9.0, 1.0], [1, 12], [False, False], 12) == {
         "first_third": None, "last_third": None, "ratio": None, **nothing
     }  # fmt: skip
 
