@@ -26,7 +26,9 @@ import numpy as np
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser("live", help="folded vs exact live refinement passes: drift and seconds")
-    parser.add_argument("--scene", required=True, type=Path, action="append", help="a scene folder (repeatable)")
+    parser.add_argument(
+        "--scene", type=Path, action="append", help="a scene folder (repeatable; required but with --fit)"
+    )
     parser.add_argument("--methods", default="outlangsplat,vala", help="methods whose eval stores to replay")
     parser.add_argument("--every", type=int, default=10, help="views that arrive between two passes")
     parser.add_argument(
@@ -45,8 +47,49 @@ def add_parser(subparsers) -> None:
         help="instead: fold without refresh, then print how much of the folds' error each refresh priority "
         "would recompute within a budget of 30%% of the stale observations",
     )
+    parser.add_argument(
+        "--fit",
+        type=Path,
+        action="append",
+        help="instead: fit refiner.fold_limit from the --json files of runs with --fold-limit inf (repeatable)",
+    )
     parser.add_argument("--json", type=Path, help="write the figures to this file")
     parser.set_defaults(run=run)
+
+
+def fit_fold_limit(runs: list[dict]) -> dict:
+    """The rule of docs/decisions.md ("A fold or an exact pass"): over every pass but the first
+    of the replays ``runs`` (``replay``'s figures, folding always), least squares of fold seconds
+    = a + c_f x million fold reads and of exact seconds = b + c_e x million exact pass reads;
+    ``fold_limit`` = c_e / c_f rounded down to a multiple of 0.05. Also: how many passes, in how
+    many of them the exact pass was the faster, and the seconds of all passes folding always,
+    exact always and under the limit (a fold where fold reads <= limit x exact reads)."""
+    rows = [
+        (f["fold_reads"][i] / 1e6, f["fold_s"][i], f["exact_pass_reads"][i] / 1e6, f["exact_s"][i], f["exact_reads"][i])
+        for f in runs
+        for i in range(1, len(f["views"]))
+    ]
+    if len(rows) < 2:
+        raise ValueError(f"need at least two passes after the first to fit, got {len(rows)}")
+    a = np.array(rows, np.float64)
+    c_f, fold_0 = np.polyfit(a[:, 0], a[:, 1], 1)
+    c_e, exact_0 = np.polyfit(a[:, 2], a[:, 3], 1)
+    limit = float(np.floor(c_e / c_f / 0.05 + 1e-9) * 0.05)
+    exact = a[:, 0] * 1e6 > limit * a[:, 4]
+    return {
+        "passes": len(rows),
+        "fold_s_per_m_reads": round(float(c_f), 4),
+        "fold_s_intercept": round(float(fold_0), 3),
+        "exact_s_per_m_reads": round(float(c_e), 4),
+        "exact_s_intercept": round(float(exact_0), 3),
+        "fold_limit": round(limit, 2),
+        "exact_faster": int((a[:, 3] < a[:, 1]).sum()),
+        "seconds": {
+            "fold_always": round(float(a[:, 1].sum()), 1),
+            "exact_always": round(float(a[:, 3].sum()), 1),
+            "under_the_limit": round(float(np.where(exact, a[:, 3], a[:, 1]).sum()), 1),
+        },
+    }
 
 
 def _cosine(a: np.ndarray, b: np.ndarray, rows: np.ndarray) -> float:
@@ -211,6 +254,32 @@ def run(args: argparse.Namespace) -> int:
     from ..pipeline import Scene
     from ..storage.snapshot import LanguageMap
 
+    if args.fit:
+        runs = []
+        for path in args.fit:
+            try:
+                runs += list(json.loads(path.read_text()).values())
+            except (OSError, ValueError, AttributeError) as exc:
+                raise OlsplatInputError(f"{path}: not the --json of olsplat bench live ({exc})") from exc
+        try:
+            fit = fit_fold_limit(runs)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise OlsplatInputError(f"{', '.join(map(str, args.fit))}: cannot fit a fold limit: {exc!r}") from exc
+        print(
+            f"{fit['passes']} passes: fold s = {fit['fold_s_intercept']} + {fit['fold_s_per_m_reads']} x million "
+            f"reads, exact s = {fit['exact_s_intercept']} + {fit['exact_s_per_m_reads']} x million reads; "
+            f"fold_limit {fit['fold_limit']:.2f}"
+        )
+        t = fit["seconds"]
+        print(
+            f"  the exact pass the faster in {fit['exact_faster']} of {fit['passes']}; seconds in all: folding always "
+            f"{t['fold_always']}, exact always {t['exact_always']}, under the limit {t['under_the_limit']}"
+        )
+        if args.json:
+            args.json.write_text(json.dumps(fit, indent=1))
+        return 0
+    if not args.scene:
+        raise OlsplatInputError("olsplat bench live needs --scene (or --fit)")
     if args.refresh is None:
         args.refresh = LiveMap.refresh
     if args.fold_limit is None:

@@ -54,7 +54,7 @@ class LiveMap:
     refresh: float = 2.0  # refiner.refresh's default (docs/decisions.md, "A larger refresh on the medium preset")
     # refiner.fold_limit's default (docs/decisions.md, "A fold or an exact pass"): a fold only while
     # it reads at most this share of an exact pass's observations (0: every pass exact; inf: folds)
-    fold_limit: float = 0.5
+    fold_limit: float = 0.85
     last_exact: bool = False  # the last pass was exact (asked for, the first one, or the cheaper)
     last_reads: dict = field(default_factory=dict)  # its observations: added, fold and exact (would read)
     seen: np.ndarray = field(init=False)  # [N] int32 each Gaussian's observations in views 0..views-1

@@ -313,8 +313,9 @@ def test_a_segment_written_during_a_pass_waits_for_the_next(tmp_path):
 
 
 def test_the_refiner_and_bench_live_fold_with_the_live_maps_default_refresh():
-    """One default (``LiveMap.refresh``): the refiner node's parameter and ``olsplat bench live``
-    without --refresh take the same, so a drift measured offline is the graph's."""
+    """One default each (``LiveMap.refresh``, ``LiveMap.fold_limit``): the refiner node's
+    parameters and ``olsplat bench live`` without --refresh / --fold-limit take the same, so a
+    drift measured offline is the graph's."""
     import argparse
 
     from olsplat_nodes.bench import live as bench_live
@@ -322,6 +323,47 @@ def test_the_refiner_and_bench_live_fold_with_the_live_maps_default_refresh():
     from olsplat_nodes.nodes.refiner import RefinerNode
 
     assert RefinerNode.Params().refresh == LiveMap.refresh
+    assert RefinerNode.Params().fold_limit == LiveMap.fold_limit
     parser = argparse.ArgumentParser()
     bench_live.add_parser(parser.add_subparsers())
-    assert parser.parse_args(["live", "--scene", "S"]).refresh is None  # resolved to LiveMap.refresh in run
+    defaults = parser.parse_args(["live", "--scene", "S"])
+    assert defaults.refresh is None and defaults.fold_limit is None  # resolved to LiveMap's in run
+
+
+def test_the_fold_limit_is_fitted_from_the_replays_by_the_written_rule(tmp_path, capsys):
+    """``olsplat bench live --fit``: least squares of both kinds' seconds per million reads over
+    every pass but the first, the limit c_e / c_f rounded down to 0.05; against made-up replays
+    with known costs (fold 0.5 s per million, exact 0.3: the limit 0.6), and a clear error for
+    a file that is not a replay's figures."""
+    import json
+
+    from olsplat_nodes.bench.live import fit_fold_limit
+    from olsplat_nodes.cli import main
+
+    fold_reads = [1e6, 2e6, 4e6, 3e6]
+    exact_reads = [1e6, 3e6, 6e6, 9e6]
+    run = {
+        "views": [5, 10, 15, 20],
+        "fold_reads": fold_reads,
+        "fold_s": [9.0] + [1.0 + 0.5 * r / 1e6 for r in fold_reads[1:]],  # the first pass: not fitted
+        "exact_pass_reads": exact_reads,
+        "exact_s": [9.0] + [0.2 + 0.3 * r / 1e6 for r in exact_reads[1:]],
+        "exact_reads": exact_reads,
+    }
+    fit = fit_fold_limit([run])
+    assert fit["passes"] == 3 and fit["fold_limit"] == 0.6
+    assert fit["fold_s_per_m_reads"] == pytest.approx(0.5) and fit["exact_s_intercept"] == pytest.approx(0.2)
+    # under the limit: the pass of 2 M fold reads against 3 M exact folds (2 <= 0.6 x 3 is false:
+    # exact), 4 against 6 (exact), 3 against 9 (a fold)
+    assert fit["seconds"]["under_the_limit"] == pytest.approx(round(0.2 + 0.9 + 0.2 + 1.8 + 1.0 + 1.5, 1))
+    assert fit["exact_faster"] == 2  # 1.1 < 2.0 and 2.0 < 3.0 s; not 2.9 against 2.5
+    path = tmp_path / "replay.json"
+    path.write_text(json.dumps({"S/outlangsplat": run}))
+    assert main(["bench", "live", "--fit", str(path), "--json", str(tmp_path / "fit.json")]) == 0
+    assert "fold_limit 0.60" in capsys.readouterr().out
+    assert json.loads((tmp_path / "fit.json").read_text())["fold_limit"] == 0.6
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2]")
+    assert main(["bench", "live", "--fit", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bad.json: not the --json of olsplat bench live" in err
