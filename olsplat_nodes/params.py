@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -138,6 +139,20 @@ def _convert(value: Any, hint: Any) -> tuple[bool, Any]:
     raise TypeError(f"unsupported parameter annotation {hint!r}")
 
 
+def load_yaml(text: str) -> Any:
+    """``yaml.safe_load``, except that a number in exponent form without a point (``1e9``,
+    ``2E-3``) is a float, as YAML 1.2 reads it (PyYAML's YAML 1.1 keeps it a string, and a user
+    who writes ``--set refiner.fold_limit=1e9`` means a number)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    exponent = re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$")
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", exponent, list("-+0123456789."))
+    return yaml.load(text, Loader=Loader)  # a SafeLoader with one more float form: safe
+
+
 def parse_assignments(items: Sequence[str], where: str) -> dict[str, Any]:
     """``["tau_d=0.3", "beta=[1, 2]"]`` -> ``{"tau_d": 0.3, "beta": [1, 2]}``: each value read as a
     YAML scalar or flow collection (as launch files write it); an empty value is ``""``."""
@@ -149,7 +164,7 @@ def parse_assignments(items: Sequence[str], where: str) -> dict[str, Any]:
         if not eq or not name.strip():
             raise ParameterError(f"{where} {item!r}: expected NAME=VALUE")
         try:
-            out[name.strip()] = yaml.safe_load(text) if text.strip() else ""
+            out[name.strip()] = load_yaml(text) if text.strip() else ""
         except yaml.YAMLError as exc:
             raise ParameterError(f"{where} {item!r}: the value is not valid YAML ({exc})") from exc
     return out

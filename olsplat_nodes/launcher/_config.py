@@ -19,6 +19,7 @@ import yaml
 
 from ..errors import OlsplatInputError
 from ..nodes import NODES
+from ..params import load_yaml
 
 RestartPolicy = Literal["never", "on-failure", "always"]
 RESTART_POLICIES: tuple[str, ...] = get_args(RestartPolicy)
@@ -120,7 +121,7 @@ def load_launch(path: str | Path, overrides: Sequence[str] = (), run_dir: str | 
     except OSError as exc:
         raise LaunchFileError(f"{path}: cannot read the launch file ({exc.strerror or exc})") from exc
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as exc:
         raise LaunchFileError(f"{path}: not valid YAML: {exc}") from exc
     config = parse_launch(data, source=str(path), overrides=overrides, default_name=path.stem)
@@ -185,7 +186,7 @@ def apply_overrides(data: dict, overrides: Sequence[str], source: str = "<launch
         if not eq or not dot or not target or not key:
             raise LaunchFileError(f"{where.source}: --set {item!r}: expected NODE.PARAM=VALUE or launch.KEY=VALUE")
         try:
-            value = yaml.safe_load(text) if text.strip() else ""
+            value = load_yaml(text) if text.strip() else ""
         except yaml.YAMLError as exc:
             raise LaunchFileError(f"{where.source}: --set {item!r}: value is not valid YAML ({exc})") from exc
         if target == LAUNCH_TARGET:

@@ -53,7 +53,7 @@ class LiveMap:
     views: int = 0
     refresh: float = 2.0  # refiner.refresh's default (docs/decisions.md, "A larger refresh on the medium preset")
     # refiner.fold_limit's default (docs/decisions.md, "A fold or an exact pass"): a fold only while
-    # it reads at most this share of an exact pass's observations (0: every pass exact; inf: folds)
+    # it reads at most this share of an exact pass's observations (0: every pass exact; 1e9: always a fold)
     fold_limit: float = 0.85
     last_exact: bool = False  # the last pass was exact (asked for, the first one, or the cheaper)
     last_reads: dict = field(default_factory=dict)  # its observations: added, fold and exact (would read)

@@ -62,6 +62,7 @@ class RefinerNode(Node):
         refresh: float = 2.0  # a fold also recomputes exactly this many times its new observations
         # a fold only while it would read at most this share of an exact pass's observations
         # (a fold's scattered reads cost more per observation); otherwise the pass is exact
+        # (0: every pass exact; 1e9: always a fold, as before this choice)
         fold_limit: float = 0.85
 
     @classmethod

@@ -211,10 +211,12 @@ def test_a_bad_override_is_refused_before_anything_starts(tiny, tmp_path, capsys
     scene, _ = tiny
     args = ["bench", "graph", "--scene", str(scene), *feed, "--work", str(tmp_path / "run")]
     args += ["--port", str(free_port()), "--launch", str(REPO / "launch" / "replay.yaml")]
+    refiner = "(refiner).params: passes must be fold or exact, refresh >= 0 and fold_limit >= 0"
     for setting, error in [
         ("query_server.heatmap_max_side=-1", "(query_server).params: heatmap_max_side must be >= 0"),
-        ("refiner.passes=sometimes", "(refiner).params: passes must be fold or exact and refresh >= 0"),
-        ("refiner.refresh=-1", "(refiner).params: passes must be fold or exact and refresh >= 0"),
+        ("refiner.passes=sometimes", f"{refiner}, got 'sometimes', 2.0, 0.85"),
+        ("refiner.refresh=-1", f"{refiner}, got 'fold', -1.0, 0.85"),
+        ("refiner.fold_limit=-1e-3", f"{refiner}, got 'fold', 2.0, -0.001"),
     ]:
         assert main([*args, "--set", setting]) == 1
         assert error in capsys.readouterr().err

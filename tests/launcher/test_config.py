@@ -101,7 +101,8 @@ def test_unreadable_and_non_mapping_files(tmp_path):
 def test_set_overrides_params_and_top_level_keys(tmp_path):
     path = write_launch(tmp_path, [dict(TICKER, params={"ticks": 5}), {"name": "b", "exec": f"{NODES}:Waiter"}])
     config = load_launch(path, ["a.ticks=2", "a.note=hello world", "b.ignore_stop=true", "launch.compose=true",
-                                "launch.exit_when=[a]", "a.period_s=0.5", "a.crash_once="])  # fmt: skip
+                                "launch.exit_when=[a]", "a.period_s=5e-1", "a.crash_once="])  # fmt: skip
+    # 5e-1 a number, as YAML 1.2 reads it (``params.load_yaml``)
     assert config.node("a").params == {"ticks": 2, "note": "hello world", "period_s": 0.5, "crash_once": ""}
     assert config.node("b").params == {"ignore_stop": True}
     assert config.compose is True and config.exit_when == ("a",)

@@ -99,3 +99,11 @@ def test_the_accumulator_takes_the_shipped_minkunet_and_names_a_missing_one(tmp_
     missing = AccumulatorNode.Params(store=str(tmp_path / "b"), features="2d3d", minkunet=str(tmp_path / "no.pt"))
     with pytest.raises(ParameterError, match=r"accumulator\.minkunet: .*no\.pt: no such MinkUNet checkpoint"):
         AccumulatorNode.validate(missing, "accumulator")
+
+
+def test_a_number_in_exponent_form_is_a_number_as_yaml_1_2_reads_it():
+    """``--set`` values and launch files: ``1e9`` and ``2E-3`` are floats (PyYAML alone keeps
+    them strings); a quoted one and text that only looks like one stay strings."""
+    settings = parse_assignments(["a=1e9", "b=-2E-3", "c=1.5e+2", "d='1e9'", "e=1e", "f=e9", "g=3"], "--set")
+    assert settings == {"a": 1e9, "b": -2e-3, "c": 150.0, "d": "1e9", "e": "1e", "f": "e9", "g": 3}
+    assert isinstance(settings["g"], int)
