@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import re
 import types
@@ -145,12 +146,20 @@ def load_yaml(text: str) -> Any:
     who writes ``--set refiner.fold_limit=1e9`` means a number)."""
     import yaml
 
+    return yaml.load(text, Loader=_yaml_loader())  # a SafeLoader with one more float form: safe
+
+
+@functools.cache
+def _yaml_loader() -> type:
+    """``load_yaml``'s loader class, made once (yaml is imported only when a value is read)."""
+    import yaml
+
     class Loader(yaml.SafeLoader):
         pass
 
     exponent = re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$")
     Loader.add_implicit_resolver("tag:yaml.org,2002:float", exponent, list("-+0123456789."))
-    return yaml.load(text, Loader=Loader)  # a SafeLoader with one more float form: safe
+    return Loader
 
 
 def parse_assignments(items: Sequence[str], where: str) -> dict[str, Any]:

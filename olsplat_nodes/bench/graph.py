@@ -300,7 +300,6 @@ def run(args: argparse.Namespace) -> int:
         ]
         figures["refine_pass_observations"] = [int(p.get("observations", 0)) for p in ordered]
         live = [i > 0 and not p.get("final") for i, p in enumerate(ordered)]  # not the first, not the final
-        live_fold = [counted and not p.get("exact", True) for counted, p in zip(live, ordered, strict=True)]
         figures["refine_pass_s_per_view_added"] = pass_growth(
             refine_pass_s, figures["refine_pass_views"], live, views,
             figures["refine_pass_observations"],
@@ -387,7 +386,7 @@ def run(args: argparse.Namespace) -> int:
                     f"the exact map of the same views: {drift['drift_miou']:+.2f} mIoU ({drift['live_mIoU']:.2f} "
                     f"against {drift['exact_mIoU']:.2f}), {drift['drift_loc50']:+.2f} Loc@50"
                 )
-            elif len(ordered) > 2 and not any(live_fold):  # exact wherever a fold would read more
+            elif len(ordered) > 2 and all(figures["refine_pass_exact"]):  # exact wherever a fold would read more
                 print("  drift of the live versions: none, every live pass was exact (refiner.fold_limit)")
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)

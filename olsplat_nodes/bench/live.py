@@ -65,7 +65,13 @@ def fit_fold_limit(runs: list[dict]) -> dict:
     many of them the exact pass was the faster, and the seconds of all passes folding always,
     exact always and under the limit (a fold where fold reads <= limit x exact reads)."""
     rows = [
-        (f["fold_reads"][i] / 1e6, f["fold_s"][i], f["exact_pass_reads"][i] / 1e6, f["exact_s"][i], f["exact_reads"][i])
+        (
+            f["fold_reads"][i] / 1e6,
+            f["fold_s"][i],
+            f["exact_pass_reads"][i] / 1e6,
+            f["exact_s"][i],
+            f["exact_reads"][i] / 1e6,
+        )
         for f in runs
         for i in range(1, len(f["views"]))
     ]
@@ -75,7 +81,7 @@ def fit_fold_limit(runs: list[dict]) -> dict:
     c_f, fold_0 = np.polyfit(a[:, 0], a[:, 1], 1)
     c_e, exact_0 = np.polyfit(a[:, 2], a[:, 3], 1)
     limit = float(np.floor(c_e / c_f / 0.05 + 1e-9) * 0.05)
-    exact = a[:, 0] * 1e6 > limit * a[:, 4]
+    exact = a[:, 0] > limit * a[:, 4]  # the pass the limit makes exact (LiveMap.update's test)
     return {
         "passes": len(rows),
         "fold_s_per_m_reads": round(float(c_f), 4),
@@ -106,11 +112,9 @@ def link_segments(segments: list[Path], work: Path) -> None:
         (work / "views" / segment.name).symlink_to(segment.resolve(), target_is_directory=True)
 
 
-def replay(
-    store_folder: Path, method, every: int, work: Path, refresh: float | None = None, fold_limit: float | None = None
-) -> dict:
+def replay(store_folder: Path, method, every: int, work: Path, refresh: float, fold_limit: float) -> dict:
     """Both live maps over the store's segments, ``every`` at a time; the figures and maps
-    (``refresh``, ``fold_limit`` None: ``LiveMap``'s defaults, the refiner's). Per pass besides
+    (``refresh`` and ``fold_limit`` as ``run`` resolved them: LiveMap's when not given). Per pass besides
     the seconds: ``fold_exact`` (the live map's pass was exact: the cheaper by its fold_limit)
     and the observations ``added``, ``fold_reads`` and ``exact_reads`` (what a fold and an
     exact pass would read: ``LiveMap.reads``), ``exact_pass_reads`` (what the exact map's pass read)."""
@@ -120,8 +124,6 @@ def replay(
     n = _map_size(store_folder)
     segments = ObservationStore(store_folder, n).segments()
     (work / "views").mkdir(parents=True)
-    refresh = LiveMap.refresh if refresh is None else refresh
-    fold_limit = LiveMap.fold_limit if fold_limit is None else fold_limit
     live = {
         kind: LiveMap(ObservationStore(work, n), refresh=refresh, fold_limit=fold_limit) for kind in ("fold", "exact")
     }
