@@ -64,7 +64,7 @@ def stack_levels(label_maps: np.ndarray, bank: list[np.ndarray]) -> tuple[np.nda
     return slots, np.concatenate(bank).astype(np.float32)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
     """[P] float32 M_v(p) * q_sum(p) * q_eff(p) (or M_v(p) without quality): w~ = w * factor.
 
@@ -92,7 +92,7 @@ def _pixel_factors(topk_weights, valid, q_min, tau_e, kappa, eps, use_quality):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, record):
     """One pass over the view's entries (pixel order, then rank): strength[i] += w~ over
     Gaussian i's entries, and the runs: per used level, consecutive entries of a Gaussian in
@@ -153,14 +153,14 @@ def _runs(topk_ids, topk_weights, factors, slot_maps, level_on, record):
     return run_gaussian[:n], run_slot[:n], run_level[:n], run_weight[:n]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _grown(array, size):
     out = np.empty(size, array.dtype)
     out[: len(array)] = array
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _mixtures(run_gaussian, run_slot, run_level, run_weight, kept_of, n_kept, n_levels, level_weights, strength):
     """Per kept Gaussian (kept_of[i] = its row, -1 if not kept), level by level, its distinct
     slots in the order they first appear with their summed w~; mixture weights a_l * sum / d.

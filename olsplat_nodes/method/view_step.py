@@ -6,13 +6,14 @@ branch trains on it."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..aggregate import ViewObservations, observe_view, stack_levels
 from ..aggregate.vala import observe_view_centres
-from ..raster import rasterize
+from ..raster import RenderResult, rasterize
 from ..scene import Camera, Gaussians
 from ..storage import ObservationStore
 from .coverage import CoverageGate, MapCoverage, map_coverage
@@ -34,6 +35,33 @@ class ViewOffMap(ValueError):
         )
 
 
+@dataclass(frozen=True)
+class ViewRender:
+    """A view's Top-K render as the per-view step takes it: ``camera`` is the one rendered (the
+    view's own, or scaled by the method's ``raster.topk_scale``), ``pixel_area`` a rendered
+    pixel's area in the view's own pixels (1, or 1 / topk_scale^2)."""
+
+    name: str  # the view's name (its camera's)
+    camera: Camera
+    result: RenderResult
+    pixel_area: float
+
+
+def render_view(gaussians: Gaussians, camera: Camera, method: Method) -> ViewRender:
+    """The view's adaptive Top-K render, which depends on the map, the camera and the method's
+    raster settings only (not on the view's regions): so it may be made ahead of them, on
+    another thread, and come out the same. No colour (the per-view step never reads it)."""
+    pixel_area = 1.0
+    rendered_camera = camera
+    if method.raster.topk_scale != 1.0:  # a smaller Top-K render: labels sampled at its pixels
+        if method.aggregation.view_feature == "centre":
+            raise ValueError(f"{method.name}: topk_scale applies to the pixel-weighted view features only")
+        rendered_camera = camera.scaled(method.raster.topk_scale)
+        pixel_area = camera.width * camera.height / (rendered_camera.width * rendered_camera.height)
+    result = rasterize(gaussians, rendered_camera, method.raster, want_rgb=False)
+    return ViewRender(camera.name, rendered_camera, result, pixel_area)
+
+
 def view_observations(
     gaussians: Gaussians,
     camera: Camera,
@@ -42,6 +70,7 @@ def view_observations(
     method: Method,
     branch: StructuralBranch | None = None,
     gate: CoverageGate | None = None,
+    rendered: ViewRender | None = None,
 ) -> tuple[ViewObservations, np.ndarray, dict[str, float]]:
     """One view's observations, touching no store: render the view's adaptive Top-K, measure how
     much of the frame the map covers (``coverage.map_coverage``, from that render), fuse its bank
@@ -54,33 +83,32 @@ def view_observations(
     ``ViewOffMap`` when ``gate`` refuses the view (nothing fused, nothing observed). With the
     method's ``raster.topk_scale`` below 1 the render, the 3D branch and the observations work on
     the view scaled by it (``Camera.scaled``, ``sample_label_maps``), strengths counted in the
-    view's own pixels."""
+    view's own pixels. ``rendered``: this view's ``render_view``, made beforehand (the accumulator
+    renders the next queued view while it observes this one); None renders it here."""
     t0 = time.perf_counter()
-    pixel_area = 1.0
-    if method.raster.topk_scale != 1.0:  # a smaller Top-K render: labels sampled at its pixels
-        if method.aggregation.view_feature == "centre":
-            raise ValueError(f"{method.name}: topk_scale applies to the pixel-weighted view features only")
-        full = camera.width * camera.height
-        camera = camera.scaled(method.raster.topk_scale)
+    view = render_view(gaussians, camera, method) if rendered is None else rendered
+    if view.name != camera.name:
+        raise ValueError(f"the render given is of view {view.name!r}, not {camera.name!r}")
+    camera, render, pixel_area = view.camera, view.result, view.pixel_area
+    if pixel_area != 1.0:  # a smaller Top-K render: labels sampled at its pixels
         label_maps = sample_label_maps(label_maps, camera.width, camera.height)
-        pixel_area = full / (camera.width * camera.height)
-    rendered = rasterize(gaussians, camera, method.raster, want_rgb=False)  # the colour is never read
-    assert rendered.topk_ids is not None and rendered.topk_weights is not None  # rasterize always keeps Top-K
-    seen = map_coverage(rendered.alpha, rendered.topk_ids, gaussians.means[:, 2], float(camera.center[2]))
+    rendered_ids, rendered_weights = render.topk_ids, render.topk_weights
+    assert rendered_ids is not None and rendered_weights is not None  # rasterize always keeps Top-K
+    seen = map_coverage(render.alpha, rendered_ids, gaussians.means[:, 2], float(camera.center[2]))
     if gate is not None and gate.refuses(seen):
         raise ViewOffMap(camera.name, seen, gate)
     t1 = time.perf_counter()
     if branch is not None:
-        bank = branch.fuse_view(camera, rendered.depth, label_maps, bank)
+        bank = branch.fuse_view(camera, render.depth, label_maps, bank)
     t2 = time.perf_counter()
     slots, stacked = stack_levels(label_maps, bank)
     config = method.aggregation
     if config.view_feature == "centre":  # VALA: each Gaussian's centre pixel, then its visibility gate
         observations = observe_view_centres(
-            rendered.topk_ids, rendered.topk_weights, rendered.means2d, rendered.radii, slots, len(gaussians), config
+            rendered_ids, rendered_weights, render.means2d, render.radii, slots, len(gaussians), config
         )
     else:
-        observations = observe_view(rendered.topk_ids, rendered.topk_weights, slots, len(gaussians), config, pixel_area)
+        observations = observe_view(rendered_ids, rendered_weights, slots, len(gaussians), config, pixel_area)
     t3 = time.perf_counter()
     stages = {"rasterize": t1 - t0, "fuse": t2 - t1, "observe": t3 - t2}
     return observations, stacked, {**stages, "coverage": seen.coverage, "height_m": seen.height_m}

@@ -16,7 +16,9 @@ views arrive, and its whole state is saved (``STORE/branch.npz``) after every st
 with h as it was; the branch's settings are in the store's manifest. A view already in the
 store (by name: the shard's rule) is acknowledged again without being added twice, so a
 restarted node or a re-sent frame never double-counts. ``EndOfStream`` is forwarded
-on the observations topic after the views before it.
+on the observations topic after the views before it. While a view is observed, the next queued
+view is rendered on a second thread (``render_ahead``, ``method.render_ahead``): the same
+observations, made while the observations' serial pass leaves a core free.
 
 A view that does not see the prior map is refused (``method.coverage``: less than
 ``min_coverage`` of the frame covered by the map, or the camera less than ``min_height_m`` above
@@ -34,6 +36,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -74,6 +77,10 @@ class AccumulatorNode(Node):
         # numba threads of the rasterizer and observations (0 = one per core); 2: the region encoder
         # now leaves most of the second core idle, and the accumulator is the graph's slowest stage
         threads: int = 2
+        # render the next queued view while this one is observed (the observations' pass is
+        # serial, the render's kernels use both cores): the same observations, the two cores kept
+        # busy; off where numba's threading layer is not thread-safe (method/render_ahead.py)
+        render_ahead: bool = True
         features: str = "2d"  # "2d3d": fuse the region features with the 3D branch before aggregating
         lambda_f: float = 0.7  # 2D share of that fusion (paper)
         # the 3D branch's point features: "" geometric descriptors, "shipped" the packaged
@@ -141,6 +148,7 @@ class AccumulatorNode(Node):
         from ..durable import DiskRunway
         from ..method import claim_store, method_params_of, warm_up
         from ..method.coverage import CoverageGate
+        from ..method.render_ahead import RenderAhead
         from ..scene import read_ply
         from ..storage.tiles import TileShard  # heavy imports here: the launcher imports node classes
 
@@ -175,19 +183,48 @@ class AccumulatorNode(Node):
         log.info("per-view kernels ready in %.1f s", warm_up(self.gaussians, self.method))
         if len(self.shard):
             log.info("resuming: %d views already in %s", len(self.shard), p.store)
+        self.pending: deque = deque()  # (topic, message) received, not yet handled, oldest first
+        self.ahead = None  # the next view's render, made while this one is observed
+        if p.render_ahead and RenderAhead.available():  # after the warm-up: numba's layer is known by now
+            self.ahead = self.own(RenderAhead(self.gaussians, self.method, p.threads))  # closed with the sockets
+        elif p.render_ahead:
+            log.info("views are not rendered ahead: numba's threading layer is not thread-safe here")
         limit = int(p.max_message_mb * 2**20)
         self.sub = self.own(Subscriber(self.context, [p.regions_in], [p.topic_regions], hwm=p.hwm, max_bytes=limit))
         self.pub = self.own(Publisher(self.context, p.observations_out, bind=True, hwm=100))
         self.diag = self.own(Diagnostics(self.context, p.diagnostics, self.name)) if p.diagnostics else None
 
+    def _receive(self, timeout_ms: float) -> None:
+        batch = self.sub.drain(timeout_ms)
+        self.stats.count("received", len(batch))
+        self.pending.extend(batch)
+
+    def _render_next(self) -> None:
+        """Start the render of the next queued view that will be aggregated (not one already in
+        the store), so that it is made while the view in hand is observed."""
+        from ..transport.convert import camera_of
+
+        for _, message in self.pending:
+            if isinstance(message, RegionFeatures) and message.name not in self.shard.names:
+                try:
+                    camera = camera_of(message)
+                except ValueError:  # a bad view: it is refused in its turn, with its error
+                    return
+                self.ahead.start(camera)
+                return
+
     def spin(self) -> int | None:
         p = self.params
-        batch = self.sub.drain(200)
-        self.stats.count("received", len(batch))
-        for _, message in batch:
+        if not self.pending:
+            self._receive(200)
+        for _ in range(len(self.pending)):  # what was there when this turn began; the rest next turn
+            _, message = self.pending.popleft()
             if isinstance(message, EndOfStream):
                 self.publish(self.pub, p.topic_observations, message)
             elif isinstance(message, RegionFeatures):
+                if self.ahead is not None:
+                    self._receive(0)  # what came meanwhile: the next view can be rendered now
+                    self._render_next()
                 try:
                     self._add(message)
                 except OSError as exc:
@@ -197,7 +234,9 @@ class AccumulatorNode(Node):
         if time.monotonic() - self.disk_checked > DISK_RECHECK_S:
             self._disk_status()
         if self.diag is not None:
-            values = self.stats.with_sockets(self.sub.stats, queue_depth=len(batch), views=len(self.shard))
+            values = self.stats.with_sockets(self.sub.stats, queue_depth=len(self.pending), views=len(self.shard))
+            if self.ahead is not None:
+                values.update(rendered_ahead=self.ahead.used, rendered_ahead_unused=self.ahead.missed)
             values.update(self.disk_values)
             values.update(self.seen_values)
             if self.store_error:
@@ -359,8 +398,9 @@ class AccumulatorNode(Node):
 
                 self.branch = StructuralBranch.build(self.gaussians, camera.center[None], self.structure)
             try:  # refused right after the render: the 3D branch does not train on a view off the map
+                rendered = self.ahead.take(camera) if self.ahead is not None else None
                 observations, stacked, stages = view_observations(
-                    self.gaussians, camera, label_maps, bank, self.method, self.branch, self.gate
+                    self.gaussians, camera, label_maps, bank, self.method, self.branch, self.gate, rendered
                 )
             except ViewOffMap as refusal:
                 self._seen(refusal.seen.coverage, refusal.seen.height_m)

@@ -17,7 +17,7 @@ from numba import njit, prange
 RADIX_CHUNKS = 8
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def radix_argsort(keys):
     """Stable argsort of non-negative float32 ``keys`` [M] (LSD radix, 3 passes of 11 bits).
 
@@ -69,7 +69,7 @@ def radix_argsort(keys):
     return order
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _bin_sorted(rects, n_chunks, tiles_x, n_tiles):
     """rects [M, 4] tile rectangles in depth order -> (offsets [n_tiles + 1], positions into rects)."""
     m = rects.shape[0]
@@ -121,7 +121,7 @@ def bin_tiles(
 
 # Random gathers in parallel: numpy's fancy indexing runs them on one thread, and a gather of
 # scattered rows is bound by its cache misses, which the threads wait for side by side.
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _take(values, index):
     """values[index] for 1-D arrays."""
     out = np.empty(index.shape[0], values.dtype)
@@ -130,7 +130,7 @@ def _take(values, index):
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _take_rows(values, index):
     """values[index] for a 2-D array: the rows index lists."""
     out = np.empty((index.shape[0], values.shape[1]), values.dtype)

@@ -118,7 +118,7 @@ class CellIndex:
         return _members(self.order, self.start, np.flatnonzero(self.visible_cells(camera, config)), self.size)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _by_cell(means, log_scales, lowest, cell_m, dims):
     """A counting sort of the Gaussians with finite centres and scales by cube (i, j, k), each
     clamped to the grid, stable (map order within a cube): (order [N'] int32, start [C + 1] of
@@ -171,7 +171,7 @@ def _by_cell(means, log_scales, lowest, cell_m, dims):
     return order, start, low, high, scale_max
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _members(order, start, cells, n):
     """[n] bool: True for the members of the listed cubes."""
     mask = np.zeros(n, np.bool_)

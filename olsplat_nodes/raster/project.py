@@ -59,7 +59,7 @@ class Projected:
         return self.records[:, DEPTH]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _project_kernel(
     means, quats, log_scales, opacity_logits, sh, viewmat, fx, fy, cx, cy, campos,
     width, height, tile_size, eps2d, near, far, radius_sigmas, alpha_min, records, radii, tile_rects, w_norm2,
@@ -197,7 +197,7 @@ def _project_kernel(
         radii[j] = radius
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pixel_box(u, v, extent_x, extent_y):
     """(px0, px1, py0, py1): the image pixels [px0, px1) x [py0, py1) where a Gaussian with
     centre (u, v) and extents (EX, EY) may reach alpha >= alpha_min: pixel x (centre x + 0.5) is

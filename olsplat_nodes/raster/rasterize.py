@@ -174,7 +174,7 @@ def rasterize(
     )
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _to_map_ids(topk_ids: np.ndarray, ids: np.ndarray) -> None:
     """In place: Top-K entries that are rows of a culled projection become the Gaussians' own
     indices, ids [M] int64; -1 (no entry) stays."""
