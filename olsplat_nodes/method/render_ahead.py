@@ -7,7 +7,9 @@ pass over the view's Top-K entries is serial); rendering the next queued view on
 meanwhile keeps the second core busy. Each view's observations are those of the same render,
 bit for bit: only when it is made changes. The two threads run at once because the render's
 and the observations' numba kernels are compiled with ``nogil=True`` and the C kernels are
-called through ctypes: none holds the interpreter lock while it computes.
+called through ctypes: none holds the interpreter lock while it computes. The offline runs
+(``pipeline.offline``) do the same: the next view rendered while this one's regions, features
+and observations are made.
 
 Safe only where numba's threading layer takes parallel kernels from two threads at once (``omp``
 or ``tbb``; ``workqueue`` aborts the process): ``RenderAhead.available`` says so, and elsewhere
@@ -21,6 +23,7 @@ import logging
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
+from numba import njit, prange
 
 from ..scene import Camera, Gaussians
 from .table import Method
@@ -28,6 +31,13 @@ from .view_step import ViewRender, render_view
 
 log = logging.getLogger(__name__)
 SAFE_LAYERS = ("omp", "tbb")  # numba threading layers that are thread-safe
+
+
+@njit(parallel=True, cache=True)
+def _choose_layer(values):
+    """A parallel kernel that does nothing useful: running it makes numba choose its layer."""
+    for i in prange(values.shape[0]):
+        values[i] = i
 
 
 def _same_camera(a: Camera, b: Camera) -> bool:
@@ -41,27 +51,29 @@ def _same_camera(a: Camera, b: Camera) -> bool:
 
 class RenderAhead:
     """Views rendered ahead, in the order they will be taken, on one worker thread with
-    ``threads`` numba threads (the setting is per calling thread; 0 = numba's default). At most
+    ``threads`` numba threads (the setting is per calling thread; 0 = numba's default, None =
+    the creating thread's). At most
     ``MAX_PENDING`` at a time: the view in hand's (started in the turn before) and the next one's."""
 
     MAX_PENDING = 2
 
-    def __init__(self, gaussians: Gaussians, method: Method, threads: int):
-        self.gaussians, self.method, self.threads = gaussians, method, threads
+    def __init__(self, gaussians: Gaussians, method: Method, threads: int | None = None):
+        import numba
+
+        self.gaussians, self.method = gaussians, method
+        self.threads = numba.get_num_threads() if threads is None else threads  # None: the caller's
         self.pool: ThreadPoolExecutor | None = None
         self.pending: list[tuple[Camera, Future[ViewRender]]] = []  # oldest first
         self.used = self.missed = 0  # renders taken from ahead / started ahead and not taken
 
     @staticmethod
     def available() -> bool:
-        """Whether parallel kernels may run on two threads at once here (numba's layer, known
-        once a parallel kernel has run: after the node's warm-up)."""
+        """Whether parallel kernels may run on two threads at once here: numba's threading
+        layer, chosen when the first parallel kernel runs (one is run here if none has)."""
         import numba
 
-        try:
-            return numba.threading_layer() in SAFE_LAYERS
-        except ValueError:  # no parallel kernel has run yet: the layer is not chosen
-            return False
+        _choose_layer(np.zeros(2, np.int64))
+        return numba.threading_layer() in SAFE_LAYERS
 
     def _init_worker(self) -> None:
         if self.threads > 0:

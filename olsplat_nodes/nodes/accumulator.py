@@ -185,7 +185,7 @@ class AccumulatorNode(Node):
             log.info("resuming: %d views already in %s", len(self.shard), p.store)
         self.pending: deque = deque()  # (topic, message) received, not yet handled, oldest first
         self.ahead = None  # the next view's render, made while this one is observed
-        if p.render_ahead and RenderAhead.available():  # after the warm-up: numba's layer is known by now
+        if p.render_ahead and RenderAhead.available():
             self.ahead = self.own(RenderAhead(self.gaussians, self.method, p.threads))  # closed with the sockets
         elif p.render_ahead:
             log.info("views are not rendered ahead: numba's threading layer is not thread-safe here")

@@ -20,6 +20,7 @@ from ..errors import OlsplatInputError
 from ..memory import peak_rss_mb
 from ..method import Method
 from ..method.coverage import CoverageGate, MapCoverage, off_map_error
+from ..method.render_ahead import RenderAhead
 from ..method.view_step import ViewOffMap, view_observations
 from ..scene import Camera, Gaussians, read_ply
 from ..storage import LanguageMap
@@ -135,33 +136,44 @@ def aggregate_flights(
     total, done, written = sum(len(scene.cameras) for scene in scenes), 0, 0
     first: list[tuple[str, MapCoverage | None]] = []  # the first views' figures when refused (None: taken)
     refused_views = 0
-    for flight, scene in enumerate(scenes):
-        branch = _structural_branch(scene, gaussians, structure) if structure else None
-        cameras = progress(scene.cameras) if progress else scene.cameras
-        for camera in cameras:
-            label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
-            name = flight_view_name(flight, len(scenes), camera)
-            try:
-                observations, stacked, _stages = view_observations(
-                    gaussians, camera, label_maps, bank, method, branch, gate
-                )
-            except ViewOffMap as refusal:
-                log.warning("%s; left out", refusal)
-                refused_views += 1
+    # the next view rendered while this one's features and observations are made (the same
+    # observations, bit for bit: method/render_ahead.py); not where numba's layer forbids it
+    ahead = RenderAhead(gaussians, method) if RenderAhead.available() else None
+    try:
+        for flight, scene in enumerate(scenes):
+            branch = _structural_branch(scene, gaussians, structure) if structure else None
+            upcoming = list(scene.cameras)
+            cameras = progress(scene.cameras) if progress else scene.cameras
+            for index, camera in enumerate(cameras):
+                if ahead is not None and index + 1 < len(upcoming):
+                    ahead.start(upcoming[index + 1])
+                rendered = ahead.take(camera) if ahead is not None else None
+                label_maps, bank = features_of(camera) if features_of else view_features(scene, camera, encoder)
+                name = flight_view_name(flight, len(scenes), camera)
+                try:
+                    observations, stacked, _stages = view_observations(
+                        gaussians, camera, label_maps, bank, method, branch, gate, rendered
+                    )
+                except ViewOffMap as refusal:
+                    log.warning("%s; left out", refusal)
+                    refused_views += 1
+                    if len(first) < OFF_MAP_VIEWS:
+                        first.append((name, refusal.seen))
+                    refused = [(n, seen) for n, seen in first if isinstance(seen, MapCoverage)]
+                    if len(refused) == OFF_MAP_VIEWS:  # the first views, every one refused
+                        raise OlsplatInputError(off_map_error(refused, refusal.gate, str(scenes[0].ply))) from None
+                    continue
                 if len(first) < OFF_MAP_VIEWS:
-                    first.append((name, refusal.seen))
-                refused = [(n, seen) for n, seen in first if isinstance(seen, MapCoverage)]
-                if len(refused) == OFF_MAP_VIEWS:  # the first views, every one refused
-                    raise OlsplatInputError(off_map_error(refused, refusal.gate, str(scenes[0].ply))) from None
-                continue
-            if len(first) < OFF_MAP_VIEWS:
-                first.append((name, None))
-            store.append(name, observations, stacked)
-            done, written = done + 1, written + segment_bytes(observations, stacked)
-            if done in DISK_CHECKS and done < total:
-                warning = disk_warning(out, written, done, total, shutil.disk_usage(out).free)
-                if warning:
-                    log.warning(warning)
+                    first.append((name, None))
+                store.append(name, observations, stacked)
+                done, written = done + 1, written + segment_bytes(observations, stacked)
+                if done in DISK_CHECKS and done < total:
+                    warning = disk_warning(out, written, done, total, shutil.disk_usage(out).free)
+                    if warning:
+                        log.warning(warning)
+    finally:
+        if ahead is not None:
+            ahead.close()
     # unit float16 rows range by range, as the live refiner keeps them (bit-identical to unit_rows
     # of the float32 result, without its [N, D] float32 array and copy: 2.7 GB for the large map)
     features, observed = store.refine(method.aggregation, encoder.name)

@@ -110,3 +110,39 @@ def test_a_render_that_failed_ahead_is_made_again_where_its_error_is_handled():
     label_maps, bank = _regions(camera.height, camera.width)
     with pytest.raises(ValueError, match="topk_scale applies to the pixel-weighted view features only"):
         view_observations(gaussians, camera, label_maps, bank, method)
+
+
+def test_an_offline_run_renders_ahead_and_makes_the_map_it_makes_without(tiny, tmp_path, monkeypatch):
+    import shutil
+
+    from olsplat_nodes.encoders.spec import encoder_from_spec
+    from olsplat_nodes.method import named_method
+    from olsplat_nodes.pipeline import Scene, aggregate_scene
+    from olsplat_nodes.storage import LanguageMap
+
+    if not RenderAhead.available():
+        pytest.skip(f"numba's threading layer {numba.threading_layer()} is not thread-safe")
+    taken = []
+    original = RenderAhead.take
+
+    def counted(self, camera):
+        view = original(self, camera)
+        taken.append(view is not None)
+        return view
+
+    maps = {}
+    for label in ("ahead", "alone"):
+        shutil.copytree(tiny[0], tmp_path / label / "scene")
+        with monkeypatch.context() as patch:
+            patch.setattr(RenderAhead, "take", counted)
+            if label == "alone":
+                patch.setattr(RenderAhead, "available", staticmethod(lambda: False))
+            scene = Scene.open(tmp_path / label / "scene")
+            aggregate_scene(scene, named_method("outlangsplat"), encoder_from_spec(), tmp_path / label / "out")
+        maps[label] = LanguageMap.load(tmp_path / label / "out" / "language_map.npz")
+        if label == "ahead":  # every view but the first was rendered ahead
+            assert len(taken) == len(scene.cameras) and sum(taken) == len(scene.cameras) - 1, taken
+    assert len(taken) == len(scene.cameras)  # none taken without it
+    np.testing.assert_array_equal(maps["ahead"].observed, maps["alone"].observed)
+    np.testing.assert_array_equal(maps["ahead"].features, maps["alone"].features)
+    assert maps["ahead"].observed.sum() > 1000
