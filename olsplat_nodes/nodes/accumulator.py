@@ -204,6 +204,7 @@ class AccumulatorNode(Node):
         the store), so that it is made while the view in hand is observed."""
         from ..transport.convert import camera_of
 
+        assert self.ahead is not None
         for _, message in self.pending:
             if isinstance(message, RegionFeatures) and message.name not in self.shard.names:
                 try:
