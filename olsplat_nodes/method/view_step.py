@@ -84,7 +84,8 @@ def view_observations(
     method's ``raster.topk_scale`` below 1 the render, the 3D branch and the observations work on
     the view scaled by it (``Camera.scaled``, ``sample_label_maps``), strengths counted in the
     view's own pixels. ``rendered``: this view's ``render_view``, made beforehand (the accumulator
-    renders the next queued view while it observes this one); None renders it here."""
+    renders the next queued view while it observes this one); None renders it here. With it the
+    "rasterize" seconds are only the coverage measure (the render was made elsewhere)."""
     t0 = time.perf_counter()
     view = render_view(gaussians, camera, method) if rendered is None else rendered
     if view.name != camera.name:
