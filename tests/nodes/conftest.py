@@ -334,6 +334,20 @@ def oversized(topic: str, limit: int = DEFAULT_MAX_BYTES) -> list:
     return [topic.encode(), b"\x80", zmq.Frame(bytes(limit + 1))]
 
 
+def accumulator_params(scene: Path, folder: Path, sockdir: Path, beats: Heartbeats, **extra) -> dict:
+    """An accumulator over the scene's map with its store and views in ``folder``, its sockets in
+    ``sockdir`` (regions.sock in, observations.sock out) and its heartbeats to ``beats``."""
+    return {
+        "map": str(scene / "map" / "point_cloud.ply"),
+        "store": str(folder / "store"),
+        "views": str(folder / "views"),
+        "regions_in": f"ipc://{sockdir}/regions.sock",
+        "observations_out": f"ipc://{sockdir}/observations.sock",
+        "diagnostics": beats.endpoint,
+        **extra,
+    }
+
+
 def send(sock: zmq.Socket, frames: list) -> None:
     sock.send_multipart(frames, copy=False)
 

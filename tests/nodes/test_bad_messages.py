@@ -42,6 +42,7 @@ from .conftest import (
     Heartbeats,
     NodeThread,
     Tap,
+    accumulator_params,
     bad_variants,
     image_frame,
     oversized,
@@ -80,17 +81,7 @@ def test_accumulator_counts_bad_regions_and_still_adds_the_valid_view(
     regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
     beats = Heartbeats(ctx)
     observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
-    node = AccumulatorNode(
-        "accumulator",
-        {
-            "map": str(scene / "map" / "point_cloud.ply"),
-            "store": str(tmp_path / "store"),
-            "views": str(tmp_path / "views"),
-            "regions_in": f"ipc://{sockdir}/regions.sock",
-            "observations_out": f"ipc://{sockdir}/observations.sock",
-            "diagnostics": beats.endpoint,
-        },
-    )
+    node = AccumulatorNode("accumulator", accumulator_params(scene, tmp_path, sockdir, beats))
     try:
         with NodeThread(node) as running:
             # in sync once an EndOfStream comes back on the observations topic

@@ -25,7 +25,7 @@ import zmq
 from olsplat_msgs import DiagnosticStatus, EndOfStream, ObservationsAdded, encode
 from tests.helpers import every, wait_for
 
-from .conftest import Heartbeats, Tap, raw_socket, send, send_msg
+from .conftest import Heartbeats, Tap, accumulator_params, raw_socket, send, send_msg
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -65,19 +65,6 @@ def _full_disk(pid: int, room_bytes: int | None) -> None:
     resource.prlimit(pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY if room_bytes is None else room_bytes, hard))
 
 
-def _accumulator_params(scene: Path, folder: Path, sockdir: Path, beats: Heartbeats, **extra) -> dict:
-    """An accumulator over the scene's map with its store and views in ``folder``."""
-    return {
-        "map": str(scene / "map" / "point_cloud.ply"),
-        "store": str(folder / "store"),
-        "views": str(folder / "views"),
-        "regions_in": f"ipc://{sockdir}/regions.sock",
-        "observations_out": f"ipc://{sockdir}/observations.sock",
-        "diagnostics": beats.endpoint,
-        **extra,
-    }
-
-
 def _statuses(beats: Heartbeats) -> list[DiagnosticStatus]:
     beats.poll(50)
     return [m for m in beats.of_type(DiagnosticStatus) if m.node == "accumulator"]
@@ -106,7 +93,7 @@ def test_a_view_the_disk_will_not_take_is_reported_not_acknowledged_and_stored_o
     regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
     beats = Heartbeats(ctx)
     observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
-    params = _accumulator_params(scene, tmp_path, sockdir, beats, features=features)
+    params = accumulator_params(scene, tmp_path, sockdir, beats, features=features)
     node = _start("accumulator", params)
     good = encode(region_features, "regions")
     try:
@@ -309,7 +296,7 @@ def test_the_accumulator_tells_how_many_more_views_its_disk_holds(
     regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
     beats = Heartbeats(ctx)
     observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
-    params = _accumulator_params(scene, tmp_path, sockdir, beats, disk_warn_views=warn_views)
+    params = accumulator_params(scene, tmp_path, sockdir, beats, disk_warn_views=warn_views)
     try:
         with NodeThread(AccumulatorNode("accumulator", params)) as running:
             wait_for(
@@ -362,7 +349,7 @@ def test_the_disk_warning_ends_once_space_is_made_without_new_views(ctx, sockdir
         regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
         beats = Heartbeats(ctx)
         observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
-        params = _accumulator_params(scene, folder, sockdir, beats, disk_warn_views=warn_views)
+        params = accumulator_params(scene, folder, sockdir, beats, disk_warn_views=warn_views)
         try:
             with NodeThread(AccumulatorNode("accumulator", params)) as running:
                 wait_for(

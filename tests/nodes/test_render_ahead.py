@@ -12,7 +12,7 @@ import zmq
 from olsplat_msgs import DiagnosticStatus, ObservationsAdded, encode
 from tests.helpers import every, wait_for
 
-from .conftest import Heartbeats, NodeThread, Tap, image_frame, raw_socket, read_rgb, send
+from .conftest import Heartbeats, NodeThread, Tap, accumulator_params, image_frame, raw_socket, read_rgb, send
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -35,14 +35,7 @@ def test_views_queued_at_the_accumulator_are_rendered_ahead_and_stored_as_each_a
     regions = raw_socket(ctx, zmq.PUB, f"ipc://{sockdir}/regions.sock", bind=True)
     beats = Heartbeats(ctx)
     observations = Tap(ctx, f"ipc://{sockdir}/observations.sock", ["observations"])
-    params = {
-        "map": str(scene / "map" / "point_cloud.ply"),
-        "store": str(tmp_path / "store"),
-        "views": str(tmp_path / "views"),
-        "regions_in": f"ipc://{sockdir}/regions.sock",
-        "observations_out": f"ipc://{sockdir}/observations.sock",
-        "diagnostics": beats.endpoint,
-    }
+    params = accumulator_params(scene, tmp_path, sockdir, beats)
     try:
         with NodeThread(AccumulatorNode("accumulator", params)) as running:
             if not RenderAhead.available():
