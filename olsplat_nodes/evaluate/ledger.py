@@ -13,6 +13,19 @@ therefore recomputes the first run it would reuse (once per tuning, once per eva
 refuses to go on
 (one error naming the entry and both scores) when the fresh score differs by more than
 ``CHECK_TOLERANCE`` mIoU, so stale entries are found at the cost of one run.
+
+**A scene made again on another machine.** ``olsplat sim make`` is deterministic on one machine,
+but two machines' numeric libraries (OpenBLAS's kernels for each CPU, numpy's SIMD paths) can
+round the same command's float64 camera poses in their last bit, so its files, and its digest,
+differ while its images and scores do not (measured: docs/evaluation-protocol.md, "Changes after
+the first held-out run"). The ledger therefore knows a scene by a second name, an alias
+(``ALIASES_FILE``): when a run of a scene that has no alias is computed and not found, the
+entries with the same key but for the scene, and the same label (the scene's folder name and
+the run), are its candidates; if exactly one candidate scores within ``CHECK_TOLERANCE`` of the
+run just computed, its scene is this scene's alias and that scene's entries are reused for this
+one from then on (``saved``). No candidate, or more than one within the tolerance: no alias,
+and the scene's runs are computed as a new scene's. Every alias is written with the run and
+both scores that made it, and the first reuse through it is checked like any other.
 """
 
 from __future__ import annotations
@@ -33,6 +46,9 @@ from ..errors import OlsplatInputError
 CHECK_TOLERANCE = 0.05
 # what runs write into a scene folder: ``olsplat eval``'s default --work and the encodings cache
 SKIPPED_IN_SCENES = {"eval", "cache"}
+# in the ledger's folder: {scene digest here: {"scene": digest of the ledger's entries, "run":
+# the label that matched, "scores": [computed, saved] mIoU, "made": time}} (the module docstring)
+ALIASES_FILE = "scene-aliases.json"
 
 
 def scene_digest(folder: Path) -> str:
@@ -106,7 +122,15 @@ class RunLedger:
 
     def saved(self, key: dict[str, Any]) -> dict | None:
         """The scores saved for ``key``, None when there are none (or the entry is unreadable or
-        made for another key: a name collision is not a match)."""
+        made for another key: a name collision is not a match); failing that, those saved for
+        the same key on the scene's alias (the module docstring), if it has one."""
+        scores = self._entry_scores(key)
+        alias = self.aliases().get(key["scene"]) if scores is None and isinstance(key.get("scene"), str) else None
+        if alias is not None:
+            scores = self._entry_scores({**key, "scene": alias["scene"]})
+        return scores
+
+    def _entry_scores(self, key: dict[str, Any]) -> dict | None:
         if self.folder is None:
             return None
         try:
@@ -117,16 +141,77 @@ class RunLedger:
             return None
         return entry["scores"]
 
-    def scene_counts(self) -> dict[str, int]:
-        """How many runs the ledger holds per scene (``scene_digest``): a long evaluation's progress."""
-        counts: dict[str, int] = {}
+    def aliases(self) -> dict[str, dict]:
+        """{scene digest: its alias record} (``ALIASES_FILE``; {} without one)."""
+        if self.folder is None:
+            return {}
+        try:
+            aliases = json.loads((self.folder / ALIASES_FILE).read_text())
+        except (OSError, ValueError):
+            return {}
+        return aliases if isinstance(aliases, dict) else {}
+
+    def _entries(self):
+        """Every readable entry of the folder: (key, label, scores)."""
         for path in sorted(self.folder.glob("*.json")) if self.folder is not None else []:
             try:
-                scene = json.loads(path.read_text())["key"]["scene"]
+                entry = json.loads(path.read_text())
+                key, label, scores = entry["key"], entry.get("label", ""), entry["scores"]
             except (OSError, ValueError, KeyError, TypeError):
                 continue
-            counts[scene] = counts.get(scene, 0) + 1
-        return counts
+            if isinstance(key, dict) and isinstance(scores, dict):
+                yield key, label, scores
+
+    def _find_alias(self, key: dict[str, Any], label: str, scores: dict) -> None:
+        """Give ``key``'s scene an alias when exactly one entry of another scene has the same key
+        but for the scene and the same ``label`` and scores within ``CHECK_TOLERANCE`` of
+        ``scores`` (this run, just computed); print what was found."""
+        scene = key.get("scene")
+        if self.folder is None or not label or not isinstance(scene, str) or scene in self.aliases():
+            return
+        near, far = [], 0
+        for other, other_label, saved in self._entries():
+            if other_label != label or other.get("scene") == scene or {**other, "scene": scene} != key:
+                continue
+            if not _same_annotations(saved, scores):
+                far += 1
+                continue
+            worst = max(abs(float(scores[m]) - float(saved[m])) for m in ("mIoU", "loc50"))
+            if worst <= CHECK_TOLERANCE:
+                near.append((other["scene"], saved))
+            else:
+                far += 1
+        if len(near) != 1:
+            if near or far:
+                print(f"ledger: {label}: no alias for this scene ({len(near)} entries of other scenes within "
+                      f"{CHECK_TOLERANCE} mIoU, {far} further): its runs are computed")  # fmt: skip
+            return
+        alias, saved = near[0]
+        aliases = self.aliases()
+        aliases[scene] = {
+            "scene": alias,
+            "run": label,
+            "scores": {m: [float(scores[m]), float(saved[m])] for m in ("mIoU", "loc50")},
+            "made": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        }
+        path = self.folder / ALIASES_FILE
+        partial = path.with_name(path.name + ".partial")
+        partial.write_text(json.dumps(aliases, indent=1, sort_keys=True) + "\n")
+        os.replace(partial, path)
+        print(f"ledger: {label} computed here scores mIoU {scores['mIoU']:.2f} / Loc@50 {scores['loc50']:.2f}, its "
+              f"entry on scene {alias[:12]} {saved['mIoU']:.2f} / {saved['loc50']:.2f}: the same scene made on "
+              f"another machine; its entries are reused for this one")  # fmt: skip
+
+    def scene_counts(self) -> dict[str, int]:
+        """How many runs the ledger holds per scene (``scene_digest``): a long evaluation's progress.
+        A scene with an alias counts its alias's runs that it has not made itself too."""
+        made: dict[str, set[str]] = {}
+        for key, _, _ in self._entries():
+            if isinstance(key.get("scene"), str):
+                made.setdefault(key["scene"], set()).add(json.dumps({**key, "scene": ""}, sort_keys=True))
+        for scene, alias in self.aliases().items():
+            made[scene] = made.get(scene, set()) | made.get(alias.get("scene"), set())
+        return {scene: len(runs) for scene, runs in made.items()}
 
     def run(self, key: dict[str, Any], compute: Callable[[], dict], label: str = "") -> tuple[dict, bool]:
         """(scores, reused): the saved scores of ``key``, or ``compute()``'s (a dict with at
@@ -139,6 +224,8 @@ class RunLedger:
             return saved, True
         scores = compute()
         self.computed += 1
+        if saved is None:
+            self._find_alias(key, label, scores)
         if saved is not None:
             self.to_check = False
             worst = max(abs(float(scores[m]) - float(saved[m])) for m in ("mIoU", "loc50"))
@@ -169,6 +256,13 @@ class RunLedger:
         partial = path.with_name(path.name + ".partial")
         partial.write_text(json.dumps(entry, indent=1, sort_keys=True, default=_plain) + "\n")
         os.replace(partial, path)  # whole or not at all
+
+
+def _same_annotations(saved: dict, scores: dict) -> bool:
+    """Whether two runs' scores were counted over the same annotations: the same number of
+    annotated instances and the same queries scored (what a scene made again keeps exactly)."""
+    queries = set(saved.get("per_query") or {}) == set(scores.get("per_query") or {})
+    return queries and saved.get("instances") == scores.get("instances")
 
 
 def _plain(value: Any) -> Any:

@@ -9,7 +9,7 @@ import shutil
 
 import pytest
 
-from olsplat_nodes.evaluate.ledger import LedgerMismatch, RunLedger, run_key, scene_digest
+from olsplat_nodes.evaluate.ledger import ALIASES_FILE, LedgerMismatch, RunLedger, run_key, scene_digest
 from olsplat_nodes.method import MethodParams
 from olsplat_nodes.params import parse_params
 from olsplat_nodes.structure.branch import StructureConfig
@@ -20,7 +20,7 @@ def _method(**values):
 
 
 def _scores(miou: float) -> dict:
-    return {"mIoU": miou, "loc50": 50.0, "per_query": {"road": {"IoU": miou}}}
+    return {"mIoU": miou, "loc50": 50.0, "instances": 12, "per_query": {"road": {"IoU": miou}}}
 
 
 def test_a_scene_is_known_by_its_content_not_its_place(tiny, tmp_path):
@@ -85,3 +85,63 @@ def test_a_saved_run_is_reused_after_one_check_and_a_stale_one_is_refused(tmp_pa
     (tmp_path / "ledger" / stale.path(second).name).write_text("{")  # torn: computed as if absent
     assert RunLedger(tmp_path / "ledger").run(second, compute("second", 70.0), "second") == (_scores(70.0), False)
     assert RunLedger(None).run(first, compute("first", 1.0)) == (_scores(1.0), False)  # no ledger: always run
+
+
+def test_a_scene_made_again_on_another_machine_is_found_by_one_run(tmp_path, capsys):
+    """Scene "here" is "there" made by the same command elsewhere (other last bits of its poses):
+    one run computed here that scores within the tolerance of its entry there makes "there" the
+    alias of "here", and the other runs of "there" are reused (after the usual first check)."""
+    calls: list[str] = []
+
+    def compute(name: str, miou: float):
+        def run() -> dict:
+            calls.append(name)
+            return _scores(miou)
+
+        return run
+
+    def key(scene: str, tau_d: float = 0.1):
+        return run_key(scene, _method(tau_d=tau_d), "a", None, "files", None)
+
+    folder = tmp_path / "ledger"
+    made = RunLedger(folder, check=False)
+    for scene, miou in (("there", 60.0), ("world 2", 64.0)):  # one seed's scene of two worlds
+        made.run(key(scene), compute(scene, miou), "small7 outlangsplat {}")
+        made.run(key(scene, 0.3), compute(scene, miou + 1), "small7 outlangsplat {tau_d: 0.3}")
+    assert RunLedger(folder).scene_counts() == {"there": 2, "world 2": 2}
+
+    here = RunLedger(folder)
+    assert here.run(key("here"), compute("here", 60.02), "small7 outlangsplat {}") == (_scores(60.02), False)
+    assert "the same scene made on another machine" in capsys.readouterr().out
+    alias = json.loads((folder / ALIASES_FILE).read_text())["here"]
+    assert alias["scene"] == "there" and alias["scores"]["mIoU"] == [60.02, 60.0]
+    reused = here.run(key("here", 0.3), compute("here", 61.01), "small7 outlangsplat {tau_d: 0.3}")
+    assert reused == (_scores(61.0), True)
+    assert calls[-2:] == ["here", "here"]  # the alias's first reuse is checked by a run ...
+    assert RunLedger(folder).scene_counts()["here"] == 2  # ... and "here" holds both runs
+    again = RunLedger(folder, check=False)
+    assert again.run(key("here", 0.3), compute("here", 0.0), "x") == (_scores(61.0), True) and again.computed == 0
+
+
+def test_no_alias_without_exactly_one_entry_within_the_tolerance(tmp_path, capsys):
+    def key(scene: str):
+        return run_key(scene, _method(), "a", None, "files", None)
+
+    folder = tmp_path / "ledger"
+    made = RunLedger(folder)
+    for scene, miou in (("one", 60.0), ("two", 60.03), ("far", 70.0)):  # as if made on three machines
+        made._write(key(scene), _scores(miou), "small7 outlangsplat {}")
+    made._write(key("other label"), _scores(80.0), "small8 outlangsplat {}")
+    other_annotations = {**_scores(65.0), "instances": 13}  # a scene of another world: other instances
+    made._write(key("other world"), other_annotations, "small7 outlangsplat {}")
+
+    both = RunLedger(folder)  # two scenes within the tolerance: ambiguous, no alias
+    both.run(key("new"), lambda: _scores(60.01), "small7 outlangsplat {}")
+    assert "no alias for this scene (2 entries" in capsys.readouterr().out
+    assert not (folder / ALIASES_FILE).exists()
+    # none near: "other world" scores 65.0 too, over other annotations
+    RunLedger(folder).run(key("newer"), lambda: _scores(65.0), "small7 outlangsplat {}")
+    assert "(0 entries of other scenes within 0.05 mIoU, 5 further)" in capsys.readouterr().out
+    RunLedger(folder).run(key("newest"), lambda: _scores(80.0), "small9 outlangsplat {}")  # another label
+    assert not (folder / ALIASES_FILE).exists() and RunLedger(folder).aliases() == {}
+    assert RunLedger(folder).scene_counts()["newest"] == 1
