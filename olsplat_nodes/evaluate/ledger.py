@@ -210,7 +210,7 @@ class RunLedger:
             if isinstance(key.get("scene"), str):
                 made.setdefault(key["scene"], set()).add(json.dumps({**key, "scene": ""}, sort_keys=True))
         for scene, alias in self.aliases().items():
-            made[scene] = made.get(scene, set()) | made.get(alias.get("scene"), set())
+            made[scene] = made.get(scene, set()) | made.get(str(alias.get("scene")), set())
         return {scene: len(runs) for scene, runs in made.items()}
 
     def run(self, key: dict[str, Any], compute: Callable[[], dict], label: str = "") -> tuple[dict, bool]:
